@@ -1,0 +1,5 @@
+import sys
+
+from psfd.cli import main
+
+sys.exit(main())

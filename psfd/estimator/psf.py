@@ -1,0 +1,139 @@
+"""The PSF estimate every method returns, and the conventions it keeps.
+
+A PSF is a float64 array on the s-times super-resolved grid of one channel
+plane, odd-sized, centred, summing to 1 (DESIGN.md, "Conventions").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from psfd.estimator import mtf as mtf_metrics
+
+
+@dataclass
+class PSF:
+    """One local PSF estimate with its provenance.
+
+    Attributes
+    ----------
+    psf : ndarray of float64
+        Kernel on the s-times grid, odd size, unit sum.
+    s : int
+        Super-resolution factor.
+    method : str
+        ``bernoulli``, ``two-photo`` or ``sharp-edge``.
+    channel : str
+        Channel plane (``r``, ``g1``, ``g2``, ``b`` or ``mono``).
+    sources : list of str
+        Files the estimate came from.
+    field : (float, float)
+        Normalised (x, y) of the window centre, (0, 0) top-left, (1, 1) bottom-right.
+    window : (int, int, int, int)
+        (x0, y0, x1, y1) of the window on the channel plane, in channel pixels, end exclusive.
+    noise_floor : float or None
+        Expected RMS error of the kernel values from sensor noise,
+        sigma_n * sqrt(trace((A^T A)^-1)) (Delbracio et al., IJCV 2012, sec. 2).
+    residual : float or None
+        RMS of the model residual on the observed samples (data units normalised to [0, 1]).
+    params : dict
+        Estimator parameters (solver, support, grid, ...), stored with the PSF.
+    warnings : list of str
+        Conditions of the method that were only partly met.
+    figures : dict of str to ndarray
+        Extra arrays to show beside the PSF (inter-image kernel, residual image, ...).
+    """
+
+    psf: np.ndarray
+    s: int
+    method: str
+    channel: str
+    sources: list[str]
+    field: tuple[float, float] = (0.5, 0.5)
+    window: tuple[int, int, int, int] = (0, 0, 0, 0)
+    noise_floor: float | None = None
+    residual: float | None = None
+    params: dict[str, Any] = dataclasses.field(default_factory=dict)
+    warnings: list[str] = dataclasses.field(default_factory=list)
+    figures: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+
+    @property
+    def support(self) -> int:
+        return int(self.psf.shape[0])
+
+    def metrics(self) -> dict[str, float]:
+        """MTF50 (cycles per channel pixel) and FWHM (channel pixels) along x and y."""
+        fx, mx, my = mtf_metrics.profiles(self.psf, self.s)
+        fwhm_x, fwhm_y = mtf_metrics.fwhm(self.psf, self.s)
+        return {
+            "mtf50_x": mtf_metrics.mtf50(fx, mx),
+            "mtf50_y": mtf_metrics.mtf50(fx, my),
+            "fwhm_x": fwhm_x,
+            "fwhm_y": fwhm_y,
+        }
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-ready dict: the fields the CLI prints and the catalogue stores."""
+        return {
+            "method": self.method,
+            "source": self.sources[0] if len(self.sources) == 1 else list(self.sources),
+            "channel": self.channel,
+            "s": self.s,
+            "support": self.support,
+            "field_x": float(self.field[0]),
+            "field_y": float(self.field[1]),
+            "window": [int(v) for v in self.window],
+            **self.metrics(),
+            "noise_floor": self.noise_floor,
+            "residual": self.residual,
+            "params": self.params,
+            "warnings": list(self.warnings),
+            "psf": self.psf.tolist(),
+        }
+
+
+def normalise(psf: np.ndarray) -> np.ndarray:
+    """Scale a kernel to unit sum (a PSF conserves energy: its MTF at 0 is 1)."""
+    total = float(np.sum(psf))
+    if not np.isfinite(total) or abs(total) < 1e-12:
+        raise ValueError("kernel has no mass to normalise")
+    return np.asarray(psf, dtype=np.float64) / total
+
+
+def clip_negatives(psf: np.ndarray) -> np.ndarray:
+    """Set negative values to 0 and renormalise (the papers' default projection onto h >= 0)."""
+    return normalise(np.maximum(psf, 0.0))
+
+
+def centroid(psf: np.ndarray) -> tuple[float, float]:
+    """Centre of mass (x, y) of a kernel, in samples from its centre."""
+    rows, cols = psf.shape
+    total = float(np.sum(psf))
+    y, x = np.mgrid[0:rows, 0:cols]
+    return float(np.sum(x * psf) / total - (cols - 1) / 2), float(np.sum(y * psf) / total - (rows - 1) / 2)
+
+
+def field_of_window(window: tuple[int, int, int, int], plane_shape: tuple[int, int]) -> tuple[float, float]:
+    """Normalised field location (x, y) of a window's centre on a plane."""
+    x0, y0, x1, y1 = window
+    rows, cols = plane_shape
+    return ((x0 + x1) / 2 / cols, (y0 + y1) / 2 / rows)
+
+
+def split_grid(
+    bounds: tuple[int, int, int, int], grid: tuple[int, int]
+) -> list[tuple[int, int, int, int]]:
+    """Split a window (x0, y0, x1, y1) into ``grid`` = (nx, ny) local windows, row-major."""
+    x0, y0, x1, y1 = bounds
+    nx, ny = grid
+    if nx < 1 or ny < 1:
+        raise ValueError("grid must be at least 1x1")
+    xs = np.linspace(x0, x1, nx + 1).round().astype(int)
+    ys = np.linspace(y0, y1, ny + 1).round().astype(int)
+    return [
+        (int(xs[i]), int(ys[j]), int(xs[i + 1]), int(ys[j + 1])) for j in range(ny) for i in range(nx)
+    ]

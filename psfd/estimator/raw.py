@@ -1,0 +1,235 @@
+"""Reading frames: RAW files split into Bayer planes, or single-channel images.
+
+Every estimator works on one channel plane at a time, never demosaiced
+(Delbracio et al., IJCV 2012, sec. 5: "each of the four CFA channels is
+processed separately"). A plane keeps its black level subtracted, its white
+level, and a mask of saturated photosites, because clipping breaks the linear
+model v = S_s(u_D * h) + n that every method relies on.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from psfd.errors import BadInputError
+
+CHANNELS = ("r", "g1", "g2", "b")
+MONO = "mono"
+RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw", ".raw"}
+IMAGE_SUFFIXES = {".pgm", ".pnm", ".png", ".tif", ".tiff"}
+
+
+@dataclass
+class Frame:
+    """One channel plane of a photograph.
+
+    Attributes
+    ----------
+    data : ndarray of float64
+        Linear values, black level subtracted.
+    channel : str
+        ``r``, ``g1``, ``g2``, ``b`` for a RAW plane, or the name given to a
+        single-channel image (``mono`` by default).
+    white : float
+        Saturation level in the units of ``data``.
+    saturated : ndarray of bool
+        Photosites at or above the white level.
+    source : str
+        Path of the file the plane came from.
+    offset : tuple of int
+        (row, col) of the plane's first photosite on the full sensor.
+    sensor_shape : tuple of int
+        Shape of the full sensor (for a single-channel image, its own shape).
+    """
+
+    data: np.ndarray
+    channel: str
+    white: float
+    saturated: np.ndarray
+    source: str
+    offset: tuple[int, int] = (0, 0)
+    sensor_shape: tuple[int, int] = field(default=(0, 0))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.data.shape  # type: ignore[return-value]
+
+
+def load_frames(path: str | os.PathLike, channel: str = "all") -> list[Frame]:
+    """Load the requested channel planes of a RAW file or single-channel image.
+
+    Parameters
+    ----------
+    path : path-like
+        A RAW file that LibRaw reads (DNG, CR2, NEF, ARW, ...) or an 8/16-bit
+        single-channel PGM, PNG or TIFF.
+    channel : str
+        ``all``, or one of ``r``, ``g1``, ``g2``, ``b``. For a single-channel
+        image the channel names the plane (``all`` names it ``mono``).
+
+    Returns
+    -------
+    list of Frame
+
+    Raises
+    ------
+    BadInputError
+        Missing, unreadable, truncated or colour (non-RAW) files, or an unknown channel.
+    """
+    path = Path(path)
+    if channel != "all" and channel not in CHANNELS and channel != MONO:
+        raise BadInputError(f"unknown channel {channel!r}: use r, g1, g2, b or all")
+    if not path.is_file():
+        raise BadInputError(f"{path}: no such file")
+    if path.suffix.lower() in IMAGE_SUFFIXES:
+        frame = _load_single_channel(path)
+        if channel != "all":
+            frame.channel = channel
+        return [frame]
+    planes = _load_raw(path)
+    if channel == "all":
+        return [planes[c] for c in CHANNELS if c in planes]
+    if channel not in planes:
+        raise BadInputError(f"{path}: has no {channel} channel (has {', '.join(planes)})")
+    return [planes[channel]]
+
+
+def load_frame(path: str | os.PathLike, channel: str = "g1") -> Frame:
+    """Load one channel plane; see `load_frames`. A single-channel image is named ``channel``."""
+    return load_frames(path, channel)[0]
+
+
+def _load_raw(path: Path) -> dict[str, Frame]:
+    import rawpy  # imported here: LibRaw is only needed for RAW input
+
+    try:
+        with rawpy.imread(str(path)) as raw:
+            mosaic = raw.raw_image_visible.astype(np.float64)
+            colors = raw.raw_colors_visible
+            desc = raw.color_desc.decode("ascii", "replace")
+            blacks = list(raw.black_level_per_channel)
+            white = float(raw.white_level)
+    except (rawpy.LibRawError, OSError, ValueError) as exc:
+        raise BadInputError(f"{path}: not a readable RAW file ({type(exc).__name__})") from None
+    if mosaic.ndim != 2 or min(mosaic.shape) < 4:
+        raise BadInputError(f"{path}: not a Bayer mosaic")
+    planes: dict[str, Frame] = {}
+    greens = 0
+    for dy in (0, 1):
+        for dx in (0, 1):
+            index = int(colors[dy, dx])
+            letter = desc[index].lower() if index < len(desc) else "?"
+            if letter == "g":
+                greens += 1
+                name = f"g{greens}"
+            elif letter in ("r", "b"):
+                name = letter
+            else:
+                raise BadInputError(f"{path}: unsupported colour filter {desc!r}")
+            plane = mosaic[dy::2, dx::2]
+            black = float(blacks[index]) if index < len(blacks) else 0.0
+            planes[name] = Frame(
+                data=plane - black,
+                channel=name,
+                white=white - black,
+                saturated=plane >= white,
+                source=str(path),
+                offset=(dy, dx),
+                sensor_shape=mosaic.shape,
+            )
+    return planes
+
+
+def _load_single_channel(path: Path) -> Frame:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise BadInputError(f"{path}: not a readable image")
+    if image.ndim != 2:
+        raise BadInputError(f"{path}: has {image.shape[2]} colour channels; give one channel or a RAW file")
+    if image.dtype == np.uint8:
+        white = 255.0
+    elif image.dtype == np.uint16:
+        white = float(_pnm_maxval(path) or 65535)
+    else:
+        raise BadInputError(f"{path}: unsupported sample type {image.dtype}; use 8 or 16 bit")
+    data = image.astype(np.float64)
+    return Frame(
+        data=data,
+        channel=MONO,
+        white=white,
+        saturated=data >= white,
+        source=str(path),
+        offset=(0, 0),
+        sensor_shape=data.shape,
+    )
+
+
+def _pnm_maxval(path: Path) -> int | None:
+    """The declared maximum of a PGM/PNM header (16-bit files often use 4095 or 16383)."""
+    if path.suffix.lower() not in (".pgm", ".pnm"):
+        return None
+    with open(path, "rb") as fh:
+        head = fh.read(256)
+    tokens: list[bytes] = []
+    for line in head.split(b"\n"):
+        tokens.extend(line.split(b"#", 1)[0].split())
+        if len(tokens) >= 4:
+            break
+    try:
+        return int(tokens[3])
+    except (IndexError, ValueError):
+        return None
+
+
+def write_dng(
+    path: str | os.PathLike,
+    mosaic: np.ndarray,
+    *,
+    pattern: str = "RGGB",
+    black: int = 0,
+    white: int = 65535,
+    model: str = "psfd simulated camera",
+) -> None:
+    """Write a Bayer mosaic as a minimal uncompressed DNG that LibRaw decodes.
+
+    Parameters
+    ----------
+    path : path-like
+        Output file; written to a temporary name and renamed, so a reader never
+        sees a partial file.
+    mosaic : ndarray of uint16
+        The raw photosite values, black level included.
+    pattern : str
+        The 2x2 CFA pattern in raster order, e.g. ``RGGB``.
+    black, white : int
+        Black and white levels of the raw values.
+    model : str
+        UniqueCameraModel tag.
+    """
+    import tifffile
+
+    mosaic = np.ascontiguousarray(mosaic, dtype=np.uint16)
+    cfa_codes = {"R": 0, "G": 1, "B": 2}
+    identity = [v for i in range(9) for v in ((1, 1) if i % 4 == 0 else (0, 1))]
+    tags = [
+        (50706, "B", 4, (1, 4, 0, 0), True),  # DNGVersion
+        (50707, "B", 4, (1, 1, 0, 0), True),  # DNGBackwardVersion
+        (50708, "s", 0, model, True),  # UniqueCameraModel
+        (33421, "H", 2, (2, 2), True),  # CFARepeatPatternDim
+        (33422, "B", 4, tuple(cfa_codes[c] for c in pattern.upper()), True),  # CFAPattern
+        (50714, "H", 1, int(black), True),  # BlackLevel
+        (50717, "H", 1, int(white), True),  # WhiteLevel
+        (50721, "2i", 9, identity, True),  # ColorMatrix1 (identity: values stay raw)
+    ]
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.part")
+    try:
+        tifffile.imwrite(tmp, mosaic, photometric=32803, compression=None, extratags=tags, subfiletype=0)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)

@@ -1,0 +1,104 @@
+"""The published Bernoulli calibration target: layout and cell values.
+
+Layout in pattern-cell units (one cell = one noise value; cell (i, j) covers
+[i, i+1) x [j, j+1), x to the right, y down). A 10 x 10 grid of 32-cell blocks;
+the central 8 x 8 blocks hold the 256 x 256 Bernoulli(0.5) noise and the ring
+of 36 border blocks holds 12 X-corners, 12 black and 12 white flat squares
+(Delbracio et al., IJCV 2012, sec. 3.3, Fig. 5; Delbracio PhD thesis 2013, App. A.1).
+"""
+
+from __future__ import annotations
+
+import os
+from importlib import resources
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from psfd.errors import BadInputError
+
+BLOCK = 32  # cells per block side
+BLOCKS = 10  # blocks per target side
+SIZE = BLOCK * BLOCKS  # 320 cells
+NOISE = 256  # noise cells per side
+NOISE_START = BLOCK  # first noise cell (32)
+NOISE_STOP = NOISE_START + NOISE  # one past the last noise cell (288)
+
+# Block indices (bx, by). The order of XCORNER_BLOCKS is the order of detected corners.
+XCORNER_BLOCKS = ((9, 9), (9, 6), (9, 3), (9, 0), (6, 0), (3, 0), (0, 0), (0, 3), (0, 6), (0, 9), (3, 9), (6, 9))
+BLACK_BLOCKS = ((9, 8), (9, 5), (9, 2), (8, 0), (5, 0), (2, 0), (0, 2), (0, 5), (0, 8), (2, 9), (5, 9), (8, 9))
+WHITE_BLOCKS = ((9, 7), (9, 4), (9, 1), (7, 0), (4, 0), (1, 0), (0, 1), (0, 4), (0, 7), (1, 9), (4, 9), (7, 9))
+# (9, 9) is the only X-corner flanked by two black squares: it fixes the orientation.
+ORIENTATION_CORNER = (9, 9)
+
+
+def block_centre(block: tuple[int, int]) -> tuple[float, float]:
+    """Centre (x, y) of a block in cell coordinates."""
+    bx, by = block
+    return (BLOCK * bx + BLOCK / 2, BLOCK * by + BLOCK / 2)
+
+
+def xcorner_points() -> np.ndarray:
+    """(12, 2) array of the X-corner saddle points (x, y) in cell coordinates."""
+    return np.array([block_centre(b) for b in XCORNER_BLOCKS], dtype=np.float64)
+
+
+def default_noise() -> np.ndarray:
+    """The published 256 x 256 noise (0 black, 1 white), shipped as ``pattern_noise.pgm``."""
+    with resources.as_file(resources.files("psfd") / "data" / "pattern_noise.pgm") as path:
+        return load_noise(path)
+
+
+def load_noise(path: str | os.PathLike) -> np.ndarray:
+    """Read a 256 x 256 noise realisation from an image (dark = 0, light = 1)."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None or image.ndim != 2:
+        raise BadInputError(f"{path}: not a single-channel noise pattern image")
+    if image.shape != (NOISE, NOISE):
+        raise BadInputError(f"{path}: noise pattern must be {NOISE}x{NOISE} cells, got {image.shape[1]}x{image.shape[0]}")
+    return (image.astype(np.float64) > image.max() / 2).astype(np.float64)
+
+
+def seeded_noise(seed: int) -> np.ndarray:
+    """A new 256 x 256 Bernoulli(0.5) realisation, reproducible from ``seed``."""
+    rng = np.random.default_rng(seed)
+    return rng.integers(0, 2, size=(NOISE, NOISE)).astype(np.float64)
+
+
+def save_noise(noise: np.ndarray, path: str | Path) -> None:
+    """Write a noise realisation as an 8-bit PGM (0 black, 255 white), the published format."""
+    if not cv2.imwrite(str(path), (np.asarray(noise) > 0.5).astype(np.uint8) * 255):
+        raise BadInputError(f"{path}: cannot write noise pattern")
+
+
+def cells(noise: np.ndarray | None = None, supersample: int = 1) -> np.ndarray:
+    """Reflectance of the whole target on a grid of ``supersample`` pixels per cell.
+
+    Parameters
+    ----------
+    noise : ndarray (256, 256), optional
+        Noise values in {0, 1}; the published realisation by default.
+    supersample : int
+        Pixels per cell side. The hourglass X-corner marks are exact only at
+        the cell level when supersample is 1 (their edges are diagonal), so
+        renderers use 8 or more.
+
+    Returns
+    -------
+    ndarray of float64, (320 * supersample, 320 * supersample), 0 black and 1 white.
+    """
+    noise = default_noise() if noise is None else np.asarray(noise, dtype=np.float64)
+    n = int(supersample)
+    out = np.ones((SIZE * n, SIZE * n), dtype=np.float64)
+    out[NOISE_START * n : NOISE_STOP * n, NOISE_START * n : NOISE_STOP * n] = np.kron(noise, np.ones((n, n)))
+    for bx, by in BLACK_BLOCKS:
+        out[by * BLOCK * n : (by + 1) * BLOCK * n, bx * BLOCK * n : (bx + 1) * BLOCK * n] = 0.0
+    # Hourglass: black triangles on the top and bottom edges, apexes at the block centre.
+    side = BLOCK * n
+    v, u = (np.mgrid[0:side, 0:side] + 0.5) / side - 0.5  # block-local, centre at 0
+    hourglass = np.abs(u) < np.abs(v)
+    for bx, by in XCORNER_BLOCKS:
+        block = out[by * side : (by + 1) * side, bx * side : (bx + 1) * side]
+        block[hourglass] = 0.0
+    return out
