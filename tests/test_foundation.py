@@ -1,0 +1,224 @@
+"""Shared building blocks: frame input, resampling, MTF figures, the PSF record, the target layout."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from psfd.errors import BadInputError
+from psfd.estimator import mtf, psf, raw, resample, target
+
+
+def _gaussian(sigma_px: float, s: int = 4, support: int = 33) -> np.ndarray:
+    r = np.arange(support) - support // 2
+    g = np.exp(-(r[None, :] ** 2 + r[:, None] ** 2) / (2 * (sigma_px * s) ** 2))
+    return g / g.sum()
+
+
+# --- frames -------------------------------------------------------------------------------
+
+
+def test_dng_round_trip_splits_bayer_planes_and_marks_saturation(tmp_path):
+    rng = np.random.default_rng(1)
+    mosaic = rng.integers(600, 4000, (40, 60)).astype(np.uint16)
+    mosaic[2, 2] = 4095  # an R photosite at the white level
+    path = tmp_path / "x.dng"
+    raw.write_dng(path, mosaic, pattern="RGGB", black=512, white=4095)
+    planes = {f.channel: f for f in raw.load_frames(path)}
+    assert list(planes) == ["r", "g1", "g2", "b"]
+    offsets = {"r": (0, 0), "g1": (0, 1), "g2": (1, 0), "b": (1, 1)}
+    for name, (dy, dx) in offsets.items():
+        np.testing.assert_array_equal(planes[name].data, mosaic[dy::2, dx::2].astype(float) - 512)
+        assert planes[name].offset == (dy, dx)
+        assert planes[name].white == 4095 - 512
+        assert planes[name].sensor_shape == (40, 60)
+    assert planes["r"].saturated[1, 1] and planes["r"].saturated.sum() == 1
+    assert raw.load_frame(path, "b").channel == "b"
+
+
+def test_other_cfa_phases_keep_their_names(tmp_path):
+    mosaic = np.arange(64 * 64, dtype=np.uint16).reshape(64, 64) + 100
+    path = tmp_path / "g.dng"
+    raw.write_dng(path, mosaic, pattern="GBRG")
+    planes = {f.channel: f.offset for f in raw.load_frames(path)}
+    assert planes == {"g1": (0, 0), "b": (0, 1), "r": (1, 0), "g2": (1, 1)}
+
+
+def test_pgm_is_one_plane_named_by_the_caller(data_dir):
+    frame = raw.load_frame(data_dir / "img_example.pgm", "g1")
+    assert frame.channel == "g1" and frame.shape == (292, 328) and frame.white == 255
+    assert raw.load_frames(data_dir / "img_example.pgm")[0].channel == "mono"
+
+
+def test_sixteen_bit_pgm_white_level_comes_from_its_header(tmp_path):
+    path = tmp_path / "w.pgm"
+    body = np.full((4, 5), 4095, dtype=">u2")
+    path.write_bytes(b"P5\n5 4\n4095\n" + body.tobytes())
+    frame = raw.load_frame(path, "mono")
+    assert frame.white == 4095 and frame.saturated.all()
+
+
+@pytest.mark.parametrize(
+    "name, content, message",
+    [
+        ("notes.pgm", b"this is not an image", "not a readable image"),
+        ("notes.dng", b"II*\x00garbage", "not a readable RAW file"),
+    ],
+)
+def test_unreadable_files_are_bad_input(tmp_path, name, content, message):
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(BadInputError, match=message):
+        raw.load_frames(path)
+
+
+def test_truncated_dng_is_bad_input(tmp_path):
+    path = tmp_path / "full.dng"
+    raw.write_dng(path, np.full((64, 64), 1000, dtype=np.uint16))
+    cut = tmp_path / "cut.dng"
+    cut.write_bytes(path.read_bytes()[:2000])
+    with pytest.raises(BadInputError, match="cut.dng"):
+        raw.load_frames(cut)
+
+
+def test_missing_file_and_unknown_channel(tmp_path, data_dir):
+    with pytest.raises(BadInputError, match="no such file"):
+        raw.load_frames(tmp_path / "nope.dng")
+    with pytest.raises(BadInputError, match="unknown channel"):
+        raw.load_frames(data_dir / "img_example.pgm", "green")
+
+
+def test_colour_image_is_refused(tmp_path):
+    import cv2
+
+    path = tmp_path / "rgb.png"
+    cv2.imwrite(str(path), np.zeros((8, 8, 3), np.uint8))
+    with pytest.raises(BadInputError, match="colour channels"):
+        raw.load_frames(path)
+
+
+def test_write_dng_leaves_no_partial_file_on_failure(tmp_path):
+    with pytest.raises(Exception):
+        raw.write_dng(tmp_path / "x.dng", np.zeros((4, 4, 4), dtype=np.uint16), pattern="RGXB")
+    assert list(tmp_path.iterdir()) == []
+
+
+# --- resampling -----------------------------------------------------------------------------
+
+
+def test_keys_bicubic_interpolates_samples_and_reproduces_quadratics():
+    rng = np.random.default_rng(0)
+    image = rng.random((20, 30))
+    yy, xx = np.mgrid[0:20, 0:30].astype(float)
+    at_samples = resample.keys_bicubic(image, xx, yy)
+    valid = ~np.isnan(at_samples)
+    np.testing.assert_allclose(at_samples[valid], image[valid], atol=1e-12)
+    # Keys (1981): with a = -0.5 the kernel reproduces polynomials up to degree 2 exactly.
+    quad = 0.01 * xx**2 - 0.02 * xx * yy + 0.3 * yy
+    x, y = xx[3:-4, 3:-4] + 0.37, yy[3:-4, 3:-4] + 0.61
+    np.testing.assert_allclose(
+        resample.keys_bicubic(quad, x, y), 0.01 * x**2 - 0.02 * x * y + 0.3 * y, atol=1e-10
+    )
+    assert np.isnan(resample.keys_bicubic(image, np.array([0.5]), np.array([5.0]))[0])
+
+
+def test_keys_weights_sum_to_one():
+    t = np.linspace(0, 0.999, 50)
+    np.testing.assert_allclose(resample.keys_weights(t).sum(axis=-1), 1.0, atol=1e-12)
+
+
+def test_dct_lowpass_keeps_low_and_removes_high_frequencies():
+    n = 64
+    x = np.arange(n)
+    low = np.cos(np.pi * 3 * (x + 0.5) / n)  # DCT-II basis function 3
+    high = np.cos(np.pi * 40 * (x + 0.5) / n)
+    image = np.add.outer(low + high, np.zeros(n))
+    out = resample.dct_lowpass(image, (20, 20))
+    np.testing.assert_allclose(out, np.add.outer(low, np.zeros(n)), atol=1e-10)
+
+
+def test_erode_shrinks_a_mask_by_radius():
+    mask = np.zeros((20, 20), bool)
+    mask[5:15, 5:15] = True
+    eroded = resample.erode(mask, 2)
+    assert eroded.sum() == 6 * 6 and eroded[7:13, 7:13].all()
+
+
+# --- MTF and the PSF record -------------------------------------------------------------------
+
+
+def test_gaussian_mtf50_and_fwhm_match_closed_forms():
+    sigma = 0.6  # channel pixels
+    kernel = _gaussian(sigma)
+    freqs, mx, my = mtf.profiles(kernel, 4)
+    # MTF of a Gaussian: exp(-2 pi^2 sigma^2 f^2) = 0.5 at f = sqrt(ln 2 / 2) / (pi sigma)
+    assert mtf.mtf50(freqs, mx) == pytest.approx(np.sqrt(np.log(2) / 2) / (np.pi * sigma), rel=2e-3)
+    assert mtf.mtf50(freqs, my) == pytest.approx(mtf.mtf50(freqs, mx))
+    fx, fy = mtf.fwhm(kernel, 4)
+    assert fx == pytest.approx(2 * np.sqrt(2 * np.log(2)) * sigma, rel=0.01)
+    f2, m2 = mtf.mtf2d(kernel, 4)
+    assert m2[len(f2) // 2, len(f2) // 2] == pytest.approx(1.0)
+    assert f2.min() == pytest.approx(-2.0)
+
+
+def test_psf_record_to_json_has_the_documented_fields():
+    record = psf.PSF(_gaussian(0.5, support=17), 4, "bernoulli", "g1", ["a.dng"], field=(0.25, 0.75))
+    out = record.to_json()
+    for key in ("method", "source", "channel", "s", "support", "field_x", "field_y", "psf", "mtf50_x", "mtf50_y"):
+        assert key in out
+    assert out["support"] == 17 and out["source"] == "a.dng" and len(out["psf"]) == 17
+
+
+def test_psf_helpers():
+    k = np.zeros((5, 5))
+    k[2, 3] = 2.0
+    k[2, 1] = -1.0
+    clipped = psf.clip_negatives(k)
+    assert clipped.sum() == pytest.approx(1.0) and clipped.min() == 0
+    assert psf.centroid(clipped) == pytest.approx((1.0, 0.0))
+    with pytest.raises(ValueError):
+        psf.normalise(np.zeros((3, 3)))
+    windows = psf.split_grid((0, 0, 100, 60), (2, 3))
+    assert windows[0] == (0, 0, 50, 20) and windows[-1] == (50, 40, 100, 60) and len(windows) == 6
+    assert psf.field_of_window((50, 40, 100, 60), (60, 100)) == pytest.approx((0.75, 50 / 60))
+
+
+# --- target layout ------------------------------------------------------------------------------
+
+
+def test_target_layout_matches_the_published_pattern():
+    noise = target.default_noise()
+    assert noise.shape == (256, 256) and set(np.unique(noise)) == {0.0, 1.0}
+    assert abs(noise.mean() - 0.5) < 0.01
+    raster = target.cells(noise, supersample=4)
+    assert raster.shape == (1280, 1280)
+    np.testing.assert_array_equal(raster[32 * 4 : 288 * 4 : 4, 32 * 4 : 288 * 4 : 4], noise)
+    for bx, by in target.BLACK_BLOCKS:
+        assert raster[(32 * by + 16) * 4, (32 * bx + 16) * 4] == 0
+    for bx, by in target.WHITE_BLOCKS:
+        assert raster[(32 * by + 16) * 4, (32 * bx + 16) * 4] == 1
+    for bx, by in target.XCORNER_BLOCKS:
+        cy, cx = (32 * by + 16) * 4, (32 * bx + 16) * 4
+        # hourglass: black above and below the saddle, white left and right
+        assert raster[cy - 40, cx] == 0 and raster[cy + 40, cx] == 0
+        assert raster[cy, cx - 40] == 1 and raster[cy, cx + 40] == 1
+    # (9, 9) is the only X-corner with two black neighbours in the ring
+    black = set(target.BLACK_BLOCKS)
+
+    def black_neighbours(block):
+        bx, by = block
+        return len({(bx - 1, by), (bx + 1, by), (bx, by - 1), (bx, by + 1)} & black)
+
+    flanked = [b for b in target.XCORNER_BLOCKS if black_neighbours(b) == 2]
+    assert flanked == [target.ORIENTATION_CORNER]
+
+
+def test_seeded_noise_is_reproducible_and_round_trips(tmp_path):
+    a = target.seeded_noise(7)
+    np.testing.assert_array_equal(a, target.seeded_noise(7))
+    assert not np.array_equal(a, target.seeded_noise(8))
+    target.save_noise(a, tmp_path / "n.pgm")
+    np.testing.assert_array_equal(target.load_noise(tmp_path / "n.pgm"), a)
+    target.save_noise(np.zeros((10, 10)), tmp_path / "small.pgm")
+    with pytest.raises(BadInputError, match="256x256"):
+        target.load_noise(tmp_path / "small.pgm")
