@@ -1,5 +1,99 @@
 """Hardware drivers behind small protocols, and the fakes that replace them in tests."""
 
-from psfd.drivers.base import Camera, CameraInfo, Position, Rail
+from __future__ import annotations
 
-__all__ = ["Camera", "CameraInfo", "Position", "Rail"]
+from psfd.drivers.base import Camera, CameraInfo, Position, Rail
+from psfd.errors import BadInputError
+
+__all__ = ["Camera", "CameraInfo", "Position", "Rail", "open_camera", "open_rail", "open_rig"]
+
+# Keys of a plan's [rig] table: for the simulated rig, and for real hardware.
+_SIM_KEYS = ("scene", "seed", "sensor", "pitch_um", "focal_mm", "cell_mm", "texture_mm", "s", "support",
+             "corner_aberration", "exposure", "limits")
+_REAL_KEYS = ("camera_port", "timeout", "rail_port", "rail_limits", "rail_baudrate", "rail_feed", "rail_timeout")
+
+
+def open_rig(config: dict) -> tuple[Camera, Rail]:
+    """Camera and rail described by a plan's ``[rig]`` table.
+
+    Parameters
+    ----------
+    config : dict
+        One of
+        ``{"simulate": true, "scene": "bernoulli", "seed": 0, ...}`` (the simulated rig, sharing one state),
+        ``{"recording": "DIR"}`` (replay of a recorded session, in its recorded order),
+        ``{"camera_port": "usb:001,005" or absent (auto-detect), "rail_port": "/dev/ttyUSB0",
+        "rail_limits": {"x": [0, 500]}, "rail_baudrate": 115200, "rail_feed": 1000, "timeout": 10}``.
+
+    Returns
+    -------
+    (Camera, Rail)
+    """
+    config = dict(config or {})
+    if config.get("recording"):
+        from psfd.drivers.recording import open_replay
+
+        return open_replay(config["recording"])
+    if config.get("simulate"):
+        rig = _sim_rig(config)
+        return rig.camera, rig.rail
+    if not config.get("rail_port"):
+        raise BadInputError("rig needs rail_port (or simulate = true, or recording = DIR)")
+    camera = open_camera(config)
+    try:
+        return camera, open_rail(config)
+    except BaseException:
+        camera.close()
+        raise
+
+
+def open_camera(config: dict) -> Camera:
+    """Only the camera of a rig description (see `open_rig`)."""
+    config = dict(config or {})
+    if config.get("recording"):
+        from psfd.drivers.recording import RecordingCamera
+
+        return RecordingCamera(config["recording"])
+    if config.get("simulate"):
+        return _sim_rig(config).camera
+    from psfd.drivers.gphoto import GPhotoCamera  # imported here: gphoto2 is only needed for a real camera
+
+    timeout = float(config.get("timeout", 10.0))
+    return GPhotoCamera(port=config.get("camera_port") or None, timeout=timeout)
+
+
+def open_rail(config: dict) -> Rail:
+    """Only the rail of a rig description (see `open_rig`)."""
+    config = dict(config or {})
+    if config.get("recording"):
+        from psfd.drivers.recording import RecordingRail
+
+        return RecordingRail(config["recording"])
+    if config.get("simulate"):
+        return _sim_rig(config).rail
+    if not config.get("rail_port"):
+        raise BadInputError("rig needs rail_port (or simulate = true, or recording = DIR)")
+    from psfd.drivers.grbl import GrblRail
+
+    return GrblRail(
+        config["rail_port"],
+        baudrate=int(config.get("rail_baudrate", 115200)),
+        timeout=float(config.get("rail_timeout", 2.0)),
+        limits=config.get("rail_limits"),
+        feed=float(config.get("rail_feed", 1000.0)),
+    )
+
+
+def _sim_rig(config: dict):
+    from psfd.drivers.sim import SimRig
+
+    options = {k: config[k] for k in _SIM_KEYS if k in config}
+    if "rail_limits" in config and "limits" not in options:
+        options["limits"] = config["rail_limits"]
+    unknown = set(config) - set(_SIM_KEYS) - set(_REAL_KEYS) - {"simulate"}
+    if unknown:
+        raise BadInputError(f"unknown simulated rig option(s): {', '.join(sorted(unknown))}")
+    try:
+        return SimRig(**options)
+    except (TypeError, ValueError) as exc:
+        raise BadInputError(f"bad simulated rig option: {exc}") from None

@@ -1,0 +1,711 @@
+"""The PSF catalogue: one SQLite file holding rigs, runs, steps, frames and PSFs.
+
+The catalogue owns all SQL of psfd. It is opened in WAL mode so that readers
+(``psfd query``, a deblurring program) never block the daemon writing, and every
+write is one transaction, so a reader never sees half of a step: either all the
+frames and PSFs of a step and its ``done`` state, or none of them. That is what
+lets the daemon resume after a crash with no PSF lost and none stored twice.
+
+The schema is versioned with ``PRAGMA user_version``: ``MIGRATIONS[i]`` takes a
+catalogue from version ``i`` to ``i + 1`` inside one transaction.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import json
+import math
+import os
+import sqlite3
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import sqlite_utils
+
+from psfd import __version__
+from psfd.drivers.base import CameraInfo
+from psfd.errors import BadInputError, CatalogueError
+from psfd.estimator.psf import PSF
+
+STEP_STATES = ("pending", "running", "done", "failed")
+RUN_STATES = ("running", "done", "paused", "cancelled", "failed")
+# Two f-numbers within 1 % are the same aperture (cameras report 5.6 for f/5.66).
+APERTURE_TOLERANCE = 0.01
+
+
+@dataclass
+class FrameRecord:
+    """A RAW file a step captured: where it is, its hash, how it was taken."""
+
+    path: str
+    sha256: str
+    settings: dict
+    rail: dict
+    taken_at: str
+
+
+@dataclass
+class QueryResult:
+    """PSF rows (metadata, no arrays) and a note when the asked aperture was replaced."""
+
+    rows: list[dict] = field(default_factory=list)
+    note: str | None = None
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __iter__(self) -> Iterator[dict]:
+        return iter(self.rows)
+
+
+def default_path() -> Path:
+    """The user's catalogue: ``$XDG_DATA_HOME/psfd/catalogue.sqlite``, else ``~/.local/share/psfd/...``.
+
+    A relative or empty ``XDG_DATA_HOME`` is ignored, as the XDG base directory
+    specification requires.
+    """
+    base = os.environ.get("XDG_DATA_HOME", "")
+    root = Path(base) if base and os.path.isabs(base) else Path.home() / ".local" / "share"
+    return root / "psfd" / "catalogue.sqlite"
+
+
+def parse_fnumber(value: Any) -> float | None:
+    """f-number from a camera setting or user input: ``5.6``, ``"f/5.6"``, ``"F5.6"``; None if absent."""
+    if value is None or value == "":
+        return None
+    text = str(value).strip().lower().removeprefix("f/").removeprefix("f")
+    try:
+        number = float(text)
+    except ValueError:
+        raise BadInputError(f"not an f-number: {value!r}") from None
+    if not math.isfinite(number) or number <= 0:
+        raise BadInputError(f"not an f-number: {value!r}")
+    return number
+
+
+def _lenient_fnumber(value: Any) -> float | None:
+    """f-number of a camera's own setting, None when it is not a number (``"implicit auto"``)."""
+    try:
+        return parse_fnumber(value)
+    except BadInputError:
+        return None
+
+
+# ---------------------------------------------------------------------------
+# Schema and migrations
+
+
+def _v1_tables(db: sqlite_utils.Database) -> None:
+    """Version 1: the six tables and the uniqueness the writers rely on."""
+    db["rigs"].create(
+        {"id": int, "model": str, "serial": str, "lens": str, "focal_length_mm": float, "created": str},
+        pk="id",
+        not_null={"model", "serial", "lens"},
+    )
+    db["rigs"].create_index(["model", "serial", "lens"], unique=True)
+    db["runs"].create(
+        {
+            "id": int, "rig_id": int, "plan_path": str, "plan_text": str, "plan_hash": str,
+            "started": str, "finished": str, "state": str,
+        },
+        pk="id",
+        foreign_keys=[("rig_id", "rigs", "id")],
+        not_null={"plan_text", "plan_hash", "state"},
+    )
+    db["steps"].create(
+        {
+            "id": int, "run_id": int, "key": str, "position": int, "state": str, "payload": str,
+            "reason": str, "attempts": int, "updated": str,
+        },
+        pk="id",
+        foreign_keys=[("run_id", "runs", "id")],
+        not_null={"run_id", "key", "position", "state", "attempts"},
+        defaults={"attempts": 0},
+    )
+    db["steps"].create_index(["run_id", "key"], unique=True)
+    db["frames"].create(
+        {
+            "id": int, "path": str, "sha256": str, "settings": str, "aperture": float, "rail": str,
+            "taken_at": str,
+        },
+        pk="id",
+        not_null={"path", "sha256"},
+    )
+    db["frames"].create_index(["sha256"], unique=True)
+    db["psfs"].create(
+        {
+            "id": int, "rig_id": int, "run_id": int, "step_id": int,
+            "method": str, "channel": str, "aperture": float, "focal_length_mm": float,
+            "focus_distance_m": float, "field_x": float, "field_y": float,
+            "window_x0": int, "window_y0": int, "window_x1": int, "window_y1": int,
+            "s": int, "support": int, "psf": bytes,
+            "mtf50_x": float, "mtf50_y": float, "fwhm_x": float, "fwhm_y": float,
+            "noise_floor": float, "residual": float, "params": str, "psfd_version": str,
+            "warnings": str, "sources": str, "created": str,
+        },
+        pk="id",
+        foreign_keys=[("rig_id", "rigs", "id"), ("run_id", "runs", "id"), ("step_id", "steps", "id")],
+        not_null={"method", "channel", "field_x", "field_y", "s", "support", "psf"},
+    )
+    db["psf_frames"].create(
+        {"psf_id": int, "frame_id": int},
+        pk=("psf_id", "frame_id"),
+        foreign_keys=[("psf_id", "psfs", "id"), ("frame_id", "frames", "id")],
+    )
+
+
+def _v2_query_indexes(db: sqlite_utils.Database) -> None:
+    """Version 2: indexes for the queries (by aperture/channel/method, per run, per step, per frame)."""
+    db["psfs"].create_index(["aperture", "channel", "method"])
+    db["psfs"].create_index(["rig_id"])
+    db["psfs"].create_index(["run_id"])
+    db["psfs"].create_index(["step_id"])
+    db["psf_frames"].create_index(["frame_id"])
+    db["steps"].create_index(["run_id", "state"])
+    db["runs"].create_index(["plan_hash"])
+
+
+MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [_v1_tables, _v2_query_indexes]
+SCHEMA_VERSION = len(MIGRATIONS)
+
+
+# ---------------------------------------------------------------------------
+# Helpers
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def _real(value: Any) -> float | None:
+    """A float for a REAL column; NaN (e.g. MTF50 of a kernel that never falls to 0.5) becomes NULL."""
+    if value is None:
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def _npy(array: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, np.ascontiguousarray(array, dtype=np.float64), allow_pickle=False)
+    return buffer.getvalue()
+
+
+def _from_npy(blob: bytes) -> np.ndarray:
+    return np.load(io.BytesIO(blob), allow_pickle=False)
+
+
+def _stops(a: float, b: float) -> float:
+    """Distance between two f-numbers in stops (f-numbers form a geometric scale)."""
+    return abs(2.0 * math.log2(a / b))
+
+
+# Metadata columns of a PSF row; the array is read only by Catalogue.psf().
+_ROW_SQL = """
+SELECT p.id, p.method, p.channel, p.aperture, p.focal_length_mm, p.focus_distance_m,
+       p.field_x, p.field_y, p.window_x0, p.window_y0, p.window_x1, p.window_y1, p.s, p.support,
+       p.mtf50_x, p.mtf50_y, p.fwhm_x, p.fwhm_y, p.noise_floor, p.residual, p.params,
+       p.psfd_version, p.warnings, p.sources, p.created, p.rig_id, p.run_id,
+       st.key AS step, r.model AS camera, r.serial, r.lens
+FROM psfs p LEFT JOIN rigs r ON r.id = p.rig_id LEFT JOIN steps st ON st.id = p.step_id
+"""
+
+
+def _row(raw: dict) -> dict:
+    row = dict(raw)
+    row["window"] = [row.pop(k) for k in ("window_x0", "window_y0", "window_x1", "window_y1")]
+    for key in ("params", "warnings", "sources"):
+        row[key] = json.loads(row[key]) if row[key] else ({} if key == "params" else [])
+    return row
+
+
+class Catalogue:
+    """The SQLite catalogue of rigs, runs, steps, frames and PSFs.
+
+    Parameters
+    ----------
+    path : str or Path
+        The SQLite file. Created (with its folder) when missing, unless ``create`` is False.
+    create : bool
+        False for readers: a missing file raises CatalogueError instead of creating an empty catalogue.
+    timeout : float
+        Seconds a writer waits for another writer's lock (SQLite busy timeout).
+
+    The connection may be shared between threads; calls are serialised by a lock.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, create: bool = True, timeout: float = 30.0) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            if not create:
+                raise CatalogueError(f"no catalogue at {self.path}")
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        elif self.path.is_dir():
+            raise CatalogueError(f"{self.path} is a folder, not a catalogue file")
+        self._lock = threading.RLock()
+        conn = sqlite3.connect(str(self.path), timeout=timeout, check_same_thread=False)
+        self.db = sqlite_utils.Database(conn)
+        try:
+            self.db.execute(f"PRAGMA busy_timeout = {int(timeout * 1000)}")
+            self.db.execute("PRAGMA foreign_keys = ON")
+            self._check_is_catalogue(create)
+            self.db.enable_wal()
+            self._migrate()
+        except sqlite3.DatabaseError as exc:
+            self.db.close()
+            raise CatalogueError(f"{self.path} is not a psfd catalogue ({exc})") from None
+        except BaseException:
+            self.db.close()
+            raise
+
+    # -- connection and transactions ---------------------------------------
+
+    def close(self) -> None:
+        """Close the connection (the WAL is checkpointed by SQLite when the last one closes)."""
+        with self._lock:
+            self.db.close()
+
+    def __enter__(self) -> Catalogue:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @contextlib.contextmanager
+    def _write(self) -> Iterator[sqlite_utils.Database]:
+        """One write transaction. IMMEDIATE takes the write lock up front, so two writers
+        queue on the busy timeout instead of failing on a read-to-write upgrade."""
+        with self._lock:
+            if self.db.conn.in_transaction:
+                raise CatalogueError("nested catalogue transaction")
+            try:
+                self.db.execute("BEGIN IMMEDIATE")
+            except sqlite3.OperationalError as exc:  # busy timeout ran out, read-only file, ...
+                raise CatalogueError(f"cannot write to {self.path}: {exc}") from None
+            try:
+                yield self.db
+                self.db.execute("COMMIT")
+            except BaseException:
+                self.db.rollback()
+                raise
+
+    @contextlib.contextmanager
+    def _read(self) -> Iterator[sqlite_utils.Database]:
+        """A read transaction: every SELECT inside sees the same snapshot."""
+        with self._lock:
+            if self.db.conn.in_transaction:
+                yield self.db
+                return
+            self.db.execute("BEGIN")
+            try:
+                yield self.db
+            finally:
+                self.db.rollback()
+
+    def _check_is_catalogue(self, create: bool) -> None:
+        """Refuse, before writing anything to it, a file that is not (and may not become) a catalogue."""
+        if self.schema_version() > 0:
+            return
+        if self.db.table_names():
+            raise CatalogueError(f"{self.path} is a SQLite file but not a psfd catalogue")
+        if not create:
+            raise CatalogueError(f"{self.path} is empty, not a psfd catalogue")
+
+    def _migrate(self) -> None:
+        version = self.schema_version()
+        while version < SCHEMA_VERSION:
+            with self._write() as db:
+                # Re-read inside the lock: another process may have migrated meanwhile.
+                version = self.schema_version()
+                if version < SCHEMA_VERSION:
+                    MIGRATIONS[version](db)
+                    version += 1
+                    db.execute(f"PRAGMA user_version = {version}")
+        if version > SCHEMA_VERSION:
+            raise CatalogueError(
+                f"{self.path} has schema version {version}, newer than this psfd "
+                f"({SCHEMA_VERSION}); upgrade psfd"
+            )
+
+    def schema_version(self) -> int:
+        """The catalogue's ``PRAGMA user_version``."""
+        return int(self.db.execute("PRAGMA user_version").fetchone()[0])
+
+    def integrity_check(self) -> list[str]:
+        """Problems found (empty when sound): SQLite's own check, foreign keys, and PSFs of unfinished steps.
+
+        A PSF whose step is not ``done`` would mean a step was half committed.
+        """
+        with self._read() as db:
+            problems = [r[0] for r in db.execute("PRAGMA integrity_check").fetchall() if r[0] != "ok"]
+            problems += [
+                f"foreign key: {table} row {rowid} -> {parent}"
+                for table, rowid, parent, _ in db.execute("PRAGMA foreign_key_check").fetchall()
+            ]
+            problems += [
+                f"psf {r['id']} belongs to step {r['key']!r} in state {r['state']}"
+                for r in db.query(
+                    "SELECT p.id, s.key, s.state FROM psfs p JOIN steps s ON s.id = p.step_id "
+                    "WHERE s.state != 'done'"
+                )
+            ]
+        return problems
+
+    # -- rigs and runs ------------------------------------------------------
+
+    def add_rig(self, info: CameraInfo) -> int:
+        """Id of the rig (camera model and serial, lens); inserted the first time it is seen."""
+        key = {"model": info.model, "serial": info.serial or "", "lens": info.lens or ""}
+        with self._write() as db:
+            row = next(
+                db.query("SELECT id FROM rigs WHERE model = :model AND serial = :serial AND lens = :lens", key),
+                None,
+            )
+            if row is not None:
+                return int(row["id"])
+            return int(
+                db["rigs"].insert({**key, "focal_length_mm": _real(info.focal_length_mm), "created": _now()}).last_pk
+            )
+
+    def start_run(self, plan_path: str, plan_text: str, rig_id: int, steps: list[tuple[str, dict]]) -> int:
+        """Record a new run of a plan with all its steps ``pending``, in execution order.
+
+        Raises
+        ------
+        BadInputError
+            When two steps share a key.
+        """
+        keys = [key for key, _ in steps]
+        if len(set(keys)) != len(keys):
+            dupes = sorted({k for k in keys if keys.count(k) > 1})
+            raise BadInputError(f"plan has duplicate step keys: {', '.join(dupes)}")
+        now = _now()
+        with self._write() as db:
+            run_id = int(
+                db["runs"].insert(
+                    {
+                        "rig_id": rig_id, "plan_path": str(plan_path), "plan_text": plan_text,
+                        "plan_hash": hashlib.sha256(plan_text.encode()).hexdigest(),
+                        "started": now, "finished": None, "state": "running",
+                    }
+                ).last_pk
+            )
+            db["steps"].insert_all(
+                {
+                    "run_id": run_id, "key": key, "position": i, "state": "pending",
+                    "payload": json.dumps(payload, sort_keys=True), "reason": None, "attempts": 0,
+                    "updated": now,
+                }
+                for i, (key, payload) in enumerate(steps)
+            )
+        return run_id
+
+    def unfinished_run(self, plan_text: str) -> int | None:
+        """Latest run of exactly this plan text whose state is not ``done`` (to resume it), or None."""
+        plan_hash = hashlib.sha256(plan_text.encode()).hexdigest()
+        with self._read() as db:
+            row = next(
+                db.query(
+                    "SELECT id FROM runs WHERE plan_hash = ? AND plan_text = ? AND state != 'done' "
+                    "ORDER BY id DESC LIMIT 1",
+                    [plan_hash, plan_text],
+                ),
+                None,
+            )
+        return None if row is None else int(row["id"])
+
+    def finish_run(self, run_id: int, state: str) -> None:
+        """Set a run's state (``done``, ``paused``, ``cancelled``, ``failed``; ``running`` to resume it)."""
+        if state not in RUN_STATES:
+            raise BadInputError(f"unknown run state {state!r} (one of {', '.join(RUN_STATES)})")
+        with self._write() as db:
+            cursor = db.execute(
+                "UPDATE runs SET state = ?, finished = ? WHERE id = ?",
+                [state, None if state == "running" else _now(), run_id],
+            )
+            if cursor.rowcount == 0:
+                raise CatalogueError(f"no run {run_id}")
+
+    def runs(self) -> list[dict]:
+        """All runs, newest first: id, plan_path, plan_hash, state, started, finished, rig and PSF count."""
+        with self._read() as db:
+            return list(
+                db.query(
+                    "SELECT u.id, u.plan_path, u.plan_hash, u.state, u.started, u.finished, u.rig_id, "
+                    "r.model AS camera, r.lens, (SELECT count(*) FROM psfs p WHERE p.run_id = u.id) AS psfs "
+                    "FROM runs u LEFT JOIN rigs r ON r.id = u.rig_id ORDER BY u.id DESC"
+                )
+            )
+
+    def run(self, run_id: int) -> dict:
+        """One run with its plan text."""
+        with self._read() as db:
+            row = next(db.query("SELECT * FROM runs WHERE id = ?", [run_id]), None)
+        if row is None:
+            raise CatalogueError(f"no run {run_id}")
+        return row
+
+    def run_summary(self, run_id: int) -> dict:
+        """A run's state and counts: steps per state (``pending``, ``running``, ``done``, ``failed``),
+        ``total`` steps, ``psfs`` stored and the ``frames`` they came from."""
+        with self._read() as db:
+            run = self.run(run_id)
+            counts = dict.fromkeys(STEP_STATES, 0)
+            for row in db.query("SELECT state, count(*) AS n FROM steps WHERE run_id = ? GROUP BY state", [run_id]):
+                counts[row["state"]] = row["n"]
+            psfs = db.execute("SELECT count(*) FROM psfs WHERE run_id = ?", [run_id]).fetchone()[0]
+            frames = db.execute(
+                "SELECT count(DISTINCT pf.frame_id) FROM psf_frames pf JOIN psfs p ON p.id = pf.psf_id "
+                "WHERE p.run_id = ?",
+                [run_id],
+            ).fetchone()[0]
+        return {
+            "id": run_id, "state": run["state"], "plan_path": run["plan_path"],
+            "started": run["started"], "finished": run["finished"],
+            **counts, "total": sum(counts.values()), "psfs": psfs, "frames": frames,
+        }
+
+    # -- steps ----------------------------------------------------------------
+
+    def steps(self, run_id: int, states: tuple[str, ...] | None = None) -> list[dict]:
+        """Steps of a run in execution order: key, state, payload (dict), reason, attempts, position, updated."""
+        sql = "SELECT key, state, payload, reason, attempts, position, updated FROM steps WHERE run_id = ?"
+        params: list[Any] = [run_id]
+        if states:
+            sql += f" AND state IN ({', '.join('?' * len(states))})"
+            params += list(states)
+        with self._read() as db:
+            rows = list(db.query(sql + " ORDER BY position", params))
+        for row in rows:
+            row["payload"] = json.loads(row["payload"]) if row["payload"] else {}
+        return rows
+
+    def _step(self, db: sqlite_utils.Database, run_id: int, key: str) -> dict:
+        row = next(db.query("SELECT id, state FROM steps WHERE run_id = ? AND key = ?", [run_id, key]), None)
+        if row is None:
+            raise CatalogueError(f"run {run_id} has no step {key!r}")
+        return row
+
+    def set_step_state(self, run_id: int, key: str, state: str, reason: str | None = None) -> None:
+        """Move a step to ``state`` with an optional reason; entering ``running`` counts an attempt."""
+        if state not in STEP_STATES:
+            raise BadInputError(f"unknown step state {state!r} (one of {', '.join(STEP_STATES)})")
+        with self._write() as db:
+            step = self._step(db, run_id, key)
+            db.execute(
+                "UPDATE steps SET state = ?, reason = ?, updated = ?, attempts = attempts + ? WHERE id = ?",
+                [state, reason, _now(), int(state == "running"), step["id"]],
+            )
+
+    def commit_step(
+        self, run_id: int, key: str, frames: list[FrameRecord], psfs: list[tuple[PSF, dict]]
+    ) -> list[int]:
+        """Store a step's frames and PSFs and mark it ``done``, all in one transaction.
+
+        Parameters
+        ----------
+        frames : list of FrameRecord
+            The RAW files the step captured (a file already catalogued, by hash, is reused).
+        psfs : list of (PSF, dict)
+            Each PSF with ``aperture``, ``focal_length_mm``, ``focus_distance_m`` and
+            ``frame_indices`` (indices into ``frames``; missing means all of them).
+
+        Returns
+        -------
+        list of int
+            Ids of the step's PSFs. A step already ``done`` inserts nothing and returns the
+            ids stored when it was committed: replaying a step after a crash is harmless.
+        """
+        with self._write() as db:
+            step = self._step(db, run_id, key)
+            if step["state"] == "done":
+                return [r["id"] for r in db.query("SELECT id FROM psfs WHERE step_id = ? ORDER BY id", [step["id"]])]
+            rig_id = db.execute("SELECT rig_id FROM runs WHERE id = ?", [run_id]).fetchone()[0]
+            ids = self._insert(db, frames, psfs, rig_id=rig_id, run_id=run_id, step_id=step["id"])
+            db.execute(
+                "UPDATE steps SET state = 'done', reason = NULL, updated = ? WHERE id = ?", [_now(), step["id"]]
+            )
+        return ids
+
+    def _insert(
+        self,
+        db: sqlite_utils.Database,
+        frames: list[FrameRecord],
+        psfs: list[tuple[PSF, dict]],
+        *,
+        rig_id: int | None,
+        run_id: int | None,
+        step_id: int | None,
+    ) -> list[int]:
+        frame_ids = [self._insert_frame(db, f) for f in frames]
+        ids = []
+        for estimate, meta in psfs:
+            indices = meta.get("frame_indices")
+            indices = range(len(frame_ids)) if indices is None else indices
+            if any(not 0 <= i < len(frame_ids) for i in indices):
+                raise BadInputError(f"frame index out of range in {list(indices)} ({len(frame_ids)} frames)")
+            psf_id = int(db["psfs"].insert(self._psf_record(estimate, meta, rig_id, run_id, step_id)).last_pk)
+            db["psf_frames"].insert_all(
+                ({"psf_id": psf_id, "frame_id": frame_ids[i]} for i in sorted(set(indices))),
+            )
+            ids.append(psf_id)
+        return ids
+
+    @staticmethod
+    def _insert_frame(db: sqlite_utils.Database, frame: FrameRecord) -> int:
+        db["frames"].insert(
+            {
+                "path": str(frame.path), "sha256": frame.sha256,
+                "settings": json.dumps(frame.settings, sort_keys=True),
+                "aperture": _lenient_fnumber(frame.settings.get("aperture")),
+                "rail": json.dumps(frame.rail, sort_keys=True), "taken_at": frame.taken_at,
+            },
+            ignore=True,  # the same file (same hash) is one frame, whoever uses it
+        )
+        return int(db.execute("SELECT id FROM frames WHERE sha256 = ?", [frame.sha256]).fetchone()[0])
+
+    @staticmethod
+    def _psf_record(estimate: PSF, meta: dict, rig_id: int | None, run_id: int | None, step_id: int | None) -> dict:
+        array = np.asarray(estimate.psf, dtype=np.float64)
+        if array.ndim != 2 or array.shape[0] % 2 == 0 or array.shape[1] % 2 == 0 or not np.all(np.isfinite(array)):
+            raise BadInputError(f"PSF array must be 2-D, odd-sized and finite (got shape {array.shape})")
+        metrics = estimate.metrics()
+        x0, y0, x1, y1 = (int(v) for v in estimate.window)
+        return {
+            "rig_id": rig_id, "run_id": run_id, "step_id": step_id,
+            "method": estimate.method, "channel": estimate.channel,
+            "aperture": parse_fnumber(meta.get("aperture")),
+            "focal_length_mm": _real(meta.get("focal_length_mm")),
+            "focus_distance_m": _real(meta.get("focus_distance_m")),
+            "field_x": float(estimate.field[0]), "field_y": float(estimate.field[1]),
+            "window_x0": x0, "window_y0": y0, "window_x1": x1, "window_y1": y1,
+            "s": int(estimate.s), "support": int(array.shape[0]), "psf": _npy(array),
+            **{k: _real(v) for k, v in metrics.items()},
+            "noise_floor": _real(estimate.noise_floor), "residual": _real(estimate.residual),
+            "params": json.dumps(estimate.params, sort_keys=True, default=str),
+            "psfd_version": __version__,
+            "warnings": json.dumps(list(estimate.warnings)),
+            "sources": json.dumps([str(s) for s in estimate.sources]),
+            "created": _now(),
+        }
+
+    # -- queries --------------------------------------------------------------
+
+    def query(
+        self,
+        camera: str | None = None,
+        lens: str | None = None,
+        aperture: float | None = None,
+        channel: str | None = None,
+        method: str | None = None,
+        near: tuple[float, float] | None = None,
+        limit: int | None = None,
+    ) -> QueryResult:
+        """PSFs matching the filters (metadata rows; arrays via :meth:`psf`).
+
+        Parameters
+        ----------
+        camera, lens : str, optional
+            Case-insensitive substring of the camera model (or its exact serial) / the lens.
+        aperture : float, optional
+            f-number. When it was not measured, the nearest measured aperture (in stops)
+            among the other filters is used and ``note`` says so.
+        channel, method : str, optional
+            Exact channel (r, g1, g2, b, mono) and method name.
+        near : (x, y), optional
+            Normalised field location: keeps, per (rig, focal length, aperture, channel, method),
+            the PSF whose field position is nearest, and orders rows by that distance.
+        limit : int, optional
+            At most this many rows.
+        """
+        where, params = [], []
+        if camera:
+            where.append("(instr(lower(r.model), lower(?)) > 0 OR r.serial = ?)")
+            params += [camera, camera]
+        if lens:
+            where.append("instr(lower(r.lens), lower(?)) > 0")
+            params.append(lens)
+        if channel:
+            where.append("p.channel = ?")
+            params.append(channel)
+        if method:
+            where.append("p.method = ?")
+            params.append(method)
+        note = None
+        with self._read() as db:
+            if aperture is not None:
+                aperture = float(aperture)
+                measured = self._apertures(db, where, params)
+                if measured:
+                    nearest = min(measured, key=lambda a: (_stops(a, aperture), a))
+                    if _stops(nearest, aperture) > 2 * math.log2(1 + APERTURE_TOLERANCE):
+                        note = f"f/{aperture:g} not measured; nearest is f/{nearest:g}"
+                    aperture = nearest
+                lo, hi = aperture / (1 + APERTURE_TOLERANCE), aperture * (1 + APERTURE_TOLERANCE)
+                where.append("p.aperture BETWEEN ? AND ?")
+                params += [lo, hi]
+            sql = _ROW_SQL + (f" WHERE {' AND '.join(where)}" if where else "")
+            sql += " ORDER BY r.model, r.lens, p.aperture, p.channel, p.method, p.field_y, p.field_x, p.id"
+            rows = [_row(r) for r in db.query(sql, params)]
+        if near is not None:
+            rows = _nearest_per_group(rows, near)
+        if limit is not None:
+            rows = rows[: max(int(limit), 0)]
+        return QueryResult(rows, note)
+
+    @staticmethod
+    def _apertures(db: sqlite_utils.Database, where: list[str], params: list) -> list[float]:
+        clause = " AND ".join(where + ["p.aperture IS NOT NULL"])
+        sql = f"SELECT DISTINCT p.aperture FROM psfs p LEFT JOIN rigs r ON r.id = p.rig_id WHERE {clause}"
+        return [row[0] for row in db.execute(sql, params).fetchall()]
+
+    def psf(self, psf_id: int) -> tuple[np.ndarray, dict]:
+        """The PSF array (float64) and its metadata row."""
+        with self._read() as db:
+            row = next(db.query(_ROW_SQL + " WHERE p.id = ?", [psf_id]), None)
+            blob = db.execute("SELECT psf FROM psfs WHERE id = ?", [psf_id]).fetchone()
+        if row is None or blob is None:
+            raise CatalogueError(f"no PSF {psf_id}")
+        return _from_npy(blob[0]), _row(row)
+
+    def psf_frames(self, psf_id: int) -> list[dict]:
+        """The frames a PSF was estimated from."""
+        with self._read() as db:
+            rows = list(
+                db.query(
+                    "SELECT f.* FROM frames f JOIN psf_frames pf ON pf.frame_id = f.id WHERE pf.psf_id = ? "
+                    "ORDER BY f.id",
+                    [psf_id],
+                )
+            )
+        for row in rows:
+            row["settings"] = json.loads(row["settings"] or "{}")
+            row["rail"] = json.loads(row["rail"] or "{}")
+        return rows
+
+    def frame_hashes(self) -> set[str]:
+        """SHA-256 of every catalogued frame (the daemon's frame store keeps exactly these files)."""
+        with self._read() as db:
+            return {row[0] for row in db.execute("SELECT sha256 FROM frames").fetchall()}
+
+
+def _nearest_per_group(rows: list[dict], near: tuple[float, float]) -> list[dict]:
+    """Keep the PSF nearest ``near`` per (rig, focal length, aperture, channel, method), nearest first.
+
+    Ties (repeated measurements at one location) go to the newest PSF.
+    """
+    x, y = near
+    for row in rows:
+        row["distance"] = math.hypot(row["field_x"] - x, row["field_y"] - y)
+    best: dict[tuple, dict] = {}
+    for row in sorted(rows, key=lambda r: (r["distance"], -r["id"])):
+        group = (row["rig_id"], row["focal_length_mm"], row["aperture"], row["channel"], row["method"])
+        best.setdefault(group, row)
+    return sorted(best.values(), key=lambda r: (r["distance"], r["aperture"] or 0.0, r["channel"], r["method"]))

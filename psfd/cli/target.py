@@ -1,0 +1,49 @@
+"""`psfd target`: render the Bernoulli calibration target for print."""
+
+from __future__ import annotations
+
+import argparse
+
+from psfd import printing
+from psfd.cli.output import parse_float, parse_int
+from psfd.errors import BadInputError
+from psfd.estimator import target
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "target",
+        help="write the calibration target as a print-ready PDF or a PNG",
+        description=(
+            "Render the Bernoulli noise target (published layout). The noise is saved beside the output "
+            "as NAME.noise.pgm; give it to `psfd estimate target --pattern` when photographing a print of it."
+        ),
+    )
+    parser.add_argument("--out", required=True, help="output file, .pdf (vector, for print) or .png (raster)")
+    parser.add_argument("--seed", help="draw a new noise realisation from this seed (default: the published noise)")
+    parser.add_argument("--noise", metavar="PGM", help="use this 256x256 noise pattern instead of a seed")
+    parser.add_argument("--size-mm", default="700", help="side of the printed target in mm (PDF; default 700)")
+    parser.add_argument("--px-per-cell", default="8", help="pixels per noise cell (PNG; default 8)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    size_mm = parse_float(args.size_mm, "--size-mm")
+    px_per_cell = parse_int(args.px_per_cell, "--px-per-cell", minimum=1)
+    if args.noise is not None and args.seed is not None:
+        raise BadInputError("give --seed or --noise, not both")
+    if args.noise is not None:
+        noise = target.load_noise(args.noise)
+        origin = f"noise {args.noise}"
+    elif args.seed is not None:
+        seed = parse_int(args.seed, "--seed", minimum=0)
+        noise = target.seeded_noise(seed)
+        origin = f"seed {seed}"
+    else:
+        noise = target.default_noise()
+        origin = "published noise"
+    cell_mm = size_mm / target.SIZE
+    caption = f"psfd Bernoulli target - {origin} - cell {cell_mm:.4g} mm - print at 100 % (no scaling)"
+    out, pgm = printing.write_target(args.out, noise, size_mm=size_mm, caption=caption, px_per_cell=px_per_cell)
+    print(f"wrote {out} ({origin}, cell {cell_mm:.4g} mm) and its noise {pgm}")
+    return 0

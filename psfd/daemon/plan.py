@@ -1,0 +1,360 @@
+"""Measurement plans: a TOML file that says what to shoot, where, and how to estimate it.
+
+A plan has four tables::
+
+    [rig]                       # simulate = true, or the ports of real hardware
+    simulate = true
+    # camera_port = "usb:001,004"
+    # rail_port = "/dev/ttyUSB0"
+    # rail_limits = { x = [0, 2000], y = [-150, 150], z = [-100, 100] }
+    # settings = { iso = "100", shutterspeed = "1/60" }
+
+    [target]
+    kind = "bernoulli"          # or "pair", with near = ... and far = ... in mm
+
+    [capture]
+    apertures = [5.6, 8, 11]
+    x = [1200]                  # rail distances in mm (bernoulli only)
+    y = [-40, 0, 40]            # lateral positions (mm) walking the target over the field
+    z = [-30, 0, 30]
+    channels = ["r", "g1", "g2", "b"]
+    repeats = 1
+
+    [estimator]
+    s = 4
+    support = 17                # odd; default 4 s + 1
+    solver = "ls-threshold"     # bernoulli only: "ls", "ls-threshold", "nnls"
+    grid = [1, 1]
+
+`check_text` returns every problem found, one sentence each, so that
+``psfd plan check`` can list them all at once; `load_plan` raises one
+BadInputError naming the first and counting the rest.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from psfd.drivers import _REAL_KEYS, _SIM_KEYS
+from psfd.errors import BadInputError
+from psfd.estimator.raw import CHANNELS
+
+KINDS = ("bernoulli", "pair")
+SOLVERS = ("ls", "ls-threshold", "nnls")
+AXES = ("x", "y", "z")
+# [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys) and our
+# camera settings, applied once before the first step.
+RIG_KEYS = {"simulate", "recording", "settings", *_SIM_KEYS, *_REAL_KEYS}
+TABLES = {
+    "rig": RIG_KEYS,
+    "target": {"kind", "near", "far"},
+    "capture": {"apertures", "x", "y", "z", "channels", "repeats"},
+    "estimator": {"s", "support", "solver", "grid"},
+}
+
+
+@dataclass(frozen=True)
+class Step:
+    """One exposure position: aperture, rail position(s), repeat index.
+
+    For a ``pair`` plan ``x`` is ``(near, far)``: the step shoots both frames.
+    """
+
+    aperture: float
+    x: float | tuple[float, float]
+    y: float | None
+    z: float | None
+    repeat: int
+
+    @property
+    def key(self) -> str:
+        """Deterministic key, e.g. ``a5.6/x1200/y-40/z10/r0`` (pair: ``x800-1600``)."""
+        x = f"{fmt(self.x[0])}-{fmt(self.x[1])}" if isinstance(self.x, tuple) else fmt(self.x)
+        parts = [f"a{fmt(self.aperture)}", f"x{x}"]
+        parts += [f"{axis}{fmt(v)}" for axis, v in (("y", self.y), ("z", self.z)) if v is not None]
+        return "/".join(parts + [f"r{self.repeat}"])
+
+    def payload(self) -> dict[str, Any]:
+        """JSON-ready description stored with the step in the catalogue."""
+        out: dict[str, Any] = {"aperture": self.aperture, "y": self.y, "z": self.z, "repeat": self.repeat}
+        if isinstance(self.x, tuple):
+            out.update(near=self.x[0], far=self.x[1])
+        else:
+            out["x"] = self.x
+        return out
+
+    @classmethod
+    def from_payload(cls, payload: dict[str, Any]) -> "Step":
+        x = (payload["near"], payload["far"]) if "near" in payload else payload["x"]
+        return cls(payload["aperture"], x, payload.get("y"), payload.get("z"), payload["repeat"])
+
+
+@dataclass
+class Plan:
+    """A validated plan; ``text`` is kept verbatim to find an unfinished run of it."""
+
+    text: str
+    path: str
+    rig: dict[str, Any]
+    kind: str
+    apertures: list[float]
+    x: list[float]
+    y: list[float] | None
+    z: list[float] | None
+    channels: list[str]
+    repeats: int = 1
+    near: float | None = None
+    far: float | None = None
+    estimator: dict[str, Any] = field(default_factory=dict)
+
+    def steps(self) -> list[Step]:
+        """Steps in execution order: rail distance, then a serpentine walk of the field grid
+        (the shortest lateral moves), then apertures and repeats at each position."""
+        xs: list[Any] = [(self.near, self.far)] if self.kind == "pair" else list(self.x)
+        ys: list[Any] = self.y if self.y is not None else [None]
+        zs: list[Any] = self.z if self.z is not None else [None]
+        out = []
+        for x in xs:
+            for row, y in enumerate(ys):
+                for z in zs if row % 2 == 0 else zs[::-1]:
+                    for aperture, repeat in itertools.product(self.apertures, range(self.repeats)):
+                        out.append(Step(aperture, x, y, z, repeat))
+        return out
+
+    def rig_config(self) -> dict[str, Any]:
+        """The [rig] table as `psfd.drivers.open_rig` takes it (camera settings are the runner's)."""
+        return {k: v for k, v in self.rig.items() if k != "settings"}
+
+    def estimator_options(self) -> dict[str, Any]:
+        """Keyword arguments for the estimator of this plan's target kind."""
+        opts = dict(self.estimator)
+        if "grid" in opts:
+            opts["grid"] = tuple(opts["grid"])
+        return opts
+
+
+def fmt(value: float) -> str:
+    """Shortest text of a number for keys: 1200.0 -> ``1200``, 5.6 -> ``5.6``."""
+    value = float(value)
+    return str(int(value)) if value.is_integer() else f"{value:g}"
+
+
+def load_plan(path: str | Path) -> Plan:
+    """Read and validate a plan file.
+
+    Raises
+    ------
+    BadInputError
+        The file cannot be read or the plan has problems (the first is named,
+        ``psfd plan check`` lists them all).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise BadInputError(f"cannot read plan {path}: {exc}") from None
+    return parse_plan(text, str(path))
+
+
+def parse_plan(text: str, path: str = "<plan>") -> Plan:
+    """Validate plan text and build the Plan; raises BadInputError on the first problem."""
+    problems = check_text(text)
+    if problems:
+        more = f" ({len(problems) - 1} more; run 'psfd plan check {path}')" if len(problems) > 1 else ""
+        raise BadInputError(f"plan {path}: {problems[0]}{more}")
+    data = tomllib.loads(text)
+    rig, target = data.get("rig", {}), data["target"]
+    capture, estimator = data["capture"], data.get("estimator", {})
+    channels = capture.get("channels", ["g1"])
+    return Plan(
+        text=text,
+        path=path,
+        rig=rig,
+        kind=target["kind"],
+        apertures=[float(a) for a in capture["apertures"]],
+        x=[float(v) for v in capture.get("x", [])],
+        y=[float(v) for v in capture["y"]] if "y" in capture else None,
+        z=[float(v) for v in capture["z"]] if "z" in capture else None,
+        channels=list(CHANNELS) if channels == "all" else list(channels),
+        repeats=int(capture.get("repeats", 1)),
+        near=float(target["near"]) if "near" in target else None,
+        far=float(target["far"]) if "far" in target else None,
+        estimator=dict(estimator),
+    )
+
+
+def check_text(text: str) -> list[str]:
+    """Every problem of a plan, one sentence each (empty when the plan is usable)."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        return [f"not valid TOML: {exc}"]
+    problems: list[str] = []
+    for name in data:
+        if name not in TABLES:
+            problems.append(f"unknown table [{name}] (expected {', '.join(f'[{t}]' for t in TABLES)})")
+        elif not isinstance(data[name], dict):
+            problems.append(f"{name} must be a table [{name}]")
+    for name, keys in TABLES.items():
+        table = data.get(name)
+        if isinstance(table, dict):
+            problems += [f"[{name}] unknown key '{k}' (expected one of: {', '.join(sorted(keys))})"
+                         for k in table if k not in keys]
+    tables = {name: data.get(name) if isinstance(data.get(name), dict) else {} for name in TABLES}
+    for name in ("target", "capture"):
+        if name not in data:
+            problems.append(f"missing table [{name}]")
+    problems += _check_rig(tables["rig"])
+    kind = tables["target"].get("kind")
+    problems += _check_target(tables["target"], "target" in data)
+    if tables["rig"].get("simulate") is True:
+        scene = tables["rig"].get("scene", "bernoulli")
+        if kind == "pair" and scene != "texture":
+            problems.append('[rig] a simulated pair needs scene = "texture" (a textured plane)')
+        if kind == "bernoulli" and scene != "bernoulli":
+            problems.append('[rig] a simulated bernoulli target needs scene = "bernoulli" (the default)')
+    problems += _check_capture(tables["capture"], kind, "capture" in data)
+    problems += _check_limits(tables["rig"], tables["target"], tables["capture"], kind)
+    problems += _check_estimator(tables["estimator"], kind)
+    return problems
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _number_list(table: dict, key: str, where: str, positive: bool = False) -> list[str]:
+    value = table[key]
+    if not isinstance(value, list) or not value:
+        return [f"{where} {key} must be a non-empty list of numbers"]
+    bad = [v for v in value if not _is_number(v) or (positive and v <= 0)]
+    if bad:
+        kind = "positive numbers" if positive else "numbers"
+        return [f"{where} {key} must hold {kind}, got {', '.join(repr(v) for v in bad)}"]
+    if len(set(value)) != len(value):
+        return [f"{where} {key} lists a value twice"]
+    return []
+
+
+def _check_rig(rig: dict) -> list[str]:
+    problems = []
+    simulate = rig.get("simulate", False)
+    if not isinstance(simulate, bool):
+        problems.append("[rig] simulate must be true or false")
+    for key in ("camera_port", "rail_port"):
+        if key in rig and not isinstance(rig[key], str):
+            problems.append(f"[rig] {key} must be a string")
+    if simulate is not True and "rail_port" not in rig and "recording" not in rig:
+        problems.append("[rig] needs rail_port (or simulate = true, or recording = DIR)")
+    if "seed" in rig and not isinstance(rig["seed"], int):
+        problems.append("[rig] seed must be an integer")
+    if "scene" in rig and rig["scene"] not in ("bernoulli", "texture"):
+        problems.append(f"[rig] scene must be \"bernoulli\" or \"texture\", got {rig['scene']!r}")
+    settings = rig.get("settings", {})
+    if not isinstance(settings, dict) or not all(isinstance(v, (str, int, float)) for v in settings.values()):
+        problems.append("[rig] settings must be a table of camera setting names to values")
+    limits = rig.get("rail_limits", {})
+    if not isinstance(limits, dict):
+        return problems + ["[rig] rail_limits must be a table such as { x = [0, 2000] }"]
+    for axis, pair in limits.items():
+        if axis not in AXES:
+            problems.append(f"[rig] rail_limits has unknown axis '{axis}' (expected x, y, z)")
+        elif not (isinstance(pair, list) and len(pair) == 2 and all(map(_is_number, pair)) and pair[0] < pair[1]):
+            problems.append(f"[rig] rail_limits.{axis} must be [low, high] with low < high, got {pair!r}")
+    return problems
+
+
+def _check_target(target: dict, present: bool) -> list[str]:
+    if not present:
+        return []
+    kind = target.get("kind")
+    if kind not in KINDS:
+        return [f"[target] kind must be one of {', '.join(repr(k) for k in KINDS)}, got {kind!r}"]
+    if kind == "bernoulli":
+        return [f"[target] {k} applies to kind = \"pair\" only" for k in ("near", "far") if k in target]
+    problems = []
+    for key in ("near", "far"):
+        if key not in target:
+            problems.append(f"[target] kind = \"pair\" needs {key} (distance in mm)")
+        elif not _is_number(target[key]) or target[key] <= 0:
+            problems.append(f"[target] {key} must be a positive distance in mm, got {target[key]!r}")
+    if not problems and target["near"] >= target["far"]:
+        problems.append(f"[target] near ({target['near']}) must be closer than far ({target['far']})")
+    return problems
+
+
+def _check_capture(capture: dict, kind: Any, present: bool) -> list[str]:
+    if not present:
+        return []
+    problems = []
+    if "apertures" not in capture:
+        problems.append("[capture] needs apertures, e.g. apertures = [5.6, 8]")
+    else:
+        problems += _number_list(capture, "apertures", "[capture]", positive=True)
+    if kind == "bernoulli" and "x" not in capture:
+        problems.append("[capture] needs x (rail distances in mm) for a bernoulli target")
+    if kind == "pair" and "x" in capture:
+        problems.append("[capture] x does not apply to a pair target: set near and far in [target]")
+    for axis in AXES:
+        if axis in capture:
+            problems += _number_list(capture, axis, "[capture]")
+    channels = capture.get("channels", ["g1"])
+    if channels != "all":
+        if not isinstance(channels, list) or not channels:
+            problems.append(f"[capture] channels must be \"all\" or a list of {', '.join(CHANNELS)}")
+        else:
+            bad = [c for c in channels if c not in CHANNELS]
+            if bad:
+                problems.append(f"[capture] unknown channel(s) {', '.join(map(repr, bad))} "
+                                f"(expected {', '.join(CHANNELS)})")
+            elif len(set(channels)) != len(channels):
+                problems.append("[capture] channels lists a channel twice")
+    repeats = capture.get("repeats", 1)
+    if not isinstance(repeats, int) or isinstance(repeats, bool) or repeats < 1:
+        problems.append(f"[capture] repeats must be a positive integer, got {repeats!r}")
+    return problems
+
+
+def _check_limits(rig: dict, target: dict, capture: dict, kind: Any) -> list[str]:
+    limits = rig.get("rail_limits")
+    if not isinstance(limits, dict):
+        return []
+    values: dict[str, list] = {axis: capture.get(axis) for axis in AXES}
+    if kind == "pair":
+        values["x"] = [target.get("near"), target.get("far")]
+    problems = []
+    for axis, pair in limits.items():
+        if not (isinstance(pair, list) and len(pair) == 2 and all(map(_is_number, pair))):
+            continue
+        outside = [v for v in values.get(axis) or [] if _is_number(v) and not pair[0] <= v <= pair[1]]
+        if outside:
+            problems.append(f"{axis} = {', '.join(fmt(v) for v in outside)} outside rail_limits.{axis} "
+                            f"[{fmt(pair[0])}, {fmt(pair[1])}]")
+    return problems
+
+
+def _check_estimator(est: dict, kind: Any) -> list[str]:
+    problems = []
+    s = est.get("s", 4 if kind == "bernoulli" else 3)
+    if not isinstance(s, int) or isinstance(s, bool) or not 1 <= s <= 8:
+        problems.append(f"[estimator] s must be an integer from 1 to 8, got {s!r}")
+    if "support" in est:
+        support = est["support"]
+        if not isinstance(support, int) or isinstance(support, bool) or support < 3 or support % 2 == 0:
+            problems.append(f"[estimator] support must be an odd integer >= 3, got {support!r}")
+    if "solver" in est:
+        if kind == "pair":
+            problems.append("[estimator] solver applies to a bernoulli target only")
+        elif est["solver"] not in SOLVERS:
+            problems.append(f"[estimator] solver must be one of {', '.join(SOLVERS)}, got {est['solver']!r}")
+    if "grid" in est:
+        grid = est["grid"]
+        if not (isinstance(grid, list) and len(grid) == 2
+                and all(isinstance(g, int) and not isinstance(g, bool) and g >= 1 for g in grid)):
+            problems.append(f"[estimator] grid must be [nx, ny] with positive integers, got {grid!r}")
+    return problems

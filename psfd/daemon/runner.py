@@ -1,0 +1,438 @@
+"""The resumable runner: a plan's steps, journalled in the catalogue, shot and estimated.
+
+Durability rules, in the order a step goes through them:
+
+1. the step is marked ``running`` in the catalogue before the rig moves;
+2. each RAW file is written to a temporary name in the frame store, fsynced,
+   and renamed to its sha256 (``frames/ab/ab12...ef.dng``): a file with that
+   name is complete, and the same exposure stored twice is one file;
+3. PSFs are estimated in worker processes while the rig goes on to the next
+   step, so the rig only waits when every worker is busy;
+4. the parent commits frames, PSFs and the step's ``done`` state in one
+   catalogue transaction.
+
+A crash between any two of these leaves a step ``running`` (redone on resume)
+and perhaps a frame file the catalogue does not know: `sweep_frames` removes
+those at the start of every run, so no file is orphaned and none is counted twice.
+A failed step (camera gone, rail alarm, no target in the frame) is marked
+``failed`` with its reason, the estimates already under way are committed,
+the rig is released, and the run is ``paused``: ``--resume`` retries it.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import fcntl
+import hashlib
+import multiprocessing
+import os
+import re
+import shutil
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import IO, Any, Callable, Iterator
+
+from psfd.daemon import work
+from psfd.daemon.plan import Plan, Step
+from psfd.drivers.base import Camera, Rail
+from psfd.errors import CameraError, EstimationError, HardwareError, PsfdError, ServiceError
+from psfd.estimator.raw import RAW_SUFFIXES
+
+FRAME_NAME = re.compile(r"^[0-9a-f]{64}\.[A-Za-z0-9]+$")
+INCOMING = ".incoming-"
+
+
+class Control:
+    """Requests from outside a running plan (control socket, signals), read between frames."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._request: str | None = None
+
+    def request(self, what: str) -> None:
+        """Ask the runner to stop after the current frame: ``pause`` or ``cancel``."""
+        if what not in ("pause", "cancel"):
+            raise ValueError(what)
+        with self._lock:
+            # a cancel is never downgraded to a pause
+            if self._request != "cancel":
+                self._request = what
+
+    @property
+    def requested(self) -> str | None:
+        with self._lock:
+            return self._request
+
+
+@dataclass
+class RunResult:
+    """How a run ended and what it took."""
+
+    run_id: int
+    state: str  # done, paused, cancelled
+    reason: str | None = None
+    error: PsfdError | None = None
+    steps_done: int = 0
+    frames: int = 0
+    psfs: int = 0
+    elapsed_s: float = 0.0
+    capture_s: float = 0.0
+    rig_wait_s: float = 0.0
+    psf_ids: list[int] = field(default_factory=list)
+
+
+class Progress:
+    """A one-line progress bar on a stream (rewritten in place on a terminal, one line per step otherwise)."""
+
+    def __init__(self, run_id: int, total: int, done: int, stream: IO[str] | None) -> None:
+        self.run_id, self.total, self.done, self.stream = run_id, total, done, stream
+        self.tty = bool(stream and hasattr(stream, "isatty") and stream.isatty())
+
+    def step(self, key: str, note: str = "") -> None:
+        self.done += 1
+        self.show(key, note)
+
+    def show(self, key: str, note: str = "") -> None:
+        if self.stream is None:
+            return
+        width = 30
+        filled = round(width * self.done / max(self.total, 1))
+        line = f"run {self.run_id} [{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} {key} {note}"
+        if self.tty:
+            self.stream.write("\r" + line.ljust(100)[:100])
+        else:
+            self.stream.write(line.rstrip() + "\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.stream is not None and self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def default_workers() -> int:
+    """One worker per core, leaving one core to the capture loop (and its rendering on the simulated rig)."""
+    return max(1, min(4, (os.cpu_count() or 2) - 1))
+
+
+def frames_dir_for(catalogue_path: str | os.PathLike) -> Path:
+    """Default frame store beside a catalogue file: ``catalogue.db`` -> ``catalogue-frames/``."""
+    path = Path(catalogue_path)
+    return path.with_name(path.stem + "-frames")
+
+
+def store_frame(src: Path, frames_dir: Path) -> tuple[Path, str]:
+    """Move a captured file into the store under its sha256; returns (path, sha256).
+
+    The data is fsynced before the rename and the folder after it, so the
+    name is only ever seen on a complete file. An identical file already
+    stored is re-used.
+    """
+    digest = hashlib.sha256()
+    with open(src, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+        os.fsync(fh.fileno())
+    sha = digest.hexdigest()
+    folder = frames_dir / sha[:2]
+    folder.mkdir(parents=True, exist_ok=True)
+    dest = folder / f"{sha}{src.suffix.lower()}"
+    if dest.exists():
+        src.unlink()
+    else:
+        os.replace(src, dest)
+        _fsync_dir(folder)
+    return dest.resolve(), sha
+
+
+def _fsync_dir(folder: Path) -> None:
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def store_lock(frames_dir: Path) -> Iterator[None]:
+    """Hold the frame store for one run at a time.
+
+    Another run's sweep would take this run's stored-but-not-yet-committed
+    frames for orphans. The lock is an flock, so a killed run never leaves it behind.
+    """
+    frames_dir.mkdir(parents=True, exist_ok=True)
+    with open(frames_dir / ".lock", "a") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ServiceError(f"the frame store {frames_dir} is in use by another run") from None
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def sweep_frames(frames_dir: Path, known: set[str]) -> list[Path]:
+    """Remove what a crash left in the store: temporary folders and frames the catalogue does not hold.
+
+    Only files named like stored frames (sha256 + suffix) are touched; ``known``
+    holds the catalogued hashes. Returns the removed paths.
+    """
+    removed: list[Path] = []
+    if not frames_dir.is_dir():
+        return removed
+    for incoming in frames_dir.glob(INCOMING + "*"):
+        shutil.rmtree(incoming, ignore_errors=True)
+        removed.append(incoming)
+    for path in frames_dir.glob("??/*"):
+        if FRAME_NAME.match(path.name) and path.name.split(".")[0] not in known:
+            path.unlink()
+            removed.append(path)
+    return removed
+
+
+class Runner:
+    """Runs plans against one catalogue and one frame store.
+
+    Parameters
+    ----------
+    catalogue : psfd.catalogue.Catalogue
+        Journal of runs and steps, and home of frames and PSFs.
+    frames_dir : path
+        Frame store (content-addressed RAW files).
+    workers : int, optional
+        Estimation processes (default: `default_workers`).
+    control : Control, optional
+        Pause/cancel requests, checked after each frame.
+    progress : stream or None
+        Where the progress bar goes (stderr by default, None for silence).
+    on_step : callable, optional
+        Called with (key, state, reason) whenever a step changes state (service status).
+    estimate : callable
+        Module-level function run in the workers, signature of `work.estimate_step`.
+    """
+
+    def __init__(
+        self,
+        catalogue: Any,
+        frames_dir: str | os.PathLike,
+        *,
+        workers: int | None = None,
+        control: Control | None = None,
+        progress: IO[str] | None = sys.stderr,
+        on_step: Callable[[str, str, str | None], None] | None = None,
+        estimate: Callable[..., list] = work.estimate_step,
+    ) -> None:
+        self.catalogue = catalogue
+        self.frames_dir = Path(frames_dir)
+        self.workers = workers or default_workers()
+        self.control = control or Control()
+        self.progress_stream = progress
+        self.on_step = on_step or (lambda key, state, reason: None)
+        self.estimate = estimate
+
+    # -- public -------------------------------------------------------------------------------
+
+    def run(self, plan: Plan, camera: Camera, rail: Rail, resume: bool = False) -> RunResult:
+        """Run (or resume) a plan on an open rig; the rig is released when the run ends.
+
+        With ``resume`` the latest unfinished run of this exact plan text goes on
+        (its pending, failed and interrupted steps); a plan whose runs all finished
+        is not measured again; a plan never run starts a new run.
+
+        Returns
+        -------
+        RunResult
+            ``done``, ``paused`` (a step failed or a pause/stop was asked: resumable)
+            or ``cancelled``. Work committed before a failure stays committed.
+        """
+        try:
+            with store_lock(self.frames_dir):
+                run_id = self._open_run(plan, camera, resume)
+                return self._execute(plan, run_id, camera, rail)
+        finally:
+            release_rig(camera, rail)
+
+    # -- steps --------------------------------------------------------------------------------
+
+    def _open_run(self, plan: Plan, camera: Camera, resume: bool) -> int:
+        sweep_frames(self.frames_dir, self.catalogue.frame_hashes())
+        if resume:
+            run_id = self.catalogue.unfinished_run(plan.text)
+            if run_id is not None:
+                self.catalogue.finish_run(run_id, "running")
+                return run_id
+            plan_hash = hashlib.sha256(plan.text.encode()).hexdigest()
+            finished = [r["id"] for r in self.catalogue.runs() if r["plan_hash"] == plan_hash]
+            if finished:  # nothing left to resume: do not measure it all again
+                return finished[0]
+        rig_id = self.catalogue.add_rig(camera.info())
+        steps = [(step.key, step.payload()) for step in plan.steps()]
+        return self.catalogue.start_run(plan.path, plan.text, rig_id, steps)
+
+    def _execute(self, plan: Plan, run_id: int, camera: Camera, rail: Rail) -> RunResult:
+        result = RunResult(run_id, "done")
+        started = time.monotonic()
+        todo = self.catalogue.steps(run_id, ("pending", "running", "failed"))
+        if not todo:
+            return RunResult(run_id, "done", reason="every step was already done")
+        total = len(self.catalogue.steps(run_id))
+        bar = Progress(run_id, total, total - len(todo), self.progress_stream)
+        bar.show("resuming" if bar.done else "starting")
+        options = plan.estimator_options()
+        focal = camera.info().focal_length_mm
+        inflight: list[tuple[Step, list, cf.Future]] = []
+        ctx = multiprocessing.get_context("spawn")  # no fork of a threaded service
+        with cf.ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=work.init_worker,
+                                    initargs=(os.getpid(),)) as pool:
+            try:
+                try:
+                    self._apply_settings(camera, plan.rig.get("settings", {}))
+                except PsfdError as exc:
+                    result.error, result.reason = exc, f"camera settings: {exc}"
+                    todo = []
+                for row in todo:
+                    if self.control.requested:
+                        break
+                    step = Step.from_payload(row["payload"])
+                    self._set_state(run_id, step.key, "running")
+                    t0 = time.monotonic()
+                    try:
+                        records = self._capture(plan, step, camera, rail)
+                    except (PsfdError, OSError) as exc:  # camera gone, rail alarm, disk full
+                        error = exc if isinstance(exc, PsfdError) else HardwareError(f"storing the frame: {exc}")
+                        self._fail(result, run_id, step.key, error)
+                        break
+                    result.capture_s += time.monotonic() - t0
+                    paths = [r.path for r in records]
+                    future = pool.submit(self.estimate, plan.kind, paths, plan.channels, options)
+                    inflight.append((step, records, future))
+                    # The rig waits only when every worker is busy and one more job is queued.
+                    t0 = time.monotonic()
+                    while len(inflight) > self.workers:
+                        self._commit_first(plan, run_id, focal, inflight, result, bar, block=True)
+                    result.rig_wait_s += time.monotonic() - t0
+                    self._commit_ready(plan, run_id, focal, inflight, result, bar)
+                    if result.error is not None:
+                        break
+            finally:
+                release_rig(camera, rail)
+                while inflight:
+                    self._commit_first(plan, run_id, focal, inflight, result, bar, block=True)
+        bar.close()
+        result.elapsed_s = time.monotonic() - started
+        requested = self.control.requested
+        if requested == "cancel" or (requested and result.error is None):
+            result.state, result.reason = ("cancelled" if requested == "cancel" else "paused"), f"{requested} requested"
+        elif result.error is not None:
+            result.state = "paused"
+        self.catalogue.finish_run(run_id, result.state)
+        return result
+
+    def _set_state(self, run_id: int, key: str, state: str, reason: str | None = None) -> None:
+        self.catalogue.set_step_state(run_id, key, state, reason)
+        self.on_step(key, state, reason)
+
+    def _fail(self, result: RunResult, run_id: int, key: str, exc: PsfdError) -> None:
+        self._set_state(run_id, key, "failed", str(exc))
+        if result.error is None:
+            result.error, result.reason = exc, f"step {key}: {exc}"
+
+    @staticmethod
+    def _apply_settings(camera: Camera, settings: dict) -> None:
+        for name, value in settings.items():
+            camera.set(name, str(value))
+
+    def _capture(self, plan: Plan, step: Step, camera: Camera, rail: Rail) -> list:
+        """Move, set the aperture, expose; returns the FrameRecords of the stored RAW files."""
+        from psfd.catalogue import FrameRecord
+
+        camera.set("aperture", _aperture_choice(camera, step.aperture))
+        distances = step.x if isinstance(step.x, tuple) else (step.x,)
+        records = []
+        for x in distances:
+            at = rail.move(x=x, y=step.y, z=step.z)
+            incoming = Path(tempfile.mkdtemp(prefix=INCOMING, dir=self.frames_dir))
+            try:
+                files = [p for p in camera.capture(incoming) if p.suffix.lower() in RAW_SUFFIXES]
+                if not files:
+                    raise CameraError("the camera produced no RAW file: set imageformat to RAW")
+                path, sha = store_frame(files[0], self.frames_dir)
+            finally:
+                shutil.rmtree(incoming, ignore_errors=True)
+            records.append(FrameRecord(
+                path=str(path), sha256=sha,
+                settings={"aperture": step.aperture, **{k: str(v) for k, v in plan.rig.get("settings", {}).items()}},
+                rail={"x": at.x, "y": at.y, "z": at.z},
+                taken_at=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            ))
+        return records
+
+    def _commit_ready(self, plan, run_id, focal, inflight, result, bar) -> None:
+        while inflight and inflight[0][2].done():
+            self._commit_first(plan, run_id, focal, inflight, result, bar, block=False)
+
+    def _commit_first(self, plan: Plan, run_id: int, focal: float | None, inflight: list,
+                      result: RunResult, bar: Progress, block: bool) -> None:
+        """Wait for the oldest estimate and commit its step (steps commit in capture order)."""
+        step, records, future = inflight.pop(0)
+        try:
+            estimates = future.result()
+        except Exception as exc:  # noqa: BLE001 - any failure of one step pauses the run, it never aborts it
+            error = exc if isinstance(exc, PsfdError) else EstimationError(
+                f"estimation failed ({type(exc).__name__}: {exc})")
+            self._fail(result, run_id, step.key, error)
+            bar.show(step.key, f"failed: {error}")
+            return
+        distance = step.x[1] if isinstance(step.x, tuple) else step.x
+        meta = {
+            "aperture": step.aperture,
+            "focal_length_mm": focal,
+            "focus_distance_m": distance / 1000.0,
+            "frame_indices": list(range(len(records))),
+        }
+        ids = self.catalogue.commit_step(run_id, step.key, records, [(psf, dict(meta)) for psf in estimates])
+        self.on_step(step.key, "done", None)
+        result.steps_done += 1
+        result.frames += len(records)
+        result.psfs += len(ids)
+        result.psf_ids += list(ids)
+        bar.step(step.key)
+
+
+def _aperture_choice(camera: Camera, aperture: float) -> str:
+    """The camera's own spelling of an f-number (``5.6``, ``f/5.6``, ``F5.6``...)."""
+    try:
+        choices = camera.choices("aperture")
+    except CameraError:
+        choices = []
+    for choice in choices:
+        number = re.sub(r"^[fF]/?", "", choice.strip())
+        try:
+            if abs(float(number) - aperture) < 1e-6:
+                return choice
+        except ValueError:
+            continue
+    offered = ", ".join(choices)
+    if choices:
+        raise CameraError(f"aperture f/{aperture:g} is not offered by the camera (offered: {offered})")
+    return f"{aperture:g}"
+
+
+def release_rig(camera: Camera, rail: Rail) -> None:
+    """Make the rig safe: motion has stopped when a move returns, so release both devices.
+
+    Releasing the ports leaves the rail where it stopped (an alarm is never
+    driven through) and frees the camera for a person to inspect.
+    """
+    for device in (camera, rail):
+        try:
+            device.close()
+        except Exception:  # noqa: BLE001 - a device already gone must not hide the run's own error
+            pass

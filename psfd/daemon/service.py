@@ -1,0 +1,363 @@
+"""`psfd serve`: the long-running service, its control socket and its systemd handshake.
+
+Control socket: a Unix stream socket (mode 0660, no network listener) that
+speaks JSON lines. Each request is one JSON object on one line and gets one
+JSON object back::
+
+    {"cmd": "submit", "plan": "<TOML text>", "path": "plan.toml", "resume": false}
+    {"cmd": "status"}
+    {"cmd": "pause"}            # stop after the current frame; the run stays resumable
+    {"cmd": "resume"}           # resume the last paused run
+    {"cmd": "cancel"}           # stop after the current frame and close the run as cancelled
+    {"cmd": "submit", ..., "wait": true}   # answer only when the job has ended (used by `psfd capture`)
+
+Answers carry ``"ok": true`` or ``"ok": false`` with ``"error"`` (and
+``"problems"`` for a bad plan). A bad request never stops the service.
+
+systemd: READY=1, STATUS=... and WATCHDOG=1 datagrams go to $NOTIFY_SOCKET
+through the standard library's socket module (the protocol is one datagram of
+``KEY=value`` lines, so no extra dependency is worth it). SIGTERM lets the
+current frame finish, commits the estimates under way, pauses the run and exits 0.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import signal
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from psfd.daemon.plan import Plan, check_text, parse_plan
+from psfd.daemon.runner import Control, Runner, RunResult
+from psfd.errors import BadInputError, PsfdError, ServiceError
+
+MAX_REQUEST = 1 << 20  # a plan is a few kB; refuse anything absurd instead of buffering it
+SOCKET_MODE = 0o660
+
+
+def default_socket_path() -> Path:
+    """$PSFD_SOCKET, else the systemd RuntimeDirectory, else a per-user runtime folder."""
+    if os.environ.get("PSFD_SOCKET"):
+        return Path(os.environ["PSFD_SOCKET"])
+    if os.environ.get("RUNTIME_DIRECTORY"):
+        return Path(os.environ["RUNTIME_DIRECTORY"].split(":")[0]) / "control.sock"
+    if os.environ.get("XDG_RUNTIME_DIR"):
+        return Path(os.environ["XDG_RUNTIME_DIR"]) / "psfd" / "control.sock"
+    return Path(f"/tmp/psfd-{os.getuid()}") / "control.sock"
+
+
+def notify(message: str) -> bool:
+    """Send one sd_notify datagram (``READY=1``, ``STATUS=...``, ``WATCHDOG=1``); False outside systemd."""
+    address = os.environ.get("NOTIFY_SOCKET")
+    if not address:
+        return False
+    if address.startswith("@"):
+        address = "\0" + address[1:]  # abstract namespace
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as sock:
+            sock.sendto(message.encode(), address)
+        return True
+    except OSError:
+        return False
+
+
+def watchdog_interval() -> float | None:
+    """Half the watchdog period systemd asked for (seconds), or None when there is none for us."""
+    usec = os.environ.get("WATCHDOG_USEC")
+    pid = os.environ.get("WATCHDOG_PID")
+    if not usec or (pid and pid != str(os.getpid())):
+        return None
+    return int(usec) / 2e6
+
+
+# -- client --------------------------------------------------------------------------------------
+
+
+def request(path: str | os.PathLike, payload: dict, timeout: float | None = 10.0) -> dict:
+    """Send one request to the service and return its answer.
+
+    Raises
+    ------
+    ServiceError
+        The socket cannot be reached or the service refused the request.
+    """
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+            sock.settimeout(timeout)
+            sock.connect(str(path))
+            sock.sendall(json.dumps(payload).encode() + b"\n")
+            with sock.makefile("rb") as reader:
+                line = reader.readline(MAX_REQUEST)
+    except OSError as exc:
+        raise ServiceError(f"cannot reach the service at {path}: {exc.strerror or exc}") from None
+    if not line:
+        raise ServiceError(f"the service at {path} closed the connection without answering")
+    answer = json.loads(line)
+    if not answer.get("ok"):
+        raise ServiceError(answer.get("error", "request refused"))
+    return answer
+
+
+def service_up(path: str | os.PathLike) -> bool:
+    """True when something accepts connections on the control socket."""
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+            sock.settimeout(2.0)
+            sock.connect(str(path))
+        return True
+    except OSError:
+        return False
+
+
+# -- service -------------------------------------------------------------------------------------
+
+
+@dataclass
+class Job:
+    plan: Plan
+    resume: bool = False
+    done: threading.Event = field(default_factory=threading.Event)
+    result: dict | None = None
+
+
+class Service:
+    """The service: one control socket, one job queue, one runner thread.
+
+    Parameters
+    ----------
+    catalogue_path, frames_dir : path
+        Catalogue file and frame store every run writes to.
+    socket_path : path
+        Control socket to create.
+    workers : int, optional
+        Estimation processes per run.
+    """
+
+    def __init__(self, catalogue_path: str | os.PathLike, frames_dir: str | os.PathLike,
+                 socket_path: str | os.PathLike, workers: int | None = None) -> None:
+        self.catalogue_path = Path(catalogue_path)
+        self.frames_dir = Path(frames_dir)
+        self.socket_path = Path(socket_path)
+        self.workers = workers
+        self.jobs: queue.Queue[Job | None] = queue.Queue()
+        self.control = Control()
+        self.stopping = threading.Event()
+        self.lock = threading.Lock()
+        self.current: dict[str, Any] | None = None
+        self.last: dict[str, Any] | None = None
+        self.paused: Plan | None = None
+        self.queued = 0
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def serve(self) -> int:
+        """Listen until SIGTERM/SIGINT; returns the exit status."""
+        listener = self._listen()
+        signal.signal(signal.SIGTERM, self._on_signal)
+        signal.signal(signal.SIGINT, self._on_signal)
+        runner = threading.Thread(target=self._run_jobs, name="runner")
+        runner.start()
+        interval = watchdog_interval()
+        listener.settimeout(min(1.0, interval) if interval else 1.0)
+        notify(f"READY=1\nSTATUS=idle, listening on {self.socket_path}\nMAINPID={os.getpid()}")
+        next_ping = 0.0
+        try:
+            while not self.stopping.is_set():
+                if interval and time.monotonic() >= next_ping:
+                    notify("WATCHDOG=1")
+                    next_ping = time.monotonic() + interval
+                try:
+                    conn, _ = listener.accept()
+                except TimeoutError:
+                    continue
+                except InterruptedError:
+                    continue
+                threading.Thread(target=self._serve_client, args=(conn,), daemon=True).start()
+        finally:
+            notify("STOPPING=1\nSTATUS=stopping: finishing the current frame")
+            listener.close()
+            self.socket_path.unlink(missing_ok=True)
+            self.control.request("pause")
+            self.jobs.put(None)
+            while runner.is_alive():
+                runner.join(timeout=interval or 1.0)
+                if interval:
+                    notify("WATCHDOG=1")
+        return 0
+
+    def _listen(self) -> socket.socket:
+        path = self.socket_path
+        path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
+        if path.exists() or path.is_symlink():
+            if service_up(path):
+                raise ServiceError(f"a service is already listening on {path}")
+            path.unlink()  # stale socket of a service that died
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
+        old = os.umask(0o117)  # the socket is born 0660: no window where others could connect
+        try:
+            sock.bind(str(path))
+        except OSError as exc:
+            sock.close()
+            raise ServiceError(f"cannot create the control socket {path}: {exc.strerror}") from None
+        finally:
+            os.umask(old)
+        os.chmod(path, SOCKET_MODE)
+        sock.listen(16)
+        return sock
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        # finish the current frame, commit what is being estimated, pause the run, exit
+        self.control.request("pause")
+        self.stopping.set()
+
+    # -- runner thread -----------------------------------------------------------------------
+
+    def _run_jobs(self) -> None:
+        from psfd.catalogue import Catalogue
+        from psfd.drivers import open_rig
+
+        while True:
+            job = self.jobs.get()
+            if job is None:
+                return
+            if self.stopping.is_set():
+                job.result = {"state": "not started", "reason": "the service is stopping"}
+                job.done.set()
+                continue
+            with self.lock:
+                self.queued -= 1
+                self.control = Control()
+                self.current = {"plan": job.plan.path, "step": None, "done": 0,
+                                "total": len(job.plan.steps())}
+            try:
+                with Catalogue(self.catalogue_path) as catalogue:
+                    camera, rail = open_rig(job.plan.rig_config())
+                    runner = Runner(catalogue, self.frames_dir, workers=self.workers, control=self.control,
+                                    progress=None, on_step=self._on_step)
+                    result = runner.run(job.plan, camera, rail, resume=job.resume)
+                job.result = _result_dict(result)
+                self.paused = job.plan if result.state == "paused" else None
+            except PsfdError as exc:
+                job.result = {"state": "failed", "reason": str(exc)}
+            except Exception as exc:  # noqa: BLE001 - the service outlives a broken job and says why
+                job.result = {"state": "failed", "reason": f"{type(exc).__name__}: {exc}"}
+            with self.lock:
+                self.last, self.current = {"plan": job.plan.path, **job.result}, None
+            notify(f"STATUS=idle; last run {job.result.get('run_id', '-')}: {job.result['state']}")
+            job.done.set()
+
+    def _on_step(self, key: str, state: str, reason: str | None) -> None:
+        with self.lock:
+            if self.current is None:
+                return
+            self.current["step"] = key
+            if state == "done":
+                self.current["done"] += 1
+            if reason:
+                self.current["reason"] = reason
+            status = f"running {self.current['plan']}: {self.current['done']}/{self.current['total']} {key}"
+        notify(f"STATUS={status}")
+
+    # -- control socket ----------------------------------------------------------------------
+
+    def _serve_client(self, conn: socket.socket) -> None:
+        with conn:
+            conn.settimeout(30.0)
+            try:
+                reader = conn.makefile("rb")
+                while True:
+                    line = reader.readline(MAX_REQUEST + 1)
+                    if not line:
+                        return
+                    answer = self.handle_line(line)
+                    conn.sendall(json.dumps(answer).encode() + b"\n")
+                    if len(line) > MAX_REQUEST:
+                        return  # the rest of that line is not a request
+            except OSError:
+                return
+
+    def handle_line(self, line: bytes) -> dict:
+        """Answer one request line; never raises (a bad request gets ``ok: false``)."""
+        if len(line) > MAX_REQUEST:
+            return {"ok": False, "error": f"request longer than {MAX_REQUEST} bytes"}
+        try:
+            req = json.loads(line)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            return {"ok": False, "error": f"request is not JSON: {exc}"}
+        if not isinstance(req, dict) or not isinstance(req.get("cmd"), str):
+            return {"ok": False, "error": 'request must be a JSON object with "cmd"'}
+        handler = getattr(self, f"_cmd_{req['cmd']}", None)
+        if handler is None:
+            return {"ok": False, "error": f"unknown command {req['cmd']!r} "
+                                          "(expected submit, status, pause, resume, cancel)"}
+        try:
+            return {"ok": True, **handler(req)}
+        except PsfdError as exc:
+            out = {"ok": False, "error": str(exc)}
+            if getattr(exc, "problems", None):
+                out["problems"] = exc.problems
+            return out
+
+    def _enqueue(self, plan: Plan, resume: bool, wait: bool) -> dict:
+        if self.stopping.is_set():
+            raise ServiceError("the service is stopping")
+        job = Job(plan, resume)
+        with self.lock:
+            self.queued += 1
+        self.jobs.put(job)
+        if not wait:
+            return {"queued": self.queued, "plan": plan.path}
+        while not job.done.wait(1.0):
+            pass
+        return {"result": job.result}
+
+    def _cmd_submit(self, req: dict) -> dict:
+        text, path = req.get("plan"), req.get("path", "<submitted plan>")
+        if not isinstance(text, str):
+            raise BadInputError('submit needs "plan": the text of a plan')
+        problems = check_text(text)
+        if problems:
+            error = BadInputError(f"plan {path}: " + "; ".join(problems))
+            error.problems = problems  # type: ignore[attr-defined]
+            raise error
+        return self._enqueue(parse_plan(text, str(path)), bool(req.get("resume")), bool(req.get("wait")))
+
+    def _cmd_status(self, req: dict) -> dict:
+        with self.lock:
+            state = "running" if self.current else ("paused" if self.paused else "idle")
+            return {"state": state, "current": self.current, "last": self.last, "queued": self.queued,
+                    "paused_plan": self.paused.path if self.paused else None}
+
+    def _cmd_pause(self, req: dict) -> dict:
+        if self.current is None:
+            raise ServiceError("no run is in progress")
+        self.control.request("pause")
+        return {"requested": "pause"}
+
+    def _cmd_cancel(self, req: dict) -> dict:
+        if self.current is None:
+            raise ServiceError("no run is in progress")
+        self.control.request("cancel")
+        return {"requested": "cancel"}
+
+    def _cmd_resume(self, req: dict) -> dict:
+        if self.current is not None:
+            raise ServiceError("a run is in progress")
+        if self.paused is None:
+            raise ServiceError("no paused run to resume")
+        return self._enqueue(self.paused, True, bool(req.get("wait")))
+
+
+def _result_dict(result: RunResult) -> dict:
+    return {
+        "run_id": result.run_id, "state": result.state, "reason": result.reason,
+        "exit_code": result.error.exit_code if result.error else 0,
+        "steps_done": result.steps_done, "frames": result.frames, "psfs": result.psfs,
+        "psf_ids": result.psf_ids, "elapsed_s": round(result.elapsed_s, 3),
+    }

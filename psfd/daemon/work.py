@@ -1,0 +1,73 @@
+"""Estimation jobs that run in worker processes beside the capture loop.
+
+Kept apart from the runner and free of heavy imports at module level: a
+spawned worker imports this module first, so `init_worker` can pin the
+numerical libraries to one thread each before numpy, scipy and OpenCV load
+(the workers already share the cores; nested thread pools only oversubscribe).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def init_worker(parent_pid: int) -> None:
+    """Pin libraries to one thread and exit when the parent process is gone.
+
+    A parent killed with SIGKILL cannot shut its pool down; without the watch
+    the workers would wait on their queue forever.
+    """
+    for name in THREAD_VARIABLES:
+        os.environ[name] = "1"
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def estimate_step(kind: str, paths: list[str], channels: list[str], options: dict) -> list:
+    """Estimate the PSFs of one step's frames.
+
+    Parameters
+    ----------
+    kind : str
+        ``bernoulli`` (one frame of the noise target) or ``pair`` (near frame, far frame).
+    paths : list of str
+        The stored RAW frames of the step, in capture order.
+    channels : list of str
+        Bayer channels to estimate.
+    options : dict
+        Keyword arguments of the estimator (s, support, solver, grid).
+
+    Returns
+    -------
+    list of psfd.estimator.psf.PSF
+        All windows of every channel, channel by channel.
+    """
+    import cv2
+
+    from psfd.estimator import raw
+
+    cv2.setNumThreads(1)
+    out = []
+    if kind == "bernoulli":
+        from psfd.estimator.bernoulli import estimate_target
+
+        planes = {f.channel: f for f in raw.load_frames(paths[0])}
+        for channel in channels:
+            out += estimate_target(planes[channel], **options)
+    else:
+        from psfd.estimator.twoscale import estimate_pair
+
+        near = {f.channel: f for f in raw.load_frames(paths[0])}
+        far = {f.channel: f for f in raw.load_frames(paths[1])}
+        for channel in channels:
+            out += estimate_pair(near[channel], far[channel], **options)
+    return out

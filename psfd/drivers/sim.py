@@ -1,0 +1,395 @@
+"""A simulated rig: a small RAW camera and a rail carrying a target, with a known PSF.
+
+The camera renders real DNG files with `psfd.estimator.simulate` (the one
+driver module allowed to use the estimator), so everything above the drivers
+runs unchanged on it and can be checked against the true PSF.
+
+Geometry (thin lens, focused on the target):
+
+- rail X is the distance from the lens to the target along the optical axis (mm);
+  magnification m = f / (X - f),
+- rail Y and Z move the target sideways and up/down (mm): its image moves by m*Y, m*Z
+  on the sensor, which is how a plan visits the field,
+- one target cell of ``cell_mm`` images to m * cell_mm / channel_pitch channel pixels
+  (the channel pitch of a Bayer plane is twice the photosite pitch).
+
+Optics: the PSF of each channel is diffraction of a circular pupil at the set
+aperture (wavelengths 0.61 / 0.53 / 0.46 um for r / g / b) on the channel
+pixel aperture, plus astigmatism and coma along the radial direction growing
+linearly from zero at the image centre to ``corner_aberration`` waves at the
+corners. The whole target is rendered with the PSF at its centre (the target
+covers a small part of the field); `SimRig.truth` returns that PSF.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy import fft
+
+from psfd.drivers.base import CameraInfo, Position
+from psfd.drivers.recording import free_name
+from psfd.errors import CameraError, PsfdError, RailError
+from psfd.estimator import simulate
+
+APERTURES = ("2.8", "4", "5.6", "8", "11", "16", "22")
+SHUTTERSPEEDS = ("1/30", "1/60", "1/125", "1/250", "1/500")
+ISOS = ("100", "200", "400", "800")
+IMAGEFORMATS = ("RAW", "RAW + JPEG")
+CAPTURETARGETS = ("Internal RAM", "Memory card")
+CHOICES = {
+    "aperture": APERTURES,
+    "shutterspeed": SHUTTERSPEEDS,
+    "iso": ISOS,
+    "imageformat": IMAGEFORMATS,
+    "capturetarget": CAPTURETARGETS,
+}
+WAVELENGTH_UM = {"r": 0.61, "g1": 0.53, "g2": 0.53, "b": 0.46}
+SCENES = ("bernoulli", "texture")
+TEXTURE_RASTER = 2048  # raster pixels per side of the textured plane
+
+
+@dataclass
+class SimRig:
+    """A simulated camera and rail sharing one state.
+
+    Parameters
+    ----------
+    scene : str
+        ``bernoulli`` (the published calibration target) or ``texture`` (a
+        textured plane for near/far pairs).
+    seed : int
+        Seed of the image noise (each capture draws from seed + capture number) and of the texture.
+    sensor : (int, int)
+        Photosites (rows, cols), RGGB.
+    pitch_um : float
+        Photosite pitch.
+    focal_mm : float
+        Focal length of the lens.
+    cell_mm : float
+        Printed size of one target cell (the 320-cell target is 32 mm wide by default).
+    texture_mm : float
+        Side of the textured plane (it fills the frame from the far distance of `pair_distances`).
+    s, support : int
+        Grid factor and odd support (s-grid samples) of the rendered PSF.
+    corner_aberration : float
+        Astigmatism + coma at the image corners, in waves.
+    exposure : float
+        Fraction of the raw range reached by white (the camera exposes automatically).
+    limits : dict
+        Rail travel per axis in mm.
+    """
+
+    scene: str = "bernoulli"
+    seed: int = 0
+    sensor: tuple[int, int] = (480, 640)
+    pitch_um: float = 8.0
+    focal_mm: float = 50.0
+    cell_mm: float = 0.1
+    texture_mm: float = 240.0
+    s: int = 4
+    support: int = 17
+    corner_aberration: float = 0.35
+    exposure: float = 0.75
+    limits: dict = field(default_factory=lambda: {"x": (200.0, 3000.0), "y": (-60.0, 60.0), "z": (-45.0, 45.0)})
+    settings: dict = field(init=False)
+    pos: Position = field(init=False)
+    captures: int = field(init=False, default=0)
+    last_truth: dict | None = field(init=False, default=None)
+
+    def __post_init__(self) -> None:
+        if self.scene not in SCENES:
+            raise ValueError(f"unknown scene {self.scene!r} (use {' or '.join(SCENES)})")
+        self.sensor = (int(self.sensor[0]), int(self.sensor[1]))
+        self.limits = {k.lower(): (float(lo), float(hi)) for k, (lo, hi) in self.limits.items()}
+        if "x" not in self.limits or any(lo > hi for lo, hi in self.limits.values()):
+            raise ValueError(f"limits need an X axis and min <= max, got {self.limits}")
+        self.settings = {"aperture": "5.6", "shutterspeed": "1/125", "iso": "100", "imageformat": "RAW",
+                         "capturetarget": "Internal RAM"}
+        x = min(max(self.distance_for_scale(0.25), self.limits["x"][0]), self.limits["x"][1])
+        self.pos = Position(x=x, y=0.0 if "y" in self.limits else None, z=0.0 if "z" in self.limits else None)
+        self._faults: dict[str, list[PsfdError]] = {"camera": [], "rail": []}
+        self.camera = SimCamera(self)
+        self.rail = SimRail(self)
+
+    # ------------------------------------------------------------------ optics
+
+    @property
+    def channel_pitch_mm(self) -> float:
+        return 2.0 * self.pitch_um / 1000.0
+
+    def magnification(self, distance_mm: float | None = None) -> float:
+        """Thin-lens magnification f / (d - f) at target distance d (default: the rail X)."""
+        d = self.pos.x if distance_mm is None else float(distance_mm)
+        if d <= self.focal_mm:
+            raise CameraError(f"target at {d:g} mm is inside the focal length ({self.focal_mm:g} mm)")
+        return self.focal_mm / (d - self.focal_mm)
+
+    def pixels_per_cell(self, distance_mm: float | None = None) -> float:
+        """Channel pixels covered by one target cell at distance d (1/t of IJCV 2012 sec. 3)."""
+        return self.magnification(distance_mm) * self.cell_mm / self.channel_pitch_mm
+
+    def distance_for_scale(self, pixels_per_cell: float = 0.25) -> float:
+        """Rail X (mm) at which one target cell images to ``pixels_per_cell`` channel pixels.
+
+        Inverts m * cell / pitch = p with m = f / (d - f): d = f (1 + cell / (p * pitch)).
+        With s = 4 the paper's well-conditioned range s/t in [0.7, 2] is p in [0.175, 0.5].
+        """
+        if pixels_per_cell <= 0:
+            raise ValueError("pixels_per_cell must be positive")
+        return self.focal_mm * (1.0 + self.cell_mm / (pixels_per_cell * self.channel_pitch_mm))
+
+    def field(self, position: Position | None = None) -> tuple[float, float]:
+        """Normalised image (x, y) of the target centre for a rail position (default: the current one)."""
+        pos = self.pos if position is None else position
+        m = self.magnification(pos.x)
+        rows, cols = self.sensor
+        width_mm, height_mm = cols * self.pitch_um / 1000.0, rows * self.pitch_um / 1000.0
+        return 0.5 + m * (pos.y or 0.0) / width_mm, 0.5 + m * (pos.z or 0.0) / height_mm
+
+    def position_for(self, field_xy: tuple[float, float], pixels_per_cell: float = 0.25) -> Position:
+        """Rail position that images the target centre at normalised field point ``field_xy`` at that scale."""
+        x = self.distance_for_scale(pixels_per_cell)
+        m = self.magnification(x)
+        rows, cols = self.sensor
+        width_mm, height_mm = cols * self.pitch_um / 1000.0, rows * self.pitch_um / 1000.0
+        return Position(x=x, y=(field_xy[0] - 0.5) * width_mm / m, z=(field_xy[1] - 0.5) * height_mm / m)
+
+    def field_offsets(self, n: int, pixels_per_cell: float = 0.25, margin: float = 0.03) -> tuple[list, list]:
+        """Rail Y and Z values (mm) putting the target on an n x n grid of field points, all in frame.
+
+        The grid spans the field as far as the whole target (320 cells) stays ``margin``
+        (normalised) inside the image; returns (ys, zs), one list per axis.
+        """
+        rows, cols = self.sensor
+        half_x = 160 * pixels_per_cell / (cols / 2)  # half the target, normalised
+        half_y = 160 * pixels_per_cell / (rows / 2)
+        if n < 1 or half_x + margin >= 0.5 or half_y + margin >= 0.5:
+            raise ValueError("the target does not fit in the frame at this scale")
+        fx = np.linspace(half_x + margin, 1 - half_x - margin, n) if n > 1 else np.array([0.5])
+        fy = np.linspace(half_y + margin, 1 - half_y - margin, n) if n > 1 else np.array([0.5])
+        ys = [round(self.position_for((f, 0.5), pixels_per_cell).y, 3) for f in fx]
+        zs = [round(self.position_for((0.5, f), pixels_per_cell).z, 3) for f in fy]
+        return ys, zs
+
+    def pair_distances(self, ratio: float = 4.0, far: float = 2200.0) -> tuple[float, float]:
+        """Rail X of a near/far pair whose magnifications differ by ``ratio``.
+
+        The two-photo method needs the ratio above the super-resolution factor s
+        (Delbracio et al., SIAM J. Imaging Sci. 2012, sec. 4; IPOL 2013 suggests 2 to 8);
+        4 suits s = 3. Magnification f / (d - f) gives near = f + (far - f) / ratio.
+        """
+        return self.focal_mm + (far - self.focal_mm) / ratio, float(far)
+
+    def truth(self, aperture: float | str, field_xy: tuple[float, float], channel: str = "g1") -> np.ndarray:
+        """The PSF (s-grid, unit sum) of ``channel`` at f-number ``aperture`` and normalised field point."""
+        if channel not in WAVELENGTH_UM:
+            raise ValueError(f"unknown channel {channel!r}")
+        return _psf(float(aperture), round(float(field_xy[0]), 4), round(float(field_xy[1]), 4),
+                    WAVELENGTH_UM[channel], 2.0 * self.pitch_um, self.s, self.support,
+                    self.corner_aberration).copy()
+
+    # ------------------------------------------------------------------ faults for tests
+
+    def fail_next(self, device: str, error: PsfdError) -> None:
+        """Make the next request to ``device`` (``camera`` or ``rail``) raise ``error``."""
+        self._faults[device].append(error)
+
+    def _check_fault(self, device: str) -> None:
+        if self._faults[device]:
+            raise self._faults[device].pop(0)
+
+    # ------------------------------------------------------------------ rendering
+
+    def render(self, path: Path) -> dict:
+        """Render the current view to a DNG at ``path``; returns the simulation's ground truth."""
+        aperture = float(self.settings["aperture"])
+        fx, fy = self.field()
+        psfs = {c: self.truth(aperture, (fx, fy), c) for c in WAVELENGTH_UM}
+        seed = self.seed * 100003 + self.captures
+        if self.scene == "bernoulli":
+            truth = simulate.simulate_target(
+                path, psf=psfs, s=self.s, pixels_per_cell=self.pixels_per_cell(), centre=(fx, fy),
+                sensor=self.sensor, seed=seed, exposure=self.exposure,
+            )
+        else:
+            truth = simulate.simulate_scene(
+                path, scene=_texture(self.seed), sensor_to_scene=self._sensor_to_texture(), psf=psfs,
+                s=self.s, sensor=self.sensor, seed=seed, exposure=self.exposure,
+            )
+        truth.update(aperture=aperture, field=(fx, fy), distance_mm=self.pos.x,
+                     pixels_per_cell=self.pixels_per_cell(), scene=self.scene)
+        return truth
+
+    def _sensor_to_texture(self):
+        """Photosite (x, y) -> texture raster (X, Y) for the current rail position."""
+        rows, cols = self.sensor
+        m = self.magnification()
+        mm_per_photosite = self.pitch_um / 1000.0 / m  # on the plane
+        raster_per_mm = TEXTURE_RASTER / self.texture_mm
+        cx, cy = (cols - 1) / 2, (rows - 1) / 2
+        centre = (TEXTURE_RASTER - 1) / 2
+        y_off, z_off = self.pos.y or 0.0, self.pos.z or 0.0
+
+        def to_scene(x, y):
+            px = (np.asarray(x, np.float64) - cx) * mm_per_photosite - y_off
+            py = (np.asarray(y, np.float64) - cy) * mm_per_photosite - z_off
+            return centre + px * raster_per_mm, centre + py * raster_per_mm
+
+        return to_scene
+
+
+@functools.lru_cache(maxsize=256)
+def _psf(fnumber: float, fx: float, fy: float, wavelength: float, channel_pitch: float, s: int,
+         support: int, corner: float) -> np.ndarray:
+    # Radial aberration vector: zero on axis, |a| = corner at the corners (|(2fx-1, 2fy-1)| = sqrt 2).
+    ax, ay = (2 * fx - 1) * corner / np.sqrt(2), (2 * fy - 1) * corner / np.sqrt(2)
+    psf = simulate.diffraction_psf(fnumber, wavelength_um=wavelength, pitch_um=channel_pitch, s=s,
+                                   support=support, aberration=(ax, ay))
+    psf.flags.writeable = False  # shared by the cache
+    return psf
+
+
+@functools.lru_cache(maxsize=4)
+def _texture(seed: int) -> np.ndarray:
+    """A textured plane with a natural-image-like 1/f amplitude spectrum, reflectance in [0.05, 0.95].
+
+    Scale-free texture keeps detail at every distance, which a near/far pair needs
+    (Delbracio et al., IPOL 2013: the scene must hold enough texture at both scales).
+    """
+    rng = np.random.default_rng(10_000 + seed)
+    n = TEXTURE_RASTER
+    fy = fft.fftfreq(n)[:, None]
+    fx = fft.rfftfreq(n)[None, :]
+    radius = np.hypot(fx, fy)
+    radius[0, 0] = 1.0
+    spectrum = (rng.normal(size=radius.shape) + 1j * rng.normal(size=radius.shape)) / radius
+    spectrum[0, 0] = 0.0
+    texture = fft.irfft2(spectrum, s=(n, n), workers=-1)
+    texture = (texture - texture.mean()) / (4.0 * texture.std())
+    texture = np.clip(0.5 + texture, 0.05, 0.95).astype(np.float32)
+    texture.flags.writeable = False  # shared by the cache
+    return texture
+
+
+class SimCamera:
+    """`Camera` of a `SimRig`: offers the usual settings and captures rendered DNGs."""
+
+    def __init__(self, rig: SimRig) -> None:
+        self.rig = rig
+
+    def info(self) -> CameraInfo:
+        self.rig._check_fault("camera")
+        return CameraInfo(model="psfd simulated camera", serial=f"SIM-{self.rig.seed}",
+                          lens=f"simulated {self.rig.focal_mm:g} mm", focal_length_mm=self.rig.focal_mm, port="sim")
+
+    def get(self, name: str) -> str:
+        self.rig._check_fault("camera")
+        return self.rig.settings[self._known(name)]
+
+    def choices(self, name: str) -> list[str]:
+        self.rig._check_fault("camera")
+        return list(CHOICES[self._known(name)])
+
+    def set(self, name: str, value: str) -> None:
+        self.rig._check_fault("camera")
+        offered = CHOICES[self._known(name)]
+        text = str(value).removeprefix("f/")
+        match = [c for c in offered if c == text or _same_number(c, text)]
+        if not match:
+            raise CameraError(f"{name} {value} is not offered by the camera (offered: {', '.join(offered)})")
+        self.rig.settings[name] = match[0]
+
+    def capture(self, dest: Path) -> list[Path]:
+        """Render one exposure into ``dest``: a DNG, plus a JPEG preview in RAW + JPEG mode."""
+        self.rig._check_fault("camera")
+        dest = Path(dest)
+        dest.mkdir(parents=True, exist_ok=True)
+        self.rig.captures += 1
+        stem = f"SIM_{self.rig.captures:04d}"
+        dng = free_name(dest, f"{stem}.DNG")
+        truth = self.rig.render(dng)
+        self.rig.last_truth = truth
+        files = [dng]
+        if self.rig.settings["imageformat"] == "RAW + JPEG":
+            files.append(_write_preview(dng, free_name(dest, f"{stem}.JPG")))
+        return files
+
+    def close(self) -> None:
+        pass
+
+    @staticmethod
+    def _known(name: str) -> str:
+        if name not in CHOICES:
+            raise CameraError(f"camera has no setting {name!r} (has: {', '.join(CHOICES)})")
+        return name
+
+
+class SimRail:
+    """`Rail` of a `SimRig`: instant moves within the rig's travel limits."""
+
+    def __init__(self, rig: SimRig) -> None:
+        self.rig = rig
+
+    def home(self) -> Position:
+        self.rig._check_fault("rail")
+        self.rig.pos = Position(x=self.rig.limits["x"][0], y=self._zero("y"), z=self._zero("z"))
+        return self.rig.pos
+
+    def move(self, x: float | None = None, y: float | None = None, z: float | None = None) -> Position:
+        self.rig._check_fault("rail")
+        target = {"x": x, "y": y, "z": z}
+        if all(v is None for v in target.values()):
+            raise RailError("move needs at least one axis position")
+        current = dataclasses.asdict(self.rig.pos)
+        for axis, value in target.items():
+            if value is None:
+                continue
+            if axis not in self.rig.limits:
+                raise RailError(f"rail has no {axis.upper()} axis")
+            lo, hi = self.rig.limits[axis]
+            if not lo <= float(value) <= hi:
+                raise RailError(f"{axis.upper()}={float(value):g} mm is outside the soft limits [{lo:g}, {hi:g}] mm")
+            current[axis] = float(value)
+        self.rig.pos = Position(**current)
+        return self.rig.pos
+
+    def position(self) -> Position:
+        self.rig._check_fault("rail")
+        return self.rig.pos
+
+    def close(self) -> None:
+        pass
+
+    def _zero(self, axis: str) -> float | None:
+        return 0.0 if axis in self.rig.limits else None
+
+
+def _same_number(a: str, b: str) -> bool:
+    try:
+        return abs(float(a) - float(b)) < 1e-9
+    except ValueError:
+        return False
+
+
+
+def _write_preview(dng: Path, path: Path) -> Path:
+    """A small 8-bit JPEG of the green plane, as a camera's RAW + JPEG mode adds."""
+    from psfd.estimator import raw
+
+    green = raw.load_frame(dng, "g1")
+    image = np.clip(255.0 * np.sqrt(np.clip(green.data / green.white, 0, 1)), 0, 255).astype(np.uint8)
+    tmp = path.with_name(f".{path.name}.part.jpg")
+    try:
+        if not cv2.imwrite(str(tmp), image):
+            raise CameraError(f"{path}: cannot write JPEG preview")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path

@@ -1,0 +1,206 @@
+"""Rendering the Bernoulli target for print: a vector PDF and a raster PNG.
+
+The layout is the published one (`psfd.estimator.target`); only the noise
+realisation changes. The printed cells must be large enough that ink does not
+soak across cell borders (Delbracio PhD thesis 2013, ch. 2 discussion: the
+authors printed "some 70 cm"), hence the 700 mm default.
+
+The PDF is written by hand: none of the project's dependencies (numpy, scipy,
+OpenCV, rawpy, tifffile, ...) writes PDF, and the file needs only three things
+PDF 1.4 has had since the start: filled rectangles (``re``), filled triangles
+(``m``/``l``/``h``) and one line of text in a standard font.
+"""
+
+from __future__ import annotations
+
+import os
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from psfd.errors import BadInputError
+from psfd.estimator import target
+
+MM_PER_POINT = 25.4 / 72.0
+# White border around the target, in blocks: one block, as on the published print, keeps the
+# outer marks apart from whatever is behind the board; a 700 mm target then fits A0 (841 mm).
+MARGIN_BLOCKS = 1
+MIN_SIZE_MM = 50.0
+# PDF viewers and printers limit a page side to 14400 points (200 inches) unless UserUnit is used.
+MAX_SIZE_MM = 14400 * MM_PER_POINT / (1 + 2 * MARGIN_BLOCKS / target.BLOCKS)
+
+
+def run_raster(noise: np.ndarray) -> np.ndarray:
+    """Cell-level black mask of everything drawn as rectangles (noise and black squares).
+
+    The X-corner blocks are left white here: their hourglasses are drawn as triangles.
+    """
+    black = target.cells(noise, supersample=1) < 0.5
+    for bx, by in target.XCORNER_BLOCKS:
+        black[by * target.BLOCK : (by + 1) * target.BLOCK, bx * target.BLOCK : (bx + 1) * target.BLOCK] = False
+    return black
+
+
+def black_runs(black: np.ndarray) -> list[tuple[int, int, int]]:
+    """Runs of black cells along each row, as (row, first column, length)."""
+    runs = []
+    padded = np.zeros((black.shape[0], black.shape[1] + 2), dtype=np.int8)
+    padded[:, 1:-1] = black
+    for row, line in enumerate(padded):
+        edges = np.flatnonzero(np.diff(line))  # starts and stops alternate
+        runs.extend((row, int(a), int(b - a)) for a, b in zip(edges[0::2], edges[1::2]))
+    return runs
+
+
+def hourglass_triangles() -> list[tuple[tuple[int, int], ...]]:
+    """The X-corner marks as triangles (three (x, y) cell corners each).
+
+    Each hourglass is two black triangles with bases on the block's top and
+    bottom edges and apexes at the block centre, the saddle point.
+    """
+    triangles = []
+    for bx, by in target.XCORNER_BLOCKS:
+        x0, y0 = bx * target.BLOCK, by * target.BLOCK
+        x1, y1 = x0 + target.BLOCK, y0 + target.BLOCK
+        centre = (x0 + target.BLOCK // 2, y0 + target.BLOCK // 2)
+        triangles.append(((x0, y0), (x1, y0), centre))
+        triangles.append(((x0, y1), (x1, y1), centre))
+    return triangles
+
+
+def _num(value: float) -> str:
+    text = f"{value:.4f}".rstrip("0").rstrip(".")
+    return text if text not in ("", "-0") else "0"
+
+
+def _pdf_string(text: str) -> str:
+    return "(" + text.replace("\\", "\\\\").replace("(", "\\(").replace(")", "\\)") + ")"
+
+
+def pdf_bytes(noise: np.ndarray, size_mm: float = 700.0, caption: str = "") -> bytes:
+    """The target as a one-page vector PDF.
+
+    Parameters
+    ----------
+    noise : ndarray (256, 256)
+        Noise values in {0, 1} (0 black).
+    size_mm : float
+        Side of the whole 320-cell target on paper.
+    caption : str
+        Text printed in the bottom margin.
+
+    Returns
+    -------
+    bytes
+        The PDF file. The page is the target plus a white margin of
+        MARGIN_BLOCKS blocks on every side; the drawing is in cell units
+        through one ``cm`` transform, so every coordinate is an integer.
+    """
+    if not MIN_SIZE_MM <= size_mm <= MAX_SIZE_MM:
+        raise BadInputError(f"target size must be between {MIN_SIZE_MM:g} and {MAX_SIZE_MM:.0f} mm, got {size_mm:g}")
+    cell = size_mm / target.SIZE / MM_PER_POINT  # points per cell
+    margin = MARGIN_BLOCKS * target.BLOCK * cell
+    page = target.SIZE * cell + 2 * margin
+    # y down in cell units: PDF user space has y up from the bottom-left corner.
+    ops = ["q", f"{cell:.6f} 0 0 {-cell:.6f} {_num(margin)} {_num(page - margin)} cm", "0 g"]
+    ops += [f"{x} {y} {n} 1 re" for y, x, n in black_runs(run_raster(noise))]
+    ops += [f"{a[0]} {a[1]} m {b[0]} {b[1]} l {c[0]} {c[1]} l h" for a, b, c in hourglass_triangles()]
+    # One path, one nonzero fill: abutting pieces merge, so no hairline seams between runs.
+    ops += ["f", "Q"]
+    if caption:
+        font = min(9.0, 0.6 * margin, (page - 2 * margin) / (0.55 * len(caption)))
+        ops.append(f"BT /F1 {_num(font)} Tf {_num(margin)} {_num(0.35 * margin)} Td {_pdf_string(caption)} Tj ET")
+    content = zlib.compress("\n".join(ops).encode("latin-1"), 9)
+    side = _num(page)
+    objects = [
+        b"<< /Type /Catalog /Pages 2 0 R >>",
+        b"<< /Type /Pages /Kids [3 0 R] /Count 1 >>",
+        (
+            f"<< /Type /Page /Parent 2 0 R /MediaBox [0 0 {side} {side}] "
+            "/Resources << /Font << /F1 5 0 R >> >> /Contents 4 0 R >>"
+        ).encode(),
+        f"<< /Length {len(content)} /Filter /FlateDecode >>\nstream\n".encode() + content + b"\nendstream",
+        b"<< /Type /Font /Subtype /Type1 /BaseFont /Helvetica /Encoding /WinAnsiEncoding >>",
+        f"<< /Title {_pdf_string('psfd Bernoulli target')} /Producer (psfd) >>".encode(),
+    ]
+    out = bytearray(b"%PDF-1.4\n%\xe2\xe3\xcf\xd3\n")
+    offsets = []
+    for number, body in enumerate(objects, start=1):
+        offsets.append(len(out))
+        out += f"{number} 0 obj\n".encode() + body + b"\nendobj\n"
+    xref = len(out)
+    out += f"xref\n0 {len(objects) + 1}\n".encode()
+    out += b"0000000000 65535 f \n" + b"".join(f"{o:010d} 00000 n \n".encode() for o in offsets)
+    out += f"trailer\n<< /Size {len(objects) + 1} /Root 1 0 R /Info 6 0 R >>\nstartxref\n{xref}\n%%EOF\n".encode()
+    return bytes(out)
+
+
+def png_bytes(noise: np.ndarray, px_per_cell: int = 8, margin_cells: int = MARGIN_BLOCKS * target.BLOCK) -> bytes:
+    """The target as an 8-bit grey PNG, ``px_per_cell`` pixels per cell, with a white border.
+
+    Noise cell (row r, column c) covers pixel rows [(m + 32 + r) p, (m + 33 + r) p)
+    and the same columns for c, with m = margin_cells and p = px_per_cell.
+    """
+    if not 1 <= px_per_cell <= 64:
+        raise BadInputError(f"pixels per cell must be between 1 and 64, got {px_per_cell}")
+    raster = np.round(target.cells(noise, supersample=px_per_cell) * 255).astype(np.uint8)
+    pad = margin_cells * px_per_cell
+    raster = np.pad(raster, pad, constant_values=255)
+    ok, encoded = cv2.imencode(".png", raster)
+    if not ok:  # pragma: no cover - OpenCV always encodes a grey uint8 image
+        raise BadInputError("cannot encode the target as PNG")
+    return encoded.tobytes()
+
+
+def noise_path(out: Path) -> Path:
+    """Where the noise realisation of a rendered target is kept: ``x.pdf`` -> ``x.noise.pgm``."""
+    return out.with_name(out.stem + ".noise.pgm")
+
+
+def write_target(
+    out: str | os.PathLike,
+    noise: np.ndarray,
+    *,
+    size_mm: float = 700.0,
+    caption: str = "",
+    px_per_cell: int = 8,
+) -> tuple[Path, Path]:
+    """Render the target to ``out`` (.pdf or .png) and save its noise beside it.
+
+    Both files are written under temporary names and renamed at the end, so a
+    failure leaves neither behind.
+
+    Returns
+    -------
+    (target path, noise path)
+    """
+    out = Path(out)
+    suffix = out.suffix.lower()
+    if suffix not in (".pdf", ".png"):
+        raise BadInputError(f"{out}: unknown target format {out.suffix or '(none)'!r}; use .pdf or .png")
+    folder = out.parent if str(out.parent) else Path(".")
+    if not folder.is_dir() or not os.access(folder, os.W_OK):
+        raise BadInputError(f"{folder}: not a writable folder")
+    data = pdf_bytes(noise, size_mm, caption) if suffix == ".pdf" else png_bytes(noise, px_per_cell)
+    pgm = noise_path(out)
+    tmp_target = out.with_name(f".{out.name}.part")
+    tmp_noise = pgm.with_name(f".{pgm.stem}.part.pgm")  # OpenCV picks the encoder by suffix
+    existed = out.exists()
+    try:
+        tmp_target.write_bytes(data)
+        target.save_noise(noise, tmp_noise)
+        os.replace(tmp_target, out)
+        try:
+            os.replace(tmp_noise, pgm)
+        except OSError:
+            if not existed:  # never leave a target without its noise
+                out.unlink(missing_ok=True)
+            raise
+    except OSError as exc:
+        raise BadInputError(f"{out}: cannot write ({exc.strerror or exc})") from None
+    finally:
+        tmp_target.unlink(missing_ok=True)
+        tmp_noise.unlink(missing_ok=True)
+    return out, pgm

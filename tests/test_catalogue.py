@@ -1,0 +1,431 @@
+"""The SQLite catalogue: schema and migrations, atomic idempotent steps, queries, concurrency.
+
+Every test uses a real SQLite file in tmp_path.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import sqlite3
+import subprocess
+import sys
+import threading
+
+import numpy as np
+import pytest
+import sqlite_utils
+
+from psfd import catalogue as catalogue_module
+from psfd.catalogue import MIGRATIONS, SCHEMA_VERSION, Catalogue, FrameRecord, default_path
+from psfd.drivers.base import CameraInfo
+from psfd.errors import BadInputError, CatalogueError
+from psfd.estimator.psf import PSF
+
+CANON = CameraInfo("Canon EOS 400D", "0420", "EF 50mm f/1.8", 50.0)
+NIKON = CameraInfo("Nikon D850", "77", "AF-S 24-70mm", 35.0)
+
+
+def gaussian(sigma: float, support: int = 17) -> np.ndarray:
+    """Unit-sum isotropic Gaussian kernel on the s-times grid (a synthetic PSF)."""
+    r = np.arange(support) - support // 2
+    k = np.exp(-(r[:, None] ** 2 + r[None, :] ** 2) / (2 * sigma**2))
+    return k / k.sum()
+
+
+def make_psf(field=(0.5, 0.5), channel="g1", sigma=2.0, method="bernoulli") -> PSF:
+    return PSF(gaussian(sigma), 4, method, channel, ["frame.dng"], field, (0, 0, 64, 64), noise_floor=1e-4)
+
+
+def frame(n: int, aperture="5.6") -> FrameRecord:
+    return FrameRecord(f"/raw/{n}.dng", f"{n:064x}", {"aperture": aperture, "iso": "100"}, {"x": 10.0 * n}, "t")
+
+
+def new_run(cat: Catalogue, keys=("a", "b", "c"), rig=CANON) -> int:
+    return cat.start_run("plan.toml", "[rig]\nsimulate = true\n", cat.add_rig(rig), [(k, {"k": k}) for k in keys])
+
+
+def count(path, table: str) -> int:
+    with sqlite3.connect(path) as conn:
+        return conn.execute(f"SELECT count(*) FROM {table}").fetchone()[0]
+
+
+# -- schema ---------------------------------------------------------------------
+
+
+def test_new_catalogue_has_schema_wal_and_foreign_keys(tmp_path):
+    path = tmp_path / "sub" / "cat.sqlite"
+    with Catalogue(path) as cat:
+        assert cat.schema_version() == SCHEMA_VERSION == len(MIGRATIONS)
+        assert {"rigs", "runs", "steps", "frames", "psfs", "psf_frames"} <= set(cat.db.table_names())
+        assert cat.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+        assert cat.db.execute("PRAGMA foreign_keys").fetchone()[0] == 1
+        assert cat.db.execute("PRAGMA busy_timeout").fetchone()[0] == 30000
+        assert any(ix.columns == ["aperture", "channel", "method"] for ix in cat.db["psfs"].indexes)
+        assert cat.integrity_check() == []
+
+
+def test_migration_from_version_1_keeps_data_and_adds_indexes(tmp_path):
+    path = tmp_path / "old.sqlite"
+    db = sqlite_utils.Database(path)
+    MIGRATIONS[0](db)
+    db.execute("PRAGMA user_version = 1")
+    db["rigs"].insert({"model": "Old", "serial": "1", "lens": "L"})
+    assert db["psfs"].indexes == []
+    db.close()
+
+    with Catalogue(path) as cat:
+        assert cat.schema_version() == SCHEMA_VERSION
+        assert any(ix.columns == ["aperture", "channel", "method"] for ix in cat.db["psfs"].indexes)
+        assert cat.add_rig(CameraInfo("Old", "1", "L")) == 1  # the old row is still there
+
+
+def test_failed_migration_is_rolled_back(tmp_path, monkeypatch):
+    path = tmp_path / "cat.sqlite"
+    Catalogue(path).close()
+
+    def broken(db):
+        db["extra"].create({"id": int}, pk="id")
+        raise RuntimeError("migration failed half way")
+
+    monkeypatch.setattr(catalogue_module, "MIGRATIONS", MIGRATIONS + [broken])
+    monkeypatch.setattr(catalogue_module, "SCHEMA_VERSION", SCHEMA_VERSION + 1)
+    with pytest.raises(RuntimeError):
+        Catalogue(path)
+    db = sqlite_utils.Database(path)
+    assert db.execute("PRAGMA user_version").fetchone()[0] == SCHEMA_VERSION
+    assert "extra" not in db.table_names()
+
+
+def test_newer_foreign_and_garbage_files_are_refused(tmp_path):
+    newer = tmp_path / "newer.sqlite"
+    Catalogue(newer).close()
+    with sqlite3.connect(newer) as conn:
+        conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
+    with pytest.raises(CatalogueError, match="newer"):
+        Catalogue(newer)
+
+    foreign = tmp_path / "other.sqlite"
+    with sqlite3.connect(foreign) as conn:
+        conn.execute("CREATE TABLE t (x)")
+    with pytest.raises(CatalogueError, match="not a psfd catalogue"):
+        Catalogue(foreign)
+
+    garbage = tmp_path / "garbage.sqlite"
+    garbage.write_bytes(b"this is not sqlite at all" * 100)
+    with pytest.raises(CatalogueError, match="not a psfd catalogue"):
+        Catalogue(garbage)
+
+    with pytest.raises(CatalogueError, match="no catalogue"):
+        Catalogue(tmp_path / "missing.sqlite", create=False)
+    assert not (tmp_path / "missing.sqlite").exists()
+
+
+def test_default_path_follows_xdg(monkeypatch, tmp_path):
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path))
+    assert default_path() == tmp_path / "psfd" / "catalogue.sqlite"
+    monkeypatch.setenv("XDG_DATA_HOME", "relative/dir")  # ignored: the spec wants an absolute path
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert default_path() == tmp_path / "home" / ".local" / "share" / "psfd" / "catalogue.sqlite"
+
+
+# -- rigs, runs, steps ------------------------------------------------------------
+
+
+def test_rigs_runs_and_steps_lifecycle(tmp_path):
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        rig = cat.add_rig(CANON)
+        assert cat.add_rig(CANON) == rig and cat.add_rig(NIKON) != rig
+        run = new_run(cat)
+        assert [s["key"] for s in cat.steps(run)] == ["a", "b", "c"]
+        assert cat.steps(run)[1]["payload"] == {"k": "b"}
+        assert cat.unfinished_run("[rig]\nsimulate = true\n") == run
+        assert cat.unfinished_run("other plan") is None
+
+        cat.set_step_state(run, "a", "running")
+        cat.set_step_state(run, "a", "failed", reason="camera busy")
+        cat.set_step_state(run, "a", "running")
+        step = cat.steps(run, states=("running",))[0]
+        assert (step["key"], step["attempts"], step["reason"]) == ("a", 2, None)
+        assert [s["key"] for s in cat.steps(run, states=("pending",))] == ["b", "c"]
+
+        cat.finish_run(run, "paused")
+        summary = cat.run_summary(run)
+        assert (summary["state"], summary["running"], summary["pending"], summary["total"]) == ("paused", 1, 2, 3)
+        assert cat.unfinished_run("[rig]\nsimulate = true\n") == run  # paused runs resume
+        cat.finish_run(run, "done")
+        assert cat.unfinished_run("[rig]\nsimulate = true\n") is None
+        assert cat.runs()[0]["state"] == "done" and cat.runs()[0]["camera"] == CANON.model
+
+        with pytest.raises(BadInputError):
+            cat.set_step_state(run, "a", "sleeping")
+        with pytest.raises(CatalogueError):
+            cat.set_step_state(run, "zz", "done")
+        with pytest.raises(BadInputError, match="duplicate"):
+            cat.start_run("p", "t", rig, [("x", {}), ("x", {})])
+
+
+# -- commit_step: atomic and idempotent -------------------------------------------
+
+
+def test_commit_step_is_idempotent(tmp_path):
+    path = tmp_path / "cat.sqlite"
+    with Catalogue(path) as cat:
+        run = new_run(cat)
+        psfs = [(make_psf(channel=c), {"aperture": 5.6, "focal_length_mm": 50, "frame_indices": [0]}) for c in "rb"]
+        ids = cat.commit_step(run, "a", [frame(1), frame(2)], psfs)
+        assert len(ids) == 2
+        assert cat.commit_step(run, "a", [frame(1), frame(2)], psfs) == ids  # replay after a crash
+        assert count(path, "psfs") == 2 and count(path, "frames") == 2 and count(path, "psf_frames") == 2
+        assert cat.run_summary(run)["done"] == 1 and cat.run_summary(run)["psfs"] == 2
+        # The same file used by another step is one frame, not two.
+        cat.commit_step(run, "b", [frame(2), frame(3, aperture="implicit auto")], [(make_psf(), {"aperture": 5.6})])
+        assert [f["aperture"] for f in cat.psf_frames(ids[0] + 2)] == [5.6, None]
+        assert count(path, "frames") == 3 and cat.frame_hashes() == {frame(n).sha256 for n in (1, 2, 3)}
+        assert [f["path"] for f in cat.psf_frames(ids[0])] == ["/raw/1.dng"]
+        assert cat.integrity_check() == []
+
+
+def test_failure_mid_commit_leaves_nothing(tmp_path, monkeypatch):
+    path = tmp_path / "cat.sqlite"
+    with Catalogue(path) as cat:
+        run = new_run(cat)
+        good = (make_psf(), {"aperture": 5.6})
+        bad = (PSF(np.full((4, 4), np.nan), 4, "bernoulli", "g1", ["f"]), {"aperture": 5.6})
+        with pytest.raises(BadInputError):
+            cat.commit_step(run, "a", [frame(1)], [good, bad])  # second PSF fails after the first is inserted
+
+        real = Catalogue._psf_record
+        calls = []
+
+        def fail_second(*args):
+            calls.append(1)
+            if len(calls) == 2:
+                raise OSError("disk full")
+            return real(*args)
+
+        monkeypatch.setattr(Catalogue, "_psf_record", staticmethod(fail_second))
+        with pytest.raises(OSError):
+            cat.commit_step(run, "a", [frame(1)], [good, good])
+        assert len(calls) == 2
+        for table in ("frames", "psfs", "psf_frames"):
+            assert count(path, table) == 0
+        assert cat.steps(run)[0]["state"] == "pending"
+        monkeypatch.undo()
+        assert len(cat.commit_step(run, "a", [frame(1)], [good, good])) == 2
+        assert cat.integrity_check() == []
+
+
+CRASH_SCRIPT = """
+import os, sys
+import numpy as np
+from psfd.catalogue import Catalogue, FrameRecord
+from psfd.estimator.psf import PSF
+real = Catalogue._psf_record
+calls = []
+def die_on_third(*args):
+    calls.append(1)
+    if len(calls) == 3:
+        os._exit(9)  # the daemon killed mid-transaction: no rollback, no cleanup
+    return real(*args)
+Catalogue._psf_record = staticmethod(die_on_third)
+cat = Catalogue(sys.argv[1])
+k = np.ones((5, 5)) / 25
+psfs = [(PSF(k, 4, "bernoulli", c, ["f"]), {"aperture": 8}) for c in ("r", "g1", "g2", "b")]
+cat.commit_step(1, "a", [FrameRecord("/raw/x.dng", "ab" * 32, {}, {}, "t")], psfs)
+"""
+
+
+def test_process_killed_mid_commit_loses_nothing_and_stores_nothing_twice(tmp_path):
+    path = tmp_path / "cat.sqlite"
+    with Catalogue(path) as cat:
+        run = new_run(cat)
+        assert run == 1
+    proc = subprocess.run([sys.executable, "-c", CRASH_SCRIPT, str(path)], capture_output=True, text=True)
+    assert proc.returncode == 9, proc.stderr
+    with Catalogue(path) as cat:
+        assert count(path, "psfs") == 0 and count(path, "frames") == 0
+        assert cat.steps(run)[0]["state"] == "pending" and cat.integrity_check() == []
+        # The resumed daemon redoes the step, twice for good measure: four PSFs in all.
+        psfs = [(make_psf(channel=c), {"aperture": 8}) for c in ("r", "g1", "g2", "b")]
+        cat.commit_step(run, "a", [frame(1)], psfs)
+        cat.commit_step(run, "a", [frame(1)], psfs)
+        assert count(path, "psfs") == 4
+
+
+def test_second_writer_waits_then_gets_a_typed_error(tmp_path):
+    path = tmp_path / "cat.sqlite"
+    with Catalogue(path) as first, Catalogue(path, timeout=0.05) as second:
+        run = new_run(first)
+        first.db.execute("BEGIN IMMEDIATE")  # another writer holds the lock
+        with pytest.raises(CatalogueError, match="cannot write"):
+            second.set_step_state(run, "a", "running")
+        assert second.steps(run)[0]["state"] == "pending"  # reading is still fine (WAL)
+        first.db.rollback()
+        second.set_step_state(run, "a", "running")
+        assert first.steps(run)[0]["attempts"] == 1
+
+
+def test_integrity_check_reports_psfs_of_unfinished_steps(tmp_path):
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        run = new_run(cat)
+        cat.commit_step(run, "a", [], [(make_psf(), {})])
+        cat.db.execute("UPDATE steps SET state = 'pending' WHERE key = 'a'")
+        problems = cat.integrity_check()
+        assert len(problems) == 1 and "'a'" in problems[0]
+
+
+# -- queries ------------------------------------------------------------------------
+
+GRID = [(x, y) for y in (1 / 6, 0.5, 5 / 6) for x in (1 / 6, 0.5, 5 / 6)]
+
+
+def fill(cat: Catalogue) -> None:
+    """Canon at f/5.6 and f/8 (r, g1 on a 3x3 field grid), Nikon at f/4 (g1 centre only)."""
+    run = new_run(cat, keys=("f5.6", "f8"))
+    for key, aperture in (("f5.6", 5.6), ("f8", 8.0)):
+        psfs = [
+            (make_psf(field, channel, sigma=aperture / 4), {"aperture": aperture, "focal_length_mm": 50})
+            for field in GRID
+            for channel in ("r", "g1")
+        ]
+        cat.commit_step(run, key, [frame(int(aperture * 10))], psfs)
+    nikon = new_run(cat, keys=("n",), rig=NIKON)
+    cat.commit_step(nikon, "n", [], [(make_psf(channel="g1", method="two-photo"), {"aperture": 4})])
+
+
+def test_query_filters_and_array_round_trip(tmp_path):
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        fill(cat)
+        assert len(cat.query()) == 37
+        exact = cat.query(aperture=5.6, channel="g1")
+        assert exact.note is None and len(exact) == 9
+        assert {r["aperture"] for r in exact} == {5.6} and {r["channel"] for r in exact} == {"g1"}
+        assert len(cat.query(camera="canon")) == 36 and len(cat.query(camera="0420")) == 36
+        assert len(cat.query(lens="24-70")) == 1 and len(cat.query(method="two-photo")) == 1
+        assert len(cat.query(camera="canon", method="two-photo")) == 0
+        assert len(cat.query(limit=5)) == 5
+
+        row = exact.rows[0]
+        array, meta = cat.psf(row["id"])
+        np.testing.assert_array_equal(array, gaussian(5.6 / 4))  # the .npy blob is lossless float64
+        assert array.dtype == np.float64 and meta["window"] == [0, 0, 64, 64]
+        assert meta["camera"] == CANON.model and meta["step"] == "f5.6" and meta["psfd_version"]
+        assert math.isclose(meta["mtf50_x"], make_psf(sigma=1.4).metrics()["mtf50_x"])
+        with pytest.raises(CatalogueError):
+            cat.psf(10_000)
+
+
+def test_query_nearest_aperture_with_note(tmp_path):
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        fill(cat)
+        result = cat.query(camera="Canon", aperture=6.3, channel="g1")
+        assert result.note == "f/6.3 not measured; nearest is f/5.6"
+        assert {r["aperture"] for r in result} == {5.6} and len(result) == 9
+        # 7.1 is 1/3 stop from f/8 and 2/3 stop from f/5.6.
+        assert cat.query(camera="Canon", aperture=7.1).note == "f/7.1 not measured; nearest is f/8"
+        # Only the Nikon (camera filter applied first) has f/4.
+        assert {r["aperture"] for r in cat.query(camera="Nikon", aperture=11)} == {4.0}
+        assert cat.query(aperture=5.65).note is None  # within the 1 % tolerance of f/5.6
+
+
+def test_query_near_keeps_nearest_per_aperture_channel_method(tmp_path):
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        fill(cat)
+        near = (0.8, 0.1)
+        result = cat.query(camera="Canon", near=near)
+        expected = min(GRID, key=lambda p: math.hypot(p[0] - near[0], p[1] - near[1]))
+        assert len(result) == 4  # (5.6, 8) x (r, g1)
+        assert {(r["aperture"], r["channel"]) for r in result} == {(5.6, "r"), (5.6, "g1"), (8.0, "r"), (8.0, "g1")}
+        for row in result:
+            assert (row["field_x"], row["field_y"]) == pytest.approx(expected)
+            assert row["distance"] == pytest.approx(math.hypot(expected[0] - 0.8, expected[1] - 0.1))
+        one = cat.query(aperture=8, channel="r", near=(0.1, 0.9))
+        assert len(one) == 1 and (one.rows[0]["field_x"], one.rows[0]["field_y"]) == pytest.approx((1 / 6, 5 / 6))
+
+
+# -- concurrency ----------------------------------------------------------------------
+
+STEPS, PER_STEP = 60, 4
+
+
+def _reader(path, ready, done, out):
+    """Query in a loop while the writer commits; report what was seen."""
+    try:
+        out.put(_read_until_done(path, ready, done))
+    except BaseException as exc:  # report instead of leaving the test waiting on the queue
+        out.put(([], [repr(exc)]))
+
+
+def _read_until_done(path, ready, done):
+    cat = Catalogue(path, create=False)
+    seen, torn = set(), []
+    ready.set()
+    while True:
+        finished = done.is_set()
+        rows = cat.query().rows
+        per_step: dict = {}
+        for row in rows:
+            per_step[row["step"]] = per_step.get(row["step"], 0) + 1
+        torn += [(k, n) for k, n in per_step.items() if n != PER_STEP]
+        torn += cat.integrity_check()
+        if rows:
+            array, _ = cat.psf(rows[-1]["id"])
+            if not math.isclose(array.sum(), 1.0):
+                torn.append(("array", rows[-1]["id"]))
+        seen.add(len(rows))
+        if finished:
+            break
+    cat.close()
+    return sorted(seen), torn
+
+
+def test_reader_never_sees_half_a_step_and_never_blocks_the_writer(tmp_path):
+    path = tmp_path / "cat.sqlite"
+    writer = Catalogue(path, timeout=0.0)  # no busy wait: any lock held by the reader would raise
+    run = new_run(writer, keys=[f"s{i}" for i in range(STEPS)])
+    ctx = multiprocessing.get_context("fork")
+    ready, done, out = ctx.Event(), ctx.Event(), ctx.Queue()
+    proc = ctx.Process(target=_reader, args=(str(path), ready, done, out))
+    proc.start()
+    try:
+        assert ready.wait(30)
+        for i in range(STEPS):
+            psfs = [(make_psf((0.1 * j, 0.5), ch), {"aperture": 5.6}) for j, ch in enumerate("r g1 g2 b".split())]
+            writer.commit_step(run, f"s{i}", [frame(i)], psfs)
+        done.set()
+        seen, torn = out.get(timeout=60)
+    finally:
+        proc.join(30)
+        writer.close()
+    assert torn == []
+    assert seen[-1] == STEPS * PER_STEP
+    assert all(n % PER_STEP == 0 for n in seen)
+    assert len(seen) > 2  # the reader really overlapped the writer (it saw intermediate states)
+
+
+def test_one_catalogue_shared_by_threads(tmp_path):
+    """The service's control thread reads the catalogue its runner thread writes."""
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        run = new_run(cat, keys=[f"s{i}" for i in range(20)])
+        errors, summaries = [], []
+
+        def write():
+            for i in range(20):
+                cat.commit_step(run, f"s{i}", [frame(i)], [(make_psf(channel=c), {}) for c in ("r", "b")])
+
+        def read():
+            try:
+                while not summaries or summaries[-1]["done"] < 20:
+                    summaries.append(cat.run_summary(run))
+            except Exception as exc:  # noqa: BLE001 - reported below
+                errors.append(exc)
+
+        threads = [threading.Thread(target=write), threading.Thread(target=read)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(60)
+        assert errors == []
+        assert all(s["psfs"] == 2 * s["done"] for s in summaries)  # never a step without its PSFs
+        assert summaries[-1]["psfs"] == 40 and cat.integrity_check() == []

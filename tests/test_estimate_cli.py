@@ -1,0 +1,357 @@
+"""`psfd estimate ...` and its writers: files, figures, JSON lines, bad input."""
+
+from __future__ import annotations
+
+import importlib.util
+import io
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+
+from scipy.special import ndtr
+
+from psfd.cli import main, output
+from psfd.errors import BadInputError
+from psfd.estimator import raw
+from psfd.estimator.psf import PSF
+
+# The target pipeline needs the registration and radiometry steps of the detection team.
+needs_target_pipeline = pytest.mark.skipif(
+    any(importlib.util.find_spec(f"psfd.estimator.{m}") is None for m in ("register", "radiometry")),
+    reason="target registration/radiometry not available",
+)
+
+
+def gaussian(sigma_x: float, sigma_y: float, s: int = 4, support: int = 17) -> np.ndarray:
+    """A unit-sum Gaussian kernel on the s-times grid (sigmas in channel pixels)."""
+    r = (np.arange(support) - support // 2) / s
+    k = np.exp(-0.5 * (r[None, :] / sigma_x) ** 2 - 0.5 * (r[:, None] / sigma_y) ** 2)
+    return k / k.sum()
+
+
+def synthetic(window: int = 0, **extra) -> PSF:
+    return PSF(
+        psf=gaussian(0.6, 0.9),
+        s=4,
+        method="bernoulli",
+        channel="g1",
+        sources=["/data/IMG_0001.dng"],
+        field=(0.25 + 0.5 * window, 0.5),
+        window=(320 * window, 0, 320 * (window + 1), 480),
+        noise_floor=1.5e-3,
+        residual=0.01,
+        params={"solver": "ls-threshold", "grid": (2, 1)},
+        **extra,
+    )
+
+
+def run(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+# ---------------------------------------------------------------- writers
+
+
+def test_write_estimates_files_round_trip(tmp_path):
+    kernel = np.arange(25.0).reshape(5, 5) - 12  # signed, as an inter-image kernel can be
+    residual = np.random.default_rng(0).normal(size=(40, 60))
+    estimates = [synthetic(0, figures={"kernel": kernel, "residual": residual}), synthetic(1)]
+    files = output.write_estimates(estimates, tmp_path / "out")
+    names = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert names == sorted(p.name for p in files)
+    assert names == sorted(
+        [f"IMG_0001_bernoulli_g1_w0{i}.{ext}" for i in (0, 1) for ext in ("npy", "tif", "png")]
+        + [f"IMG_0001_bernoulli_g1_w00.{k}.{ext}" for k in ("kernel", "residual") for ext in ("npy", "png")]
+    )
+    base = tmp_path / "out" / "IMG_0001_bernoulli_g1_w00"
+    np.testing.assert_array_equal(np.load(f"{base}.npy"), estimates[0].psf)
+    tif = tifffile.imread(f"{base}.tif")
+    assert tif.dtype == np.float32
+    np.testing.assert_array_equal(tif, estimates[0].psf.astype(np.float32))
+    np.testing.assert_array_equal(np.load(f"{base}.kernel.npy"), kernel)
+    np.testing.assert_array_equal(np.load(f"{base}.residual.npy"), residual)
+    grey = cv2.imread(f"{base}.kernel.png", cv2.IMREAD_UNCHANGED)
+    assert grey.ndim == 2 and grey.shape == (255, 255)  # 5x5 enlarged 51 times, nearest neighbour
+    assert grey[0, 0] == 0 and grey[-1, -1] == 255 and grey[127, 127] == 128  # signed: 0 is mid-grey
+    # no temporary folder left beside the output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_figure_structure(tmp_path):
+    est = synthetic(0)
+    output.write_estimates([est], tmp_path)
+    image = cv2.imread(str(tmp_path / "IMG_0001_bernoulli_g1_w00.png"), cv2.IMREAD_COLOR)
+    np.testing.assert_array_equal(image, output.psf_figure(est))  # PNG is lossless
+    zoom = output.zoom(17)
+    assert zoom == 21
+    # channel-pixel borders every s = 4 samples around the centre sample 8: sample edges 2.5, 6.5, 10.5, 14.5
+    lines = output.grid_lines(17, 4, zoom)
+    assert lines == [round(e * zoom) for e in (2.5, 6.5, 10.5, 14.5)]
+    panel = image[output.TITLE : output.TITLE + 17 * zoom, output.PAD : output.PAD + 17 * zoom]
+    for pos in lines:
+        assert (panel[:, pos] == output.GRID_COLOUR).all() and (panel[pos, :] == output.GRID_COLOUR).all()
+    # the centre sample (the peak) is brightest: inferno maps 1.0 to near white
+    centre = panel[8 * zoom + zoom // 2, 8 * zoom + zoom // 2]
+    assert centre.astype(int).sum() > 3 * 200
+    # the MTF plot: both profiles drawn in their colours, right of the panel
+    plot = image[output.TITLE : output.TITLE + output.PLOT_H, 2 * output.PAD + 17 * zoom :]
+    for colour in (output.X_COLOUR, output.Y_COLOUR):
+        assert (np.abs(plot.astype(int) - colour).sum(axis=2) == 0).sum() > 200
+
+
+def test_grid_lines_odd_s():
+    # s = 3, 13 samples: centre sample 6 spans [6, 7); its pixel [5, 8); borders every 3 samples
+    assert output.grid_lines(13, 3, 1) == [2, 5, 8, 11]
+
+
+def test_write_estimates_is_atomic(tmp_path, monkeypatch):
+    calls = {"n": 0}
+    real = output.psf_figure
+
+    def failing(est):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise OSError(28, "No space left on device")
+        return real(est)
+
+    monkeypatch.setattr(output, "psf_figure", failing)
+    with pytest.raises(BadInputError, match="cannot write results"):
+        output.write_estimates([synthetic(0), synthetic(1)], tmp_path / "new")
+    assert list(tmp_path.iterdir()) == []  # neither the folder nor a temporary one
+    existing = tmp_path / "old"
+    existing.mkdir()
+    (existing / "keep.txt").write_text("x")
+    calls["n"] = 0
+    with pytest.raises(BadInputError):
+        output.write_estimates([synthetic(0), synthetic(1)], existing)
+    assert [p.name for p in existing.iterdir()] == ["keep.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
+
+
+def test_write_estimates_refuses_unwritable(tmp_path):
+    (tmp_path / "file").write_text("x")
+    for bad in (tmp_path / "missing" / "out", tmp_path / "file", tmp_path / "file" / "out"):
+        with pytest.raises(BadInputError):
+            output.write_estimates([synthetic(0)], bad)
+    assert [p.name for p in tmp_path.iterdir()] == ["file"]
+
+
+def test_print_json_lines():
+    flat = PSF(psf=np.full((5, 5), 1 / 25), s=1, method="two-photo", channel="mono", sources=["a.pgm", "b.pgm"])
+    stream = io.StringIO()
+    output.print_json([synthetic(0), synthetic(1), flat], stream)
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == 3
+    records = [json.loads(line) for line in lines]  # strict JSON: NaN would not parse in other readers
+    for record in records:
+        for key in ("method", "source", "channel", "s", "support", "field_x", "field_y", "psf", "mtf50_x", "mtf50_y"):
+            assert key in record
+    first = records[0]
+    assert first["method"] == "bernoulli" and first["source"] == "/data/IMG_0001.dng" and first["channel"] == "g1"
+    assert first["s"] == 4 and first["support"] == 17 and first["field_x"] == 0.25 and first["field_y"] == 0.5
+    np.testing.assert_allclose(first["psf"], synthetic(0).psf, rtol=1e-15)
+    # A Gaussian of sigma 0.6 px has MTF exp(-2 pi^2 sigma^2 f^2) = 0.5 at f = sqrt(ln 2 / 2) / (pi sigma) = 0.312;
+    # sampled on 17 taps at s = 4 the truncation changes it by far less than 1 %.
+    assert first["mtf50_x"] == pytest.approx(math.sqrt(math.log(2) / 2) / (math.pi * 0.6), rel=0.01)
+    assert first["params"]["grid"] == [2, 1]
+    assert records[2]["source"] == ["a.pgm", "b.pgm"]
+
+
+def test_print_json_nan_is_null():
+    delta = np.zeros((3, 3))
+    delta[1, 1] = 1.0  # a perfect kernel: MTF is 1 everywhere, MTF50 undefined
+    stream = io.StringIO()
+    output.print_json([PSF(psf=delta, s=1, method="bernoulli", channel="r", sources=["x.dng"])], stream)
+    record = json.loads(stream.getvalue())
+    assert record["mtf50_x"] is None and record["mtf50_y"] is None
+
+
+def test_print_table(capsys):
+    est = synthetic(0, warnings=["pixels per cell 0.9 outside 0.35..0.5"])
+    output.print_table([est])
+    text = capsys.readouterr().out
+    assert "IMG_0001.dng" in text and "g1" in text and "0.25,0.50" in text
+    assert "warning: pixels per cell 0.9" in text
+
+
+# ---------------------------------------------------------------- bad input on the command line
+
+
+@pytest.fixture
+def bad_files(tmp_path: Path) -> Path:
+    folder = tmp_path / "in"
+    folder.mkdir()
+    (folder / "notes.pgm").write_text("this is not an image\n")
+    (folder / "colour.png").write_bytes(cv2.imencode(".png", np.zeros((8, 8, 3), np.uint8))[1].tobytes())
+    mosaic = np.random.default_rng(1).integers(600, 4000, size=(96, 128)).astype(np.uint16)
+    raw.write_dng(folder / "whole.dng", mosaic, black=512, white=16383)
+    data = (folder / "whole.dng").read_bytes()
+    (folder / "cut.dng").write_bytes(data[: len(data) // 2])
+    return folder
+
+
+BAD = [
+    (["target", "{in}/notes.pgm"], "not a readable image"),
+    (["target", "{in}/colour.png"], "colour channels"),
+    (["target", "{in}/cut.dng"], "not a readable RAW file"),
+    (["target", "{in}/missing.dng"], "no such file"),
+    (["target", "{in}/whole.dng", "--grid", "3"], "--grid"),
+    (["target", "{in}/whole.dng", "--grid", "0x2"], "--grid"),
+    (["target", "{in}/whole.dng", "--support", "16"], "odd"),
+    (["target", "{in}/whole.dng", "--support", "1"], "--support"),
+    (["target", "{in}/whole.dng", "-s", "0"], "-s"),
+    (["target", "{in}/whole.dng", "-s", "four"], "-s"),
+    (["target", "{in}/whole.dng", "--channel", "green"], "unknown channel"),
+    (["target", "{in}/whole.dng", "--pattern", "{in}/notes.pgm"], "noise pattern"),
+    (["target", "{in}/whole.dng", "--out", "{in}/missing/out"], "not a writable folder"),
+    (["pair", "{in}/whole.dng", "{in}/cut.dng"], "not a readable RAW file"),
+    (["pair", "{in}/whole.dng", "{in}/missing.pgm"], "no such file"),
+    (["edges", "{in}/notes.pgm", "--weight", "x"], "--weight"),
+    (["edges", "{in}/whole.dng", "--grid", "2x"], "--grid"),
+]
+
+
+@pytest.mark.parametrize("argv, message", BAD)
+def test_bad_input_one_line_nothing_written(bad_files, capsys, argv, message):
+    before = sorted(p.name for p in bad_files.parent.rglob("*"))
+    out = bad_files.parent / "results"
+    argv = [a.format(**{"in": bad_files}) for a in argv]
+    if "--out" not in argv:
+        argv += ["--out", str(out)]
+    code, stdout, stderr = run(capsys, "estimate", *argv)
+    assert code == 2
+    assert stderr.startswith("psfd: error: ") and stderr.count("\n") == 1 and message in stderr
+    assert stdout == ""
+    assert sorted(p.name for p in bad_files.parent.rglob("*")) == before  # no results folder, no temporary
+
+
+def test_pair_channels_must_match(bad_files, capsys, data_dir):
+    code, _, stderr = run(capsys, "estimate", "pair", bad_files / "whole.dng", data_dir / "img_example.pgm")
+    assert code == 2 and "same channels" in stderr and stderr.count("\n") == 1
+
+
+# ---------------------------------------------------------------- end to end
+
+
+def test_pair_end_to_end_on_real_photos(tmp_path, capsys, data_dir):
+    near, far = data_dir / "IMG_0602_v1_CUT.pgm", data_dir / "IMG_0608_v1.pgm"
+    code, stdout, stderr = run(capsys, "estimate", "pair", far, near, "--json", "--out", tmp_path / "out")
+    assert code == 0, stderr
+    (record,) = [json.loads(line) for line in stdout.splitlines()]
+    assert record["method"] == "two-photo" and record["channel"] == "mono"
+    assert sorted(record["source"]) == sorted([str(near), str(far)])
+    assert record["s"] == 3 and record["support"] == 13  # defaults: s = 3, support 4s + 1
+    psf = np.array(record["psf"])
+    assert psf.shape == (13, 13) and psf.sum() == pytest.approx(1.0, abs=1e-9)
+    files = sorted(p.name for p in (tmp_path / "out").iterdir())
+    base = "IMG_0608_v1+IMG_0602_v1_CUT_two-photo_mono_w00"
+    assert files == sorted(f"{base}{tail}" for tail in (
+        ".npy", ".tif", ".png", ".kernel.npy", ".kernel.png", ".residual.npy", ".residual.png"))
+    np.testing.assert_array_equal(np.load(tmp_path / "out" / f"{base}.npy"), psf)
+    # Which photo is near is detected: the other order gives the same estimate up to the
+    # registration, which is fitted the other way round; the change stays below the noise floor
+    # (expected RMS error of the kernel values, IJCV 2012 sec. 2) of the estimate itself.
+    code, stdout, _ = run(capsys, "estimate", "pair", near, far, "--json")
+    assert code == 0
+    swapped = json.loads(stdout)
+    assert sorted(swapped["source"]) == sorted(record["source"])
+    assert np.abs(np.array(swapped["psf"]) - psf).max() < record["noise_floor"]
+
+
+def relative_error(estimate: np.ndarray, truth: np.ndarray) -> float:
+    """||h_e - h|| / ||h||, the error measure of IJCV 2012 sec. 5."""
+    return float(np.linalg.norm(estimate - truth) / np.linalg.norm(truth))
+
+
+@needs_target_pipeline
+def test_target_end_to_end_on_real_photo(capsys, data_dir):
+    code, stdout, stderr = run(capsys, "estimate", "target", data_dir / "img_example.pgm", "--json")
+    assert code == 0, stderr
+    (record,) = [json.loads(line) for line in stdout.splitlines()]
+    assert record["method"] == "bernoulli" and record["channel"] == "mono"
+    assert record["source"] == str(data_dir / "img_example.pgm")
+    assert record["s"] == 4 and record["support"] == 17 and record["params"]["solver"] == "ls-threshold"
+    psf = np.array(record["psf"])
+    # physical sanity: non-negative (ls-threshold), unit sum, centred within a channel pixel
+    assert psf.min() >= 0 and psf.sum() == pytest.approx(1.0, abs=1e-9)
+    cx, cy = (float(np.sum(np.arange(17) * psf.sum(axis=a))) - 8 for a in (0, 1))
+    assert abs(cx) < 4 and abs(cy) < 4
+    assert 0 < record["mtf50_x"] < 2 and 0 < record["mtf50_y"] < 2
+
+
+@needs_target_pipeline
+def test_target_end_to_end_on_simulated_dng(tmp_path, capsys):
+    from psfd.estimator import simulate
+
+    truth = simulate.gaussian_psf(0.55, 0.75, s=4, support=17)
+    dng = tmp_path / "sim.dng"
+    simulate.simulate_target(dng, psf=truth, s=4, pixels_per_cell=0.35, rotation_deg=8.0, seed=3)
+    out = tmp_path / "out"
+    code, stdout, stderr = run(capsys, "estimate", "target", dng, "--out", out)
+    assert code == 0, stderr
+    assert "MTF50" in stdout and all(f" {c} " in stdout for c in raw.CHANNELS)
+    files = sorted(p.name for p in out.iterdir())
+    assert files == sorted(f"sim_bernoulli_{c}_w00.{ext}" for c in raw.CHANNELS for ext in ("npy", "tif", "png"))
+    for channel in raw.CHANNELS:
+        estimate = np.load(out / f"sim_bernoulli_{channel}_w00.npy")
+        assert relative_error(estimate, truth) < TARGET_TOLERANCE, channel
+
+
+def box_gaussian(sigma: float, s: int = 4, support: int = 17) -> np.ndarray:
+    """Gaussian (sigma channel pixels) integrated over a square pixel, sampled on the s-times grid."""
+    x = (np.arange(support) - support // 2) / s
+    g = ndtr((x + 0.5) / sigma) - ndtr((x - 0.5) / sigma)
+    h = np.outer(g, g)
+    return h / h.sum()
+
+
+def photograph_png(png: np.ndarray, sigma: float, rng: np.random.Generator, pixels_per_cell: float = 0.4,
+                   factor: int = 10, shape: tuple[int, int] = (200, 220)) -> np.ndarray:
+    """A 16-bit "photograph" of a rendered target: perspective warp, Gaussian blur, pixel integration, noise.
+
+    The target is warped (cv2.warpPerspective) onto a grid ``factor`` times
+    finer than the camera's, blurred there by a Gaussian of ``sigma`` camera
+    pixels and area-averaged by ``factor``: the camera PSF is exactly that
+    Gaussian convolved with the square pixel (`box_gaussian`).
+    """
+    side = png.shape[0]
+    px_per_cell = side / (320 + 2 * 32)  # the PNG has a one-block margin
+    k = pixels_per_cell * factor / px_per_cell
+    a = np.deg2rad(12.0)
+    rows, cols = shape
+    centre = np.array([[1, 0, -side / 2], [0, 1, -side / 2], [0, 0, 1]])
+    perspective = np.array([[1, 0, 0], [0, 1, 0], [1.5e-5, -1e-5, 1]])
+    similarity = np.array([[k * np.cos(a), -k * np.sin(a), 0], [k * np.sin(a), k * np.cos(a), 0], [0, 0, 1]])
+    place = np.array([[1, 0, cols * factor / 2], [0, 1, rows * factor / 2], [0, 0, 1]])
+    fine = cv2.warpPerspective(png.astype(np.float32) / 255, place @ similarity @ perspective @ centre,
+                               (cols * factor, rows * factor), flags=cv2.INTER_LINEAR, borderValue=0.8)
+    fine = cv2.GaussianBlur(fine, (0, 0), sigma * factor)
+    ideal = cv2.resize(fine, (cols, rows), interpolation=cv2.INTER_AREA)  # exact box average by `factor`
+    values = 2000 + 40000 * ideal.astype(np.float64)
+    values += rng.normal(size=values.shape) * np.sqrt(values / 2.5 + 4)  # shot and read noise
+    return np.clip(np.round(values), 0, 65535).astype(np.uint16)
+
+
+@needs_target_pipeline
+def test_rendered_target_round_trip(tmp_path, capsys):
+    assert run(capsys, "target", "--out", tmp_path / "lab.png", "--seed", "21", "--px-per-cell", "4")[0] == 0
+    png = cv2.imread(str(tmp_path / "lab.png"), cv2.IMREAD_GRAYSCALE)
+    sigma = 0.5
+    photo = photograph_png(png, sigma, np.random.default_rng(5))
+    cv2.imwrite(str(tmp_path / "photo.png"), photo)
+    code, stdout, stderr = run(
+        capsys, "estimate", "target", tmp_path / "photo.png", "--pattern", tmp_path / "lab.noise.pgm", "--json"
+    )
+    assert code == 0, stderr
+    record = json.loads(stdout)
+    assert relative_error(np.array(record["psf"]), box_gaussian(sigma)) < TARGET_TOLERANCE
+    # with the wrong noise (the published one) the model does not fit: the residual is far larger
+    code, stdout, _ = run(capsys, "estimate", "target", tmp_path / "photo.png", "--json")
+    assert code == 0 and json.loads(stdout)["residual"] > 3 * record["residual"]

@@ -1,0 +1,142 @@
+"""Plans: parsing, every problem reported, deterministic step keys."""
+
+from __future__ import annotations
+
+import pytest
+
+from psfd.cli import main
+from psfd.daemon.plan import Step, check_text, load_plan, parse_plan
+from psfd.errors import BadInputError
+
+GOOD = """
+[rig]
+simulate = true
+rail_limits = { x = [0, 3000], y = [-100, 100], z = [-100, 100] }
+
+[target]
+kind = "bernoulli"
+
+[capture]
+apertures = [5.6, 8]
+x = [1200]
+y = [-40, 40]
+z = [10, -10]
+channels = ["g1", "b"]
+repeats = 2
+
+[estimator]
+s = 4
+support = 17
+solver = "nnls"
+grid = [2, 1]
+"""
+
+PAIR = """
+[rig]
+simulate = true
+scene = "texture"
+[target]
+kind = "pair"
+near = 800
+far = 1600
+[capture]
+apertures = [8]
+"""
+
+# One plan with a problem in every table.
+BAD = """
+[rig]
+simulate = "yes"
+rail_limits = { x = [0, 1000], w = [0, 1] }
+
+[target]
+kind = "bernouli"
+
+[capture]
+apertures = [5.6, -2]
+x = [1200]
+channels = ["g3"]
+repeats = 0
+exposure = 3
+
+[estimator]
+support = 16
+solver = "magic"
+grid = [0, 1]
+
+[extra]
+"""
+
+
+def test_good_plan_expands_to_keyed_steps_in_serpentine_order():
+    plan = parse_plan(GOOD, "good.toml")
+    steps = plan.steps()
+    assert len(steps) == 2 * 2 * 2 * 2  # apertures x y x z x repeats
+    assert steps[0].key == "a5.6/x1200/y-40/z10/r0"
+    assert [s.key for s in steps[:4]] == [
+        "a5.6/x1200/y-40/z10/r0", "a5.6/x1200/y-40/z10/r1", "a8/x1200/y-40/z10/r0", "a8/x1200/y-40/z10/r1"]
+    # second row of the field grid walks z backwards (shortest lateral move)
+    assert [(s.y, s.z) for s in steps[::4]] == [(-40, 10), (-40, -10), (40, -10), (40, 10)]
+    assert len({s.key for s in steps}) == len(steps)
+    assert plan.channels == ["g1", "b"]
+    assert plan.estimator_options() == {"s": 4, "support": 17, "solver": "nnls", "grid": (2, 1)}
+    # the keys are a function of the plan only
+    assert [s.key for s in parse_plan(GOOD).steps()] == [s.key for s in steps]
+
+
+def test_step_payload_round_trip():
+    for step in parse_plan(GOOD).steps() + parse_plan(PAIR).steps():
+        assert Step.from_payload(step.payload()) == step
+
+
+def test_pair_plan_keys_carry_both_distances():
+    steps = parse_plan(PAIR).steps()
+    assert [s.key for s in steps] == ["a8/x800-1600/r0"]
+    assert steps[0].payload()["near"] == 800 and steps[0].payload()["far"] == 1600
+
+
+def test_every_problem_is_reported():
+    problems = check_text(BAD)
+    text = "\n".join(problems)
+    for needle in ("unknown table [extra]", "simulate must be true or false", "unknown axis 'w'",
+                   "kind must be one of", "positive numbers, got -2", "unknown channel(s) 'g3'",
+                   "repeats must be a positive integer", "unknown key 'exposure'", "support must be an odd",
+                   "solver must be one of", "grid must be [nx, ny]", "x = 1200 outside rail_limits.x"):
+        assert needle in text, needle
+    assert len(problems) >= 12
+
+
+@pytest.mark.parametrize("text, needle", [
+    ("[target\nkind=1", "not valid TOML"),
+    ("[rig]\nsimulate = true\n", "missing table [target]"),
+    (PAIR.replace("far = 1600", "far = 500"), "must be closer than far"),
+    (PAIR.replace("apertures = [8]", "apertures = [8]\nx = [1]"), "x does not apply to a pair"),
+    (PAIR.replace("simulate = true", 'camera_port = "usb:"'), "needs rail_port"),
+    (PAIR.replace('scene = "texture"', ""), 'simulated pair needs scene = "texture"'),
+    (GOOD.replace("x = [1200]", ""), "needs x"),
+    (GOOD.replace("y = [-40, 40]", "y = [1, 1]"), "lists a value twice"),
+])
+def test_single_problems(text, needle):
+    assert any(needle in p for p in check_text(text)), check_text(text)
+
+
+def test_load_plan_names_first_problem_and_counts_rest(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text(BAD)
+    with pytest.raises(BadInputError, match=r"more; run 'psfd plan check"):
+        load_plan(path)
+    with pytest.raises(BadInputError, match="cannot read plan"):
+        load_plan(tmp_path / "missing.toml")
+
+
+def test_plan_check_command_lists_all_problems(tmp_path, capsys):
+    bad, good = tmp_path / "bad.toml", tmp_path / "good.toml"
+    bad.write_text(BAD)
+    good.write_text(GOOD)
+    assert main(["plan", "check", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == len(check_text(BAD)) + 1  # one line per problem, then the error line
+    assert all(line.startswith(f"{bad}: ") for line in err[:-1])
+    assert err[-1].startswith("psfd: error:")
+    assert main(["plan", "check", str(good)]) == 0
+    assert "ok, 16 steps" in capsys.readouterr().out

@@ -1,0 +1,200 @@
+"""`psfd query`, `psfd export`, `psfd report` on a real catalogue file."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+
+from psfd.catalogue import Catalogue
+from psfd.cli import main
+from psfd.cli import query as query_cli
+from psfd.drivers.base import CameraInfo
+from psfd.estimator.psf import PSF
+
+GRID = [(x, y) for y in (1 / 6, 0.5, 5 / 6) for x in (1 / 6, 0.5, 5 / 6)]
+
+
+def gaussian(sigma: float, support: int = 17) -> np.ndarray:
+    r = np.arange(support) - support // 2
+    k = np.exp(-(r[:, None] ** 2 + r[None, :] ** 2) / (2 * sigma**2))
+    return k / k.sum()
+
+
+def sigma_at(field, aperture) -> float:
+    """Synthetic lens: wider at small apertures' diffraction limit and towards the corners."""
+    r2 = (field[0] - 0.5) ** 2 + (field[1] - 0.5) ** 2
+    return aperture / 4 * (1 + 2 * r2)
+
+
+@pytest.fixture
+def catalogue(tmp_path):
+    """A catalogue with g1 and r PSFs on a 3x3 field grid at f/5.6 and f/8."""
+    path = tmp_path / "cat.sqlite"
+    with Catalogue(path) as cat:
+        rig = cat.add_rig(CameraInfo("Canon EOS 400D", "0420", "EF 50mm f/1.8", 50.0))
+        run = cat.start_run("plan.toml", "plan", rig, [("f5.6", {}), ("f8", {})])
+        for key, aperture in (("f5.6", 5.6), ("f8", 8.0)):
+            psfs = [
+                (PSF(gaussian(sigma_at(f, aperture)), 4, "bernoulli", ch, ["x.dng"], f, (0, 0, 64, 64)),
+                 {"aperture": aperture})
+                for f in GRID
+                for ch in ("r", "g1")
+            ]
+            cat.commit_step(run, key, [], psfs)
+    return str(path)
+
+
+def run_cli(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_one_line_error(code, err, expected_code, text):
+    assert code == expected_code
+    assert err.startswith("psfd: error:") and err.count("\n") == 1 and text in err
+
+
+def test_query_table_and_note(capsys, catalogue):
+    code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "5.6", "--channel", "g1")
+    lines = out.splitlines()
+    assert code == 0 and err == ""
+    assert lines[0].split()[:4] == ["id", "camera", "lens", "f/"] and len(lines) == 1 + 9
+    assert all(" 5.6 " in line and " g1 " in line for line in lines[1:])
+
+    code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "f/6.3")
+    assert code == 0 and err.strip() == "psfd: note: f/6.3 not measured; nearest is f/5.6"
+    assert len(out.splitlines()) == 1 + 18
+
+
+def test_query_json_near(capsys, catalogue):
+    code, out, _ = run_cli(capsys, "query", "--catalogue", catalogue, "--near", "0.8,0.1", "--json")
+    rows = [json.loads(line) for line in out.splitlines()]
+    assert code == 0 and len(rows) == 4  # one per (aperture, channel)
+    with Catalogue(catalogue, create=False) as cat:
+        for row in rows:
+            assert (row["field_x"], row["field_y"]) == pytest.approx((5 / 6, 1 / 6))
+            np.testing.assert_array_equal(np.array(row["psf"]), cat.psf(row["id"])[0])
+
+
+@pytest.mark.parametrize("fmt", ["npy", "tiff", "json"])
+def test_export_formats(capsys, catalogue, tmp_path, fmt):
+    out_dir = tmp_path / "export"
+    code, _, _ = run_cli(capsys, "export", "--catalogue", catalogue, "--channel", "g1", "--aperture", "8",
+                         "--format", fmt, "--out", str(out_dir))
+    assert code == 0
+    index = json.loads((out_dir / "index.json").read_text())
+    assert len(index["psfs"]) == 9 and len(list(out_dir.iterdir())) == 10
+    with Catalogue(catalogue, create=False) as cat:
+        for entry in index["psfs"]:
+            expected = cat.psf(entry["id"])[0]
+            path = out_dir / entry["file"]
+            if fmt == "npy":
+                np.testing.assert_array_equal(np.load(path), expected)
+            elif fmt == "tiff":
+                with tifffile.TiffFile(path) as tif:
+                    assert tif.pages[0].dtype == np.float32
+                    assert json.loads(tif.pages[0].description)["id"] == entry["id"]
+                    # float32 rounding: relative error below 2^-24 of the largest value
+                    np.testing.assert_allclose(tif.asarray(), expected, rtol=0, atol=expected.max() * 2**-23)
+            else:
+                np.testing.assert_array_equal(np.array(json.loads(path.read_text())["psf"]), expected)
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_export_failure_leaves_nothing(capsys, catalogue, tmp_path, monkeypatch):
+    real, calls = query_cli._write_psf, []
+
+    def fail_third(*args):
+        calls.append(1)
+        if len(calls) == 3:
+            raise OSError("disk full")
+        return real(*args)
+
+    monkeypatch.setattr(query_cli, "_write_psf", fail_third)
+    with pytest.raises(OSError):
+        main(["export", "--catalogue", catalogue, "--out", str(tmp_path / "export")])
+    assert len(calls) == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cat.sqlite"]
+
+
+def test_report_draws_psfs_and_mtf_map(capsys, catalogue, tmp_path):
+    out = tmp_path / "figs" / "report.png"
+    code, _, _ = run_cli(capsys, "report", "--catalogue", catalogue, "--out", str(out))
+    assert code == 0
+    image = cv2.imread(str(out))
+    width, height = query_cli.PANEL
+    m, h = query_cli.MARGIN, query_cli.HEADER
+    assert image.shape == (h + m + 2 * (height + h + m), 2 * width + 3 * m, 3)
+    top = h + m + h  # first band (f/5.6): its two panels start here
+
+    def psf_panel(fx, fy):
+        return image[top + int(fy * height), m + int(fx * width)]
+
+    def mtf_panel(fx, fy):
+        return image[top + int(fy * height), 2 * m + width + int(fx * width)]
+
+    # A PSF is drawn at each grid location, nothing between them.
+    assert psf_panel(1 / 6, 1 / 6).sum() > 100 and psf_panel(1 / 3, 1 / 3).sum() == 0
+    # The synthetic lens is sharpest at the centre: viridis' green component grows with MTF50.
+    assert int(mtf_panel(0.45, 0.55)[1]) > int(mtf_panel(0.12, 0.88)[1]) + 40
+    assert [p.name for p in out.parent.iterdir()] == ["report.png"]
+
+
+def test_bad_inputs_give_one_line_errors(capsys, catalogue, tmp_path):
+    cases = [
+        (["query", "--near", "0.8;0.1"], 2, "--near"),
+        (["query", "--near", "1.5,0.1"], 2, "--near"),
+        (["query", "--aperture", "wide"], 2, "f-number"),
+        (["query", "--channel", "green"], 2, "channel"),
+        (["query", "--limit", "0"], 2, "--limit"),
+        (["export", "--format", "bmp", "--out", str(tmp_path / "x")], 2, "format"),
+        (["export", "--method", "none", "--out", str(tmp_path / "empty")], 5, "no PSF matches"),
+        (["report", "--method", "none", "--out", str(tmp_path / "r.png")], 5, "no PSF matches"),
+        (["report", "--out", str(tmp_path / "r.xyz")], 2, "cannot write"),
+    ]
+    for argv, expected, text in cases:
+        code, _, err = run_cli(capsys, *argv, "--catalogue", catalogue)
+        assert_one_line_error(code, err, expected, text)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cat.sqlite"]
+
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "keep.txt").write_text("mine")
+    code, _, err = run_cli(capsys, "export", "--catalogue", catalogue, "--out", str(tmp_path / "full"))
+    assert_one_line_error(code, err, 2, "not an empty folder")
+    assert [p.name for p in (tmp_path / "full").iterdir()] == ["keep.txt"]
+
+    garbage = tmp_path / "garbage.sqlite"
+    garbage.write_bytes(os.urandom(4096))
+    code, _, err = run_cli(capsys, "query", "--catalogue", str(garbage))
+    assert_one_line_error(code, err, 5, "not a psfd catalogue")
+    empty = tmp_path / "empty.sqlite"
+    empty.touch()
+    code, _, err = run_cli(capsys, "query", "--catalogue", str(empty))
+    assert_one_line_error(code, err, 5, "not a psfd catalogue")
+    assert empty.stat().st_size == 0
+    code, _, err = run_cli(capsys, "query", "--catalogue", str(tmp_path / "missing.sqlite"))
+    assert_one_line_error(code, err, 5, "no catalogue")
+    assert not (tmp_path / "missing.sqlite").exists()
+
+
+def test_query_subprocess_uses_the_default_catalogue(catalogue, tmp_path):
+    data_home = tmp_path / "xdg"
+    (data_home / "psfd").mkdir(parents=True)
+    os.replace(catalogue, data_home / "psfd" / "catalogue.sqlite")
+    env = {**os.environ, "XDG_DATA_HOME": str(data_home)}
+    proc = subprocess.run(
+        [sys.executable, "-m", "psfd", "query", "--channel", "r", "--aperture", "8", "--near", "0.5,0.5", "--json"],
+        capture_output=True, text=True, env=env, timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    (row,) = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert (row["channel"], row["aperture"], row["field_x"], row["field_y"]) == ("r", 8.0, 0.5, 0.5)
+    assert np.array(row["psf"]) == pytest.approx(gaussian(sigma_at((0.5, 0.5), 8.0)))

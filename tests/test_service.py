@@ -1,0 +1,188 @@
+"""`psfd serve`: control socket, systemd notifications, bad requests, SIGTERM, the unit file."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from psfd.catalogue import Catalogue
+from psfd.daemon import service
+from psfd.daemon.plan import parse_plan
+from psfd.errors import ServiceError
+
+from test_runner import check_complete, small_plan
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Notifications:
+    """A stand-in for systemd's $NOTIFY_SOCKET: collects the datagrams the service sends."""
+
+    def __init__(self, path: Path) -> None:
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+        self.sock.settimeout(0.2)
+        self.path, self.messages = path, []
+
+    def wait_for(self, needle: str, timeout: float = 60.0) -> str:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for message in self.messages:
+                if needle in message:
+                    return message
+            try:
+                self.messages.append(self.sock.recv(4096).decode())
+            except TimeoutError:
+                pass
+        raise AssertionError(f"no {needle!r} notification; got {self.messages}")
+
+
+@pytest.fixture
+def served(tmp_path):
+    """A running `psfd serve` with its notify socket, control socket and catalogue in tmp_path."""
+    notes = Notifications(tmp_path / "notify.sock")
+    sock = tmp_path / "run" / "control.sock"
+    db = tmp_path / "cat.sqlite"
+    env = {**os.environ, "NOTIFY_SOCKET": str(notes.path), "WATCHDOG_USEC": "1000000"}
+    env.pop("WATCHDOG_PID", None)
+    proc = subprocess.Popen([sys.executable, "-m", "psfd", "serve", "--socket", str(sock), "--catalogue", str(db),
+                             "--workers", "1"], env=env, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        notes.wait_for("READY=1")
+        yield proc, sock, db, notes
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        notes.sock.close()
+
+
+def raw_request(sock: Path, line: bytes) -> dict:
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.settimeout(10)
+        s.connect(str(sock))
+        s.sendall(line)
+        return json.loads(s.makefile("rb").readline())
+
+
+def test_socket_is_0660_and_bad_requests_leave_the_service_running(served):
+    proc, sock, db, notes = served
+    assert stat.S_IMODE(os.stat(sock).st_mode) == 0o660
+    assert stat.S_ISSOCK(os.stat(sock).st_mode)
+    notes.wait_for("WATCHDOG=1")  # WATCHDOG_USEC=1 s: pings every half second
+    assert "error" in raw_request(sock, b"this is not json\n") and proc.poll() is None
+    answer = raw_request(sock, b'{"cmd": "reboot"}\n')
+    assert answer["ok"] is False and "unknown command 'reboot'" in answer["error"]
+    answer = raw_request(sock, b'[1, 2]\n')
+    assert answer == {"ok": False, "error": 'request must be a JSON object with "cmd"'}
+    answer = raw_request(sock, json.dumps({"cmd": "submit", "plan": "[target]\nkind = 'x'\n"}).encode() + b"\n")
+    assert answer["ok"] is False and len(answer["problems"]) >= 2
+    assert any("kind must be one of" in p for p in answer["problems"])
+    with pytest.raises(ServiceError, match="no run is in progress"):
+        service.request(sock, {"cmd": "pause"})
+    with pytest.raises(ServiceError, match="no paused run"):
+        service.request(sock, {"cmd": "resume"})
+    assert service.request(sock, {"cmd": "status"})["state"] == "idle"
+    # the CLI reports a bad plan sent through the service as one line, exit 2
+    cli = subprocess.run([sys.executable, "-m", "psfd", "status", "--socket", str(sock)],
+                         capture_output=True, text=True)
+    assert cli.returncode == 0 and "idle" in cli.stdout
+    assert proc.poll() is None
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=30) == 0
+    notes.wait_for("STOPPING=1")
+    assert not sock.exists()
+
+
+def wait_status(sock: Path, predicate, timeout: float = 120.0) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        status = service.request(sock, {"cmd": "status"})
+        if predicate(status):
+            return status
+        time.sleep(0.2)
+    raise AssertionError(f"status never matched; last {status}")
+
+
+def test_pause_resume_then_sigterm_mid_run_and_resume_from_the_cli(served, tmp_path):
+    proc, sock, db, notes = served
+    plan_path = tmp_path / "plan.toml"
+    plan_path.write_text(small_plan())
+    plan = parse_plan(plan_path.read_text(), str(plan_path))
+    answer = service.request(sock, {"cmd": "submit", "plan": plan.text, "path": str(plan_path)})
+    assert answer["queued"] == 1
+    wait_status(sock, lambda s: s["current"] and s["current"]["step"])
+    assert service.request(sock, {"cmd": "pause"})["requested"] == "pause"
+    status = wait_status(sock, lambda s: s["state"] == "paused")
+    assert status["last"]["state"] == "paused" and status["last"]["steps_done"] < 4
+    assert service.request(sock, {"cmd": "resume"})["queued"] == 1
+    notes.messages.clear()
+    notes.wait_for("STATUS=running", timeout=60)
+    proc.send_signal(signal.SIGTERM)  # finish the current frame, commit, pause, exit 0
+    assert proc.wait(timeout=120) == 0
+    with Catalogue(db) as cat:
+        (run,) = cat.runs()
+        summary = cat.run_summary(run["id"])
+        assert run["state"] in ("paused", "done") and summary["running"] == 0  # nothing left half-done
+    cli = subprocess.run([sys.executable, "-m", "psfd", "run", str(plan_path), "--resume", "--catalogue", str(db),
+                          "--socket", str(sock), "--workers", "1"], capture_output=True, text=True, timeout=300)
+    assert cli.returncode == 0, cli.stderr
+    check_complete(db, db.with_name("cat-frames"), plan)
+
+
+def test_cancel_closes_the_run(served, tmp_path):
+    proc, sock, db, notes = served
+    text = small_plan()
+    service.request(sock, {"cmd": "submit", "plan": text, "path": "plan.toml"})
+    wait_status(sock, lambda s: s["current"] is not None)
+    service.request(sock, {"cmd": "cancel"})
+    status = wait_status(sock, lambda s: s["last"] is not None)
+    assert status["last"]["state"] == "cancelled" and status["state"] == "idle"
+    with Catalogue(db) as cat:
+        assert cat.runs()[0]["state"] == "cancelled" and cat.integrity_check() == []
+    assert proc.poll() is None
+
+
+def test_client_error_when_no_service(tmp_path):
+    with pytest.raises(ServiceError, match="cannot reach the service"):
+        service.request(tmp_path / "nothing.sock", {"cmd": "status"})
+    assert not service.service_up(tmp_path / "nothing.sock")
+
+
+def test_unit_file_verifies():
+    if shutil.which("systemd-analyze") is None:
+        pytest.skip("systemd-analyze is not installed on this machine")
+    psfd = shutil.which("psfd")
+    if psfd is None:
+        pytest.skip("the psfd console script is not on PATH (pip install -e .)")
+    unit = (ROOT / "systemd" / "psfd.service").read_text()
+    assert "Type=notify" in unit and "User=psfd" in unit and "DevicePolicy=closed" in unit
+    # verify checks that ExecStart exists: point it at this machine's console script
+    tmp = Path(os.environ.get("TMPDIR", "/tmp")) / f"psfd-verify-{os.getpid()}"
+    tmp.mkdir(exist_ok=True)
+    (tmp / "psfd.service").write_text(unit.replace("/usr/local/bin/psfd", os.path.realpath(psfd)))
+    out = subprocess.run(["systemd-analyze", "verify", str(tmp / "psfd.service")], capture_output=True, text=True)
+    shutil.rmtree(tmp)
+    assert out.returncode == 0, out.stderr
+    assert "Unknown key" not in out.stderr and "Unknown section" not in out.stderr
+
+
+def test_udev_rule_gives_the_psfd_group_camera_and_rail():
+    rules = [line for line in (ROOT / "systemd" / "99-psfd.rules").read_text().splitlines()
+             if line.strip() and not line.startswith("#")]
+    assert any('SUBSYSTEM=="usb"' in r and 'GROUP="psfd"' in r and 'MODE="0660"' in r for r in rules)
+    assert any('SUBSYSTEM=="tty"' in r and 'SYMLINK+="psfd-rail"' in r for r in rules)
+    for rule in rules:  # every assignment key is one udev knows
+        for part in (p.strip() for p in rule.split(", ")):
+            key = part.split("=")[0].rstrip("+!:").split("{")[0]
+            assert key in {"SUBSYSTEM", "ENV", "ATTRS", "ATTR", "GROUP", "MODE", "SYMLINK"}, part

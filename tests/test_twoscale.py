@@ -1,0 +1,207 @@
+"""The two-photo (two-scale) blind PSF estimator: simulated pairs of known PSF and the real wall pair."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from psfd.errors import BadInputError, PairError
+from psfd.estimator import homography, mtf, raw, simulate, twoscale
+from psfd.estimator.psf import centroid
+
+S = 3
+SUPPORT = 4 * S + 1
+# aliased on the channel grid (MTF at Nyquist ~0.25), anisotropic so that x and y are told apart
+TRUE_PSF = simulate.gaussian_psf(0.45, 0.55, s=S, support=SUPPORT)
+
+# MTF tolerance. The kernel's L2 error from sensor noise (PSF.noise_floor,
+# sigma sqrt(trace((A^T A)^-1)), IJCV 2012 sec. 2) is 0.013-0.024 on these
+# pairs, and by Parseval that is the RMS error of one MTF sample; 0.05 allows
+# about 3 sigma over the profile. Without noise the bias (registration, the
+# near photo's aliasing, SIAM 2012 eq. (8)) is below 0.016.
+MTF_TOL = 0.05
+
+
+def _mtf_error(estimate: np.ndarray, truth: np.ndarray) -> float:
+    """Largest |MTF| difference along x and y, up to s times the channel Nyquist (s/2 cycles/pixel)."""
+    _, ex, ey = mtf.profiles(estimate, S)
+    _, tx, ty = mtf.profiles(truth, S)
+    return float(max(np.abs(ex - tx).max(), np.abs(ey - ty).max()))
+
+
+@pytest.fixture(scope="module", params=[4.0, 6.0], ids=["lambda4", "lambda6"])
+def simulated(request):
+    pair = simulate.simulate_pair(psf=TRUE_PSF, s=S, lam=request.param, offset=(1.3, -0.7), seed=1)
+    # far first: the order must not matter
+    [estimate] = twoscale.estimate_pair(pair["far"], pair["near"], s=S)
+    return pair, estimate
+
+
+def test_recovers_the_mtf_of_a_simulated_pair(simulated):
+    pair, est = simulated
+    assert _mtf_error(est.psf, TRUE_PSF) < MTF_TOL
+    assert est.method == "two-photo" and est.s == S and est.psf.shape == (SUPPORT, SUPPORT)
+    assert est.psf.sum() == pytest.approx(1.0)
+    assert est.sources == ["simulated-near", "simulated-far"]
+    # SIFT + homography: the zoom within 0.5 % (far-pixel registration error ~0.1 px over ~100 px)
+    assert est.params["lambda"] == pytest.approx([pair["lam"]] * 2, rel=5e-3)
+    assert est.params["inliers"] >= homography.MIN_INLIERS
+    assert est.params["spectral_energy"] > 0
+    assert est.noise_floor is not None and est.noise_floor < 0.03
+    assert set(est.figures) == {"kernel", "residual"}
+    assert est.figures["kernel"].shape == (SUPPORT, SUPPORT)
+    x0, y0, x1, y1 = est.window
+    assert est.figures["residual"].shape == (y1 - y0, x1 - x0)
+    # the residual is at the noise level: sensor noise is ~0.3 % of the range at mid grey
+    assert est.residual < 0.006
+
+
+def test_psf_from_kernel_inverts_the_inter_image_relation():
+    # For a Gaussian h of variance v, k^ = h^(z)/h^(z/lambda) is Gaussian of variance v (1 - 1/lambda^2)
+    # (SIAM 2012, eq. (5)), so the zoom-in product must give h back (up to Keys' interpolation).
+    for lam in (3.5, 4.0, 6.0):
+        sx, sy = 0.5, 0.7
+        shrink = np.sqrt(1 - 1 / lam**2)
+        k = simulate.gaussian_psf(sx * shrink, sy * shrink, s=S, support=SUPPORT)
+        h = twoscale.psf_from_kernel(k, (lam, lam))
+        h /= h.sum()
+        truth = simulate.gaussian_psf(sx, sy, s=S, support=SUPPORT)
+        assert np.abs(h - truth).max() < 0.01 * truth.max()
+
+
+def test_real_pair_in_either_order(data_dir):
+    near_path, far_path = data_dir / "IMG_0608_v1.pgm", data_dir / "IMG_0602_v1_CUT.pgm"
+    a = raw.load_frame(data_dir / "IMG_0602_v1_CUT.pgm", "mono")
+    b = raw.load_frame(data_dir / "IMG_0608_v1.pgm", "mono")
+    [ab] = twoscale.estimate_pair(a, b, s=S, support=13)
+    [ba] = twoscale.estimate_pair(b, a, s=S, support=13)
+    for est in (ab, ba):
+        # the homography says the full frame is the near photo and the cut is the far one
+        assert est.sources == [str(near_path), str(far_path)]
+        assert 4.5 < est.params["lambda"][0] < 6.0
+        assert est.psf.sum() == pytest.approx(1.0)
+        cx, cy = centroid(est.psf)
+        assert abs(cx) < 0.25 and abs(cy) < 0.25  # s-grid samples
+        assert np.unravel_index(np.argmax(est.psf), est.psf.shape) == (6, 6)
+        m = est.metrics()
+        # an in-focus green channel: FWHM between a diffraction-limited spot and a few pixels
+        assert 0.4 < m["fwhm_x"] < 2.0 and 0.4 < m["fwhm_y"] < 2.0
+        assert 0.2 < m["mtf50_x"] < S / 2
+        assert est.psf.min() > -0.05 * est.psf.max()
+    # same photos, same PSF: the difference is far below the noise floor (~0.023 in L2)
+    assert np.linalg.norm(ab.psf - ba.psf) < 0.5 * ab.noise_floor
+
+
+def test_grid_splits_the_common_region():
+    pair = simulate.simulate_pair(psf=TRUE_PSF, s=S, lam=4.0, near_shape=(448, 448), seed=2)
+    ests = twoscale.estimate_pair(pair["near"], pair["far"], s=S, grid=(2, 1))
+    assert len(ests) == 2
+    (l0, t0, r0, b0), (l1, t1, r1, b1) = ests[0].window, ests[1].window
+    assert r0 == l1 and (t0, b0) == (t1, b1)
+    assert ests[0].field[0] < 0.5 < ests[1].field[0]
+    for est in ests:
+        # half the equations: the noise floor grows by sqrt(2), hence 1.5x the tolerance
+        assert _mtf_error(est.psf, TRUE_PSF) < 1.5 * MTF_TOL
+
+
+def test_raw_pair_per_bayer_channel(tmp_path):
+    scene = simulate.texture_scene((1100, 1100), seed=4)
+    c = (np.array(scene.shape) - 1) / 2
+    truth = {}
+    for name, lam, (cy, cx) in (("near", 1.0, (255.5, 319.5)), ("far", 4.0, (127.5, 127.5))):
+        # 1.25 raster pixels per sensor photosite on the near shot, 4 times more on the far one
+
+        def to_scene(x, y, lam=lam, cx=cx, cy=cy):
+            return c[1] + 1.25 * lam * (np.asarray(x) - cx), c[0] + 1.25 * lam * (np.asarray(y) - cy)
+
+        truth[name] = simulate.simulate_scene(
+            tmp_path / f"{name}.dng", scene=scene, sensor_to_scene=to_scene, psf=TRUE_PSF, s=S,
+            sensor=(512, 640) if name == "near" else (256, 256), seed=7,
+        )
+    near = raw.load_frame(tmp_path / "near.dng", "g1")
+    far = raw.load_frame(tmp_path / "far.dng", "g1")
+    # the two DNGs come from "sensors" of different sizes: refused for RAW planes
+    with pytest.raises(BadInputError, match="different sizes"):
+        twoscale.estimate_pair(near, far, s=S)
+    # same camera: pretend the sensor shape agrees (the planes keep their own sizes)
+    far = dataclasses.replace(far, sensor_shape=near.sensor_shape)
+    [est] = twoscale.estimate_pair(far, near, s=S)
+    assert est.channel == "g1"
+    assert _mtf_error(est.psf, TRUE_PSF) < MTF_TOL
+
+
+def test_large_far_photo_is_registered_again_at_full_resolution(monkeypatch):
+    # photos above MAX_PIXELS are shrunk for a first SIFT pass; a shrunk far photo
+    # loses precision, so the common region is matched again at full resolution
+    pair = simulate.simulate_pair(psf=TRUE_PSF, s=S, lam=4.0, near_shape=(512, 512), far_shape=(256, 256), seed=9)
+    monkeypatch.setattr(homography, "MAX_PIXELS", 30_000)
+    calls = []
+    refine = homography._refine
+    monkeypatch.setattr(homography, "_refine", lambda *a, **k: calls.append(1) or refine(*a, **k))
+    [est] = twoscale.estimate_pair(pair["near"], pair["far"], s=S)
+    assert calls == [1]
+    assert est.params["lambda"] == pytest.approx([4.0, 4.0], rel=5e-3)
+    assert _mtf_error(est.psf, TRUE_PSF) < MTF_TOL
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def test_unrelated_photos():
+    one = simulate.simulate_pair(psf=TRUE_PSF, s=S, lam=4.0, seed=11)
+    other = simulate.simulate_pair(psf=TRUE_PSF, s=S, lam=4.0, seed=12)
+    with pytest.raises(PairError, match="unrelated photos"):
+        twoscale.estimate_pair(one["near"], other["far"], s=S)
+
+
+def test_pair_too_close_in_distance():
+    pair = simulate.simulate_pair(psf=TRUE_PSF, s=S, lam=2.5, seed=3)
+    with pytest.raises(PairError, match="does not exceed s = 3"):
+        twoscale.estimate_pair(pair["near"], pair["far"], s=S)
+
+
+def test_flat_scene_is_textureless():
+    pair = simulate.simulate_pair(psf=TRUE_PSF, s=S, lam=4.0, scene=np.full((700, 700), 0.5), seed=5)
+    with pytest.raises(PairError, match="textureless scene"):
+        twoscale.estimate_pair(pair["near"], pair["far"], s=S)
+
+
+def test_scene_without_fine_detail_is_textureless():
+    # large blobs register well but leave the band the kernel lives in empty (SIAM 2012, Lemma 1)
+    tex = cv2.GaussianBlur(simulate.texture_scene((800, 800), seed=3), (0, 0), 12)
+    blobs = 0.5 + 0.18 * (tex - tex.mean()) / tex.std()
+    pair = simulate.simulate_pair(psf=TRUE_PSF, s=S, lam=4.0, scene=blobs, seed=6)
+    with pytest.raises(PairError, match="textureless scene: spectral energy in the band"):
+        twoscale.estimate_pair(pair["near"], pair["far"], s=S)
+
+
+def test_rotation_too_large():
+    pair = simulate.simulate_pair(psf=TRUE_PSF, s=S, lam=4.5, rotation_deg=15.0, seed=8)
+    with pytest.raises(PairError, match="rotated by 15"):
+        twoscale.estimate_pair(pair["near"], pair["far"], s=S)
+
+
+def _frame(shape, channel="g1", sensor=(100, 100), mask_shape=None):
+    data = np.zeros(shape)
+    return raw.Frame(
+        data=data, channel=channel, white=1.0, saturated=np.zeros(mask_shape or shape, bool),
+        source=f"{channel}.dng", sensor_shape=sensor,
+    )
+
+
+@pytest.mark.parametrize(
+    "a, b, kwargs, message",
+    [
+        (_frame((50, 50), "g1"), _frame((50, 50), "r"), {}, "same channel"),
+        (_frame((50, 50)), _frame((60, 60), sensor=(120, 120)), {}, "different sizes"),
+        (_frame((50, 50)), _frame((50, 50), mask_shape=(40, 40)), {}, "saturation mask differ"),
+        (_frame((50, 50)), _frame((50, 50)), {"support": 12}, "odd"),
+        (_frame((50, 50)), _frame((50, 50)), {"s": 0}, "positive integer"),
+    ],
+)
+def test_bad_input(a, b, kwargs, message):
+    with pytest.raises(BadInputError, match=message):
+        twoscale.estimate_pair(a, b, **kwargs)
