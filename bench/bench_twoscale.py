@@ -6,7 +6,7 @@ IPOL 2013 demo pair; the published C implementation takes 4.2 s on it at
 s = 3 with a 13 x 13 support. Prints the best of N runs (load + register +
 estimate), its ratio to those 4.2 s and to the 1.5 s goal, and the split
 between the stages (registration, resampling of the near photo, least
-squares, k -> h) from one extra profiled run.
+squares, k -> h), each the best over N more instrumented runs.
 
 On a shared, oversubscribed machine OpenBLAS's spinning threads can make the
 small normal-equation products 10-20 times slower than on one thread, so the
@@ -91,8 +91,9 @@ def main() -> None:
         print(best)
         return
     report("default threads", best)
-    for label, seconds in stages().items():
-        print(f"  {label:<32} {seconds:6.3f} s")
+    runs = [stages() for _ in range(args.repeat)]
+    for label in runs[0]:
+        print(f"  {label:<32} {min(r[label] for r in runs):6.3f} s (best of {args.repeat})")
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     out = subprocess.run(
         [sys.executable, __file__, "--child", "--repeat", str(args.repeat)],

@@ -1,14 +1,15 @@
-"""Rendering the Bernoulli target for print: a vector PDF and a raster PNG.
+"""Rendering the calibration targets for print: a vector PDF and a raster PNG.
 
-The layout is the published one (`psfd.estimator.target`); only the noise
-realisation changes. The printed cells must be large enough that ink does not
-soak across cell borders (Delbracio PhD thesis 2013, ch. 2 discussion: the
-authors printed "some 70 cm"), hence the 700 mm default.
+The Bernoulli target keeps the published layout (`psfd.estimator.target`);
+only the noise realisation changes. The printed cells must be large enough
+that ink does not soak across cell borders (Delbracio PhD thesis 2013, ch. 2
+discussion: the authors printed "some 70 cm"), hence the 700 mm default. The
+sharp-edge target is `psfd.estimator.sharpedge.edge_target`.
 
 The PDF is written by hand: none of the project's dependencies (numpy, scipy,
-OpenCV, rawpy, tifffile, ...) writes PDF, and the file needs only three things
-PDF 1.4 has had since the start: filled rectangles (``re``), filled triangles
-(``m``/``l``/``h``) and one line of text in a standard font.
+OpenCV, rawpy, tifffile, ...) writes PDF, and the files need only what PDF 1.4
+has had since the start: filled rectangles (``re``), filled paths
+(``m``/``l``/``c``/``h``) and one line of text in a standard font.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import cv2
 import numpy as np
 
 from psfd.errors import BadInputError
-from psfd.estimator import target
+from psfd.estimator import sharpedge, target
 
 MM_PER_POINT = 25.4 / 72.0
 # White border around the target, in blocks: one block, as on the published print, keeps the
@@ -29,7 +30,19 @@ MM_PER_POINT = 25.4 / 72.0
 MARGIN_BLOCKS = 1
 MIN_SIZE_MM = 50.0
 # PDF viewers and printers limit a page side to 14400 points (200 inches) unless UserUnit is used.
-MAX_SIZE_MM = 14400 * MM_PER_POINT / (1 + 2 * MARGIN_BLOCKS / target.BLOCKS)
+MAX_PAGE_MM = 14400 * MM_PER_POINT
+
+
+def _check_size(size_mm: float, page_per_size: float) -> None:
+    """The target side must fit a PDF page once the white border (page / target side) is added."""
+    largest = MAX_PAGE_MM / page_per_size
+    if not MIN_SIZE_MM <= size_mm <= largest:
+        raise BadInputError(f"target size must be between {MIN_SIZE_MM:g} and {largest:.0f} mm, got {size_mm:g}")
+
+
+def _check_px(px: int) -> None:
+    if not 1 <= px <= 64:
+        raise BadInputError(f"pixels per cell must be between 1 and 64, got {px}")
 
 
 def run_raster(noise: np.ndarray) -> np.ndarray:
@@ -98,8 +111,7 @@ def pdf_bytes(noise: np.ndarray, size_mm: float = 700.0, caption: str = "") -> b
         MARGIN_BLOCKS blocks on every side; the drawing is in cell units
         through one ``cm`` transform, so every coordinate is an integer.
     """
-    if not MIN_SIZE_MM <= size_mm <= MAX_SIZE_MM:
-        raise BadInputError(f"target size must be between {MIN_SIZE_MM:g} and {MAX_SIZE_MM:.0f} mm, got {size_mm:g}")
+    _check_size(size_mm, 1 + 2 * MARGIN_BLOCKS / target.BLOCKS)
     cell = size_mm / target.SIZE / MM_PER_POINT  # points per cell
     margin = MARGIN_BLOCKS * target.BLOCK * cell
     page = target.SIZE * cell + 2 * margin
@@ -109,21 +121,41 @@ def pdf_bytes(noise: np.ndarray, size_mm: float = 700.0, caption: str = "") -> b
     ops += [f"{a[0]} {a[1]} m {b[0]} {b[1]} l {c[0]} {c[1]} l h" for a, b, c in hourglass_triangles()]
     # One path, one nonzero fill: abutting pieces merge, so no hairline seams between runs.
     ops += ["f", "Q"]
+    return pdf_document(ops, (page, page), caption, margin)
+
+
+def pdf_document(ops: list[str], page: tuple[float, float], caption: str = "", margin: float = 0.0) -> bytes:
+    """A one-page PDF 1.4 file around a content stream.
+
+    Parameters
+    ----------
+    ops : list of str
+        Content-stream operators (the drawing).
+    page : (float, float)
+        Page width and height in points (the MediaBox).
+    caption : str
+        One line of Helvetica in the bottom margin of ``margin`` points, if given.
+
+    Returns
+    -------
+    bytes
+        The file: objects, a cross-reference table with their byte offsets, trailer.
+    """
+    ops = list(ops)
     if caption:
-        font = min(9.0, 0.6 * margin, (page - 2 * margin) / (0.55 * len(caption)))
+        font = min(9.0, 0.4 * margin, (page[0] - 2 * margin) / (0.55 * len(caption)))
         ops.append(f"BT /F1 {_num(font)} Tf {_num(margin)} {_num(0.35 * margin)} Td {_pdf_string(caption)} Tj ET")
     content = zlib.compress("\n".join(ops).encode("latin-1"), 9)
-    side = _num(page)
     objects = [
         b"<< /Type /Catalog /Pages 2 0 R >>",
         b"<< /Type /Pages /Kids [3 0 R] /Count 1 >>",
         (
-            f"<< /Type /Page /Parent 2 0 R /MediaBox [0 0 {side} {side}] "
+            f"<< /Type /Page /Parent 2 0 R /MediaBox [0 0 {_num(page[0])} {_num(page[1])}] "
             "/Resources << /Font << /F1 5 0 R >> >> /Contents 4 0 R >>"
         ).encode(),
         f"<< /Length {len(content)} /Filter /FlateDecode >>\nstream\n".encode() + content + b"\nendstream",
         b"<< /Type /Font /Subtype /Type1 /BaseFont /Helvetica /Encoding /WinAnsiEncoding >>",
-        f"<< /Title {_pdf_string('psfd Bernoulli target')} /Producer (psfd) >>".encode(),
+        b"<< /Producer (psfd) >>",
     ]
     out = bytearray(b"%PDF-1.4\n%\xe2\xe3\xcf\xd3\n")
     offsets = []
@@ -143,13 +175,16 @@ def png_bytes(noise: np.ndarray, px_per_cell: int = 8, margin_cells: int = MARGI
     Noise cell (row r, column c) covers pixel rows [(m + 32 + r) p, (m + 33 + r) p)
     and the same columns for c, with m = margin_cells and p = px_per_cell.
     """
-    if not 1 <= px_per_cell <= 64:
-        raise BadInputError(f"pixels per cell must be between 1 and 64, got {px_per_cell}")
+    _check_px(px_per_cell)
     raster = np.round(target.cells(noise, supersample=px_per_cell) * 255).astype(np.uint8)
     pad = margin_cells * px_per_cell
     raster = np.pad(raster, pad, constant_values=255)
+    return _png(raster)
+
+
+def _png(raster: np.ndarray) -> bytes:
     ok, encoded = cv2.imencode(".png", raster)
-    if not ok:  # pragma: no cover - OpenCV always encodes a grey uint8 image
+    if not ok:  # OpenCV encodes any grey uint8 image; this guards a broken build
         raise BadInputError("cannot encode the target as PNG")
     return encoded.tobytes()
 
@@ -157,6 +192,45 @@ def png_bytes(noise: np.ndarray, px_per_cell: int = 8, margin_cells: int = MARGI
 def noise_path(out: Path) -> Path:
     """Where the noise realisation of a rendered target is kept: ``x.pdf`` -> ``x.noise.pgm``."""
     return out.with_name(out.stem + ".noise.pgm")
+
+
+def output_format(out: str | os.PathLike) -> tuple[Path, str]:
+    """Check a target output path before rendering: (path, ".pdf" or ".png")."""
+    out = Path(out)
+    suffix = out.suffix.lower()
+    if suffix not in (".pdf", ".png"):
+        raise BadInputError(f"{out}: unknown target format {out.suffix or '(none)'!r}; use .pdf or .png")
+    if not out.parent.is_dir() or not os.access(out.parent, os.W_OK):
+        raise BadInputError(f"{out.parent}: not a writable folder")
+    return out, suffix
+
+
+def _write_atomic(out: Path, data: bytes, noise: np.ndarray | None = None) -> None:
+    """Write ``data`` to ``out`` (and ``noise`` beside it) under temporary names, then rename.
+
+    A failure leaves neither file behind, and never a target without its noise.
+    """
+    pgm = noise_path(out)
+    tmp_target = out.with_name(f".{out.name}.part")
+    tmp_noise = pgm.with_name(f".{pgm.stem}.part.pgm")  # OpenCV picks the encoder by suffix
+    existed = out.exists()
+    try:
+        tmp_target.write_bytes(data)
+        if noise is not None:
+            target.save_noise(noise, tmp_noise)
+        os.replace(tmp_target, out)
+        if noise is not None:
+            try:
+                os.replace(tmp_noise, pgm)
+            except OSError:
+                if not existed:
+                    out.unlink(missing_ok=True)
+                raise
+    except OSError as exc:
+        raise BadInputError(f"{out}: cannot write ({exc.strerror or exc})") from None
+    finally:
+        tmp_target.unlink(missing_ok=True)
+        tmp_noise.unlink(missing_ok=True)
 
 
 def write_target(
@@ -167,40 +241,61 @@ def write_target(
     caption: str = "",
     px_per_cell: int = 8,
 ) -> tuple[Path, Path]:
-    """Render the target to ``out`` (.pdf or .png) and save its noise beside it.
-
-    Both files are written under temporary names and renamed at the end, so a
-    failure leaves neither behind.
+    """Render the Bernoulli target to ``out`` (.pdf or .png) and save its noise beside it.
 
     Returns
     -------
     (target path, noise path)
     """
-    out = Path(out)
-    suffix = out.suffix.lower()
-    if suffix not in (".pdf", ".png"):
-        raise BadInputError(f"{out}: unknown target format {out.suffix or '(none)'!r}; use .pdf or .png")
-    folder = out.parent if str(out.parent) else Path(".")
-    if not folder.is_dir() or not os.access(folder, os.W_OK):
-        raise BadInputError(f"{folder}: not a writable folder")
+    out, suffix = output_format(out)
     data = pdf_bytes(noise, size_mm, caption) if suffix == ".pdf" else png_bytes(noise, px_per_cell)
-    pgm = noise_path(out)
-    tmp_target = out.with_name(f".{out.name}.part")
-    tmp_noise = pgm.with_name(f".{pgm.stem}.part.pgm")  # OpenCV picks the encoder by suffix
-    existed = out.exists()
-    try:
-        tmp_target.write_bytes(data)
-        target.save_noise(noise, tmp_noise)
-        os.replace(tmp_target, out)
-        try:
-            os.replace(tmp_noise, pgm)
-        except OSError:
-            if not existed:  # never leave a target without its noise
-                out.unlink(missing_ok=True)
-            raise
-    except OSError as exc:
-        raise BadInputError(f"{out}: cannot write ({exc.strerror or exc})") from None
-    finally:
-        tmp_target.unlink(missing_ok=True)
-        tmp_noise.unlink(missing_ok=True)
-    return out, pgm
+    _write_atomic(out, data, noise)
+    return out, noise_path(out)
+
+
+# ---------------------------------------------------------------- the sharp-edge target
+
+EDGE_CELLS_PER_SQUARE = 16  # PNG pixels per square = 16 x px_per_cell
+
+
+def edge_pdf_bytes(size_mm: float, caption: str = "") -> bytes:
+    """The sharp-edge target as a vector PDF: black squares, disks as four 90-degree Bezier arcs.
+
+    ``size_mm`` is the side of the board; the page adds the white border of
+    sharpedge.BORDER squares. Drawn in square units (y down) through one ``cm`` transform.
+    """
+    nx, ny = sharpedge.SQUARES
+    _check_size(size_mm, 1 + 2 * sharpedge.BORDER / nx)
+    square = size_mm / nx / MM_PER_POINT  # points per square
+    margin = sharpedge.BORDER * square
+    width, height = nx * square + 2 * margin, ny * square + 2 * margin
+    r = sharpedge.DISK
+    k = 0.5522847498 * r  # control-point distance of a cubic Bezier quarter circle
+
+    def disk(cx: float, cy: float) -> str:
+        pts = [(cx + r, cy), (cx + r, cy + k), (cx + k, cy + r), (cx, cy + r), (cx - k, cy + r), (cx - r, cy + k),
+               (cx - r, cy), (cx - r, cy - k), (cx - k, cy - r), (cx, cy - r), (cx + k, cy - r), (cx + r, cy - k),
+               (cx + r, cy)]
+        path = [f"{_num(pts[0][0])} {_num(pts[0][1])} m"]
+        path += [" ".join(f"{_num(x)} {_num(y)}" for x, y in pts[i : i + 3]) + " c" for i in range(1, 13, 3)]
+        return " ".join(path) + " h"
+
+    black = [(i, j) for j in range(ny) for i in range(nx) if (i + j) % 2 == 0]
+    white = [(i, j) for j in range(ny) for i in range(nx) if (i + j) % 2 == 1]
+    ops = ["q", f"{square:.6f} 0 0 {-square:.6f} {_num(margin)} {_num(height - margin)} cm", "0 g"]
+    ops += [f"{i} {j} 1 1 re" for i, j in black] + [disk(i + 0.5, j + 0.5) for i, j in white] + ["f", "1 g"]
+    ops += [disk(i + 0.5, j + 0.5) for i, j in black] + ["f", "Q"]
+    return pdf_document(ops, (width, height), caption, margin)
+
+
+def write_edge_target(out: str | os.PathLike, *, size_mm: float = 700.0, caption: str = "",
+                      px_per_cell: int = 8) -> Path:
+    """Render the sharp-edge target to ``out`` (.pdf, or .png at 16 px_per_cell pixels per square)."""
+    out, suffix = output_format(out)
+    if suffix == ".pdf":
+        data = edge_pdf_bytes(size_mm, caption)
+    else:
+        _check_px(px_per_cell)
+        data = _png((sharpedge.edge_target(px_per_square=EDGE_CELLS_PER_SQUARE * px_per_cell) * 255).astype(np.uint8))
+    _write_atomic(out, data)
+    return out

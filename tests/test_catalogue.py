@@ -46,8 +46,12 @@ def new_run(cat: Catalogue, keys=("a", "b", "c"), rig=CANON) -> int:
 
 
 def count(path, table: str) -> int:
-    with sqlite3.connect(path) as conn:
+    """Rows in a table, read through a fresh connection (what another process would see)."""
+    conn = sqlite3.connect(path)
+    try:
         return conn.execute(f"SELECT count(*) FROM {table}").fetchone()[0]
+    finally:
+        conn.close()
 
 
 # -- schema ---------------------------------------------------------------------

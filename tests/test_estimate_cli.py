@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import io
 import json
 import math
@@ -19,12 +18,6 @@ from psfd.cli import main, output
 from psfd.errors import BadInputError
 from psfd.estimator import raw
 from psfd.estimator.psf import PSF
-
-# The target pipeline needs the registration and radiometry steps of the detection team.
-needs_target_pipeline = pytest.mark.skipif(
-    any(importlib.util.find_spec(f"psfd.estimator.{m}") is None for m in ("register", "radiometry")),
-    reason="target registration/radiometry not available",
-)
 
 
 def gaussian(sigma_x: float, sigma_y: float, s: int = 4, support: int = 17) -> np.ndarray:
@@ -67,7 +60,7 @@ def test_write_estimates_files_round_trip(tmp_path):
     names = sorted(p.name for p in (tmp_path / "out").iterdir())
     assert names == sorted(p.name for p in files)
     assert names == sorted(
-        [f"IMG_0001_bernoulli_g1_w0{i}.{ext}" for i in (0, 1) for ext in ("npy", "tif", "png")]
+        [f"IMG_0001_bernoulli_g1_w0{i}.{ext}" for i in (0, 1) for ext in ("npy", "tif", "png", "json")]
         + [f"IMG_0001_bernoulli_g1_w00.{k}.{ext}" for k in ("kernel", "residual") for ext in ("npy", "png")]
     )
     base = tmp_path / "out" / "IMG_0001_bernoulli_g1_w00"
@@ -75,6 +68,7 @@ def test_write_estimates_files_round_trip(tmp_path):
     tif = tifffile.imread(f"{base}.tif")
     assert tif.dtype == np.float32
     np.testing.assert_array_equal(tif, estimates[0].psf.astype(np.float32))
+    assert json.loads(Path(f"{base}.json").read_text())["window"] == [0, 0, 320, 480]
     np.testing.assert_array_equal(np.load(f"{base}.kernel.npy"), kernel)
     np.testing.assert_array_equal(np.load(f"{base}.residual.npy"), residual)
     grey = cv2.imread(f"{base}.kernel.png", cv2.IMREAD_UNCHANGED)
@@ -177,7 +171,7 @@ def test_print_table(capsys):
     est = synthetic(0, warnings=["pixels per cell 0.9 outside 0.35..0.5"])
     output.print_table([est])
     text = capsys.readouterr().out
-    assert "IMG_0001.dng" in text and "g1" in text and "0.25,0.50" in text
+    assert "IMG_0001 " in text and " g1 " in text and "0.25,0.50" in text
     assert "warning: pixels per cell 0.9" in text
 
 
@@ -209,6 +203,7 @@ BAD = [
     (["target", "{in}/whole.dng", "-s", "0"], "-s"),
     (["target", "{in}/whole.dng", "-s", "four"], "-s"),
     (["target", "{in}/whole.dng", "--channel", "green"], "unknown channel"),
+    (["target", "{in}/whole.dng", "--solver", "cg"], "--solver"),
     (["target", "{in}/whole.dng", "--pattern", "{in}/notes.pgm"], "noise pattern"),
     (["target", "{in}/whole.dng", "--out", "{in}/missing/out"], "not a writable folder"),
     (["pair", "{in}/whole.dng", "{in}/cut.dng"], "not a readable RAW file"),
@@ -219,13 +214,14 @@ BAD = [
 
 
 @pytest.mark.parametrize("argv, message", BAD)
-def test_bad_input_one_line_nothing_written(bad_files, capsys, argv, message):
+def test_bad_input_one_line_nothing_written(bad_files, capfd, argv, message):
+    # capfd, not capsys: LibRaw writes to file descriptor 2 itself, and that must not show
     before = sorted(p.name for p in bad_files.parent.rglob("*"))
     out = bad_files.parent / "results"
     argv = [a.format(**{"in": bad_files}) for a in argv]
     if "--out" not in argv:
         argv += ["--out", str(out)]
-    code, stdout, stderr = run(capsys, "estimate", *argv)
+    code, stdout, stderr = run(capfd, "estimate", *argv)
     assert code == 2
     assert stderr.startswith("psfd: error: ") and stderr.count("\n") == 1 and message in stderr
     assert stdout == ""
@@ -253,7 +249,7 @@ def test_pair_end_to_end_on_real_photos(tmp_path, capsys, data_dir):
     files = sorted(p.name for p in (tmp_path / "out").iterdir())
     base = "IMG_0608_v1+IMG_0602_v1_CUT_two-photo_mono_w00"
     assert files == sorted(f"{base}{tail}" for tail in (
-        ".npy", ".tif", ".png", ".kernel.npy", ".kernel.png", ".residual.npy", ".residual.png"))
+        ".npy", ".tif", ".png", ".json", ".kernel.npy", ".kernel.png", ".residual.npy", ".residual.png"))
     np.testing.assert_array_equal(np.load(tmp_path / "out" / f"{base}.npy"), psf)
     # Which photo is near is detected: the other order gives the same estimate up to the
     # registration, which is fitted the other way round; the change stays below the noise floor
@@ -265,12 +261,20 @@ def test_pair_end_to_end_on_real_photos(tmp_path, capsys, data_dir):
     assert np.abs(np.array(swapped["psf"]) - psf).max() < record["noise_floor"]
 
 
+# Relative L2 errors ||h_e - h|| / ||h|| accepted end to end. The expected error from sensor noise is
+# PSF.noise_floor / ||h|| (IJCV 2012 sec. 2). On the simulated DNG it is 3.5 % and 2-9 % is measured
+# (the rest is discretisation bias of u~_D): 0.15 still rejects the same Gaussian 20 % wider (23 % away).
+# The small round-trip photo has a floor of 7-11 % and 6-19 % is measured, so its bound is a multiple
+# of the floor the estimator reports for that very photo.
+DNG_TOLERANCE = 0.15
+ROUND_TRIP_FLOORS = 2.5
+
+
 def relative_error(estimate: np.ndarray, truth: np.ndarray) -> float:
     """||h_e - h|| / ||h||, the error measure of IJCV 2012 sec. 5."""
     return float(np.linalg.norm(estimate - truth) / np.linalg.norm(truth))
 
 
-@needs_target_pipeline
 def test_target_end_to_end_on_real_photo(capsys, data_dir):
     code, stdout, stderr = run(capsys, "estimate", "target", data_dir / "img_example.pgm", "--json")
     assert code == 0, stderr
@@ -286,7 +290,6 @@ def test_target_end_to_end_on_real_photo(capsys, data_dir):
     assert 0 < record["mtf50_x"] < 2 and 0 < record["mtf50_y"] < 2
 
 
-@needs_target_pipeline
 def test_target_end_to_end_on_simulated_dng(tmp_path, capsys):
     from psfd.estimator import simulate
 
@@ -298,10 +301,11 @@ def test_target_end_to_end_on_simulated_dng(tmp_path, capsys):
     assert code == 0, stderr
     assert "MTF50" in stdout and all(f" {c} " in stdout for c in raw.CHANNELS)
     files = sorted(p.name for p in out.iterdir())
-    assert files == sorted(f"sim_bernoulli_{c}_w00.{ext}" for c in raw.CHANNELS for ext in ("npy", "tif", "png"))
+    extensions = ("npy", "tif", "png", "json")
+    assert files == sorted(f"sim_bernoulli_{c}_w00.{ext}" for c in raw.CHANNELS for ext in extensions)
     for channel in raw.CHANNELS:
         estimate = np.load(out / f"sim_bernoulli_{channel}_w00.npy")
-        assert relative_error(estimate, truth) < TARGET_TOLERANCE, channel
+        assert relative_error(estimate, truth) < DNG_TOLERANCE, channel
 
 
 def box_gaussian(sigma: float, s: int = 4, support: int = 17) -> np.ndarray:
@@ -339,7 +343,6 @@ def photograph_png(png: np.ndarray, sigma: float, rng: np.random.Generator, pixe
     return np.clip(np.round(values), 0, 65535).astype(np.uint16)
 
 
-@needs_target_pipeline
 def test_rendered_target_round_trip(tmp_path, capsys):
     assert run(capsys, "target", "--out", tmp_path / "lab.png", "--seed", "21", "--px-per-cell", "4")[0] == 0
     png = cv2.imread(str(tmp_path / "lab.png"), cv2.IMREAD_GRAYSCALE)
@@ -351,7 +354,43 @@ def test_rendered_target_round_trip(tmp_path, capsys):
     )
     assert code == 0, stderr
     record = json.loads(stdout)
-    assert relative_error(np.array(record["psf"]), box_gaussian(sigma)) < TARGET_TOLERANCE
-    # with the wrong noise (the published one) the model does not fit: the residual is far larger
+    truth = box_gaussian(sigma)
+    floor = record["noise_floor"] / np.linalg.norm(truth)
+    assert floor < 0.15  # the photo is informative enough for the comparison to mean something
+    assert relative_error(np.array(record["psf"]), truth) < ROUND_TRIP_FLOORS * floor
+    # without --pattern the published noise is assumed: the model does not fit (residual 0.65 against
+    # 0.007 measured), so the saved noise is what made the estimate work
     code, stdout, _ = run(capsys, "estimate", "target", tmp_path / "photo.png", "--json")
-    assert code == 0 and json.loads(stdout)["residual"] > 3 * record["residual"]
+    assert code == 0 and json.loads(stdout)["residual"] > 10 * record["residual"]
+
+
+def test_edges_end_to_end_passes_its_options(tmp_path, capsys):
+    from psfd.estimator import sharpedge
+
+    # the edge target, slightly rotated, blurred and integrated over 10x10 fine pixels per channel pixel
+    fine = cv2.warpAffine(sharpedge.edge_target(px_per_square=120.0).astype(np.float32),
+                          np.float32([[np.cos(0.1), -np.sin(0.1), 60], [np.sin(0.1), np.cos(0.1), 40]]),
+                          (1400, 1400), borderValue=1.0)
+    image = cv2.resize(cv2.GaussianBlur(fine, (0, 0), 5.0), (140, 140), interpolation=cv2.INTER_AREA)
+    cv2.imwrite(str(tmp_path / "edges.png"), np.round(2000 + 40000 * image.astype(np.float64)).astype(np.uint16))
+    records = []
+    for mode in (["--target"], []):
+        code, stdout, stderr = run(capsys, "estimate", "edges", tmp_path / "edges.png", *mode, "--weight", "3",
+                                   "--radius", "2.5", "-s", "3", "--support", "11", "--json")
+        assert code == 0, stderr
+        records.append(json.loads(stdout))
+    for record in records:
+        assert record["method"] == "sharp-edge" and record["s"] == 3 and record["support"] == 11
+        assert record["params"]["weight"] == 3 and record["params"]["radius"] == 2.5
+        assert np.sum(record["psf"]) == pytest.approx(1.0, abs=1e-9)
+    # --target reaches the estimator: the sharp image predicted from the target's geometry differs
+    assert not np.allclose(records[0]["psf"], records[1]["psf"])
+
+
+def test_no_target_is_an_estimation_error(tmp_path, capfd):
+    rng = np.random.default_rng(2)
+    cv2.imwrite(str(tmp_path / "wall.png"), cv2.GaussianBlur(rng.integers(0, 255, (240, 320), np.uint8), (0, 0), 3))
+    code, stdout, stderr = run(capfd, "estimate", "target", tmp_path / "wall.png", "--out", tmp_path / "out")
+    assert code == 3  # EstimationError: the photograph does not support an estimate
+    assert stderr.startswith("psfd: error: ") and stderr.count("\n") == 1 and stdout == ""
+    assert [p.name for p in tmp_path.iterdir()] == ["wall.png"]

@@ -16,7 +16,7 @@ from psfd.catalogue import Catalogue
 from psfd.daemon.plan import parse_plan
 from psfd.daemon.runner import Control, Runner, frames_dir_for, store_frame, sweep_frames
 from psfd.drivers import open_rig
-from psfd.errors import CameraError, RailAlarm
+from psfd.errors import CameraError, EstimationError, RailAlarm
 
 # 2 apertures x 2 field positions x 1 channel: small enough for the default suite.
 PLAN = """
@@ -113,7 +113,24 @@ def test_run_failure_pauses_keeps_work_and_resume_completes(tmp_path):
     check_complete(db, frames, plan)
 
 
-def test_rail_alarm_and_missing_target_pause_the_run(tmp_path):
+def test_missing_target_pauses_the_run(tmp_path):
+    """Y at the end of travel puts the target half out of the frame: no target, the run pauses."""
+    plan = parse_plan(small_plan().replace("apertures = [4, 11]", "apertures = [4]")
+                      .replace("y = [", "y = [60, "), "edge.toml")
+    camera, rail = open_rig(plan.rig_config())
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        result = Runner(cat, tmp_path / "frames", workers=1, progress=None).run(plan, camera, rail)
+        assert result.state == "paused" and isinstance(result.error, EstimationError)
+        (failed,) = cat.steps(result.run_id, ("failed",))
+        assert failed["key"].startswith("a4/x1300/y60") and failed["reason"] == str(result.error)
+        # the failed step's frame is not kept (the retry shoots a new one), the others are catalogued
+        assert stored_files(tmp_path / "frames") == cat.frame_hashes()
+        # the step shot while the failed one was being estimated is kept: work done is never thrown away
+        summary = cat.run_summary(result.run_id)
+        assert (summary["failed"], summary["done"], summary["pending"]) == (1, 1, 1)
+
+
+def test_rail_alarm_pauses_the_run(tmp_path):
     plan = parse_plan(small_plan(), "small.toml")
 
     class AlarmRail:
@@ -157,11 +174,20 @@ def _run_cli(args: list[str], env: dict) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+def _done_steps(db: Path) -> int:
+    if not db.exists():
+        return 0
+    with Catalogue(db) as cat:
+        runs = cat.runs()
+        return cat.run_summary(runs[0]["id"])["done"] if runs else 0
+
+
 def test_sigkill_at_random_steps_then_resume(tmp_path):
-    """Kill the whole process group (like a power cut) several times, then resume to the end."""
+    """Kill the whole process group (like a power cut) at random points several times, then resume."""
     plan_path = tmp_path / "plan.toml"
     plan_path.write_text(small_plan())
     plan = parse_plan(plan_path.read_text(), str(plan_path))
+    total = len(plan.steps())
     db = tmp_path / "cat.sqlite"
     frames = frames_dir_for(db)
     env = {**os.environ, "PSFD_SOCKET": str(tmp_path / "none.sock")}
@@ -170,17 +196,18 @@ def test_sigkill_at_random_steps_then_resume(tmp_path):
     done_at_kill = []
     for _ in range(3):
         proc = _run_cli(args, env)
-        # kill somewhere between start-up and the middle of the run
-        deadline = time.monotonic() + rng.uniform(2.0, 8.0)
-        while time.monotonic() < deadline and proc.poll() is None:
+        # wait for a random number of committed steps, then a random fraction of a step more:
+        # the kill lands during a capture, a frame store, an estimate or a commit
+        goal = rng.randint(_done_steps(db), total - 1)
+        deadline = time.monotonic() + 120
+        while proc.poll() is None and _done_steps(db) < goal and time.monotonic() < deadline:
             time.sleep(0.05)
+        time.sleep(rng.uniform(0.0, 1.5))
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
-        if db.exists():
-            with Catalogue(db) as cat:
-                runs = cat.runs()
-                done_at_kill.append(cat.run_summary(runs[0]["id"])["done"] if runs else 0)
+        done_at_kill.append(_done_steps(db))
+    assert any(0 < n < total for n in done_at_kill), done_at_kill  # at least one kill fell mid-run
     proc = _run_cli(args, env)
     out, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err

@@ -10,6 +10,7 @@ import socket
 import stat
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -26,24 +27,28 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 class Notifications:
-    """A stand-in for systemd's $NOTIFY_SOCKET: collects the datagrams the service sends."""
+    """A stand-in for systemd's $NOTIFY_SOCKET: a thread collects the datagrams the service sends."""
 
     def __init__(self, path: Path) -> None:
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self.sock.bind(str(path))
-        self.sock.settimeout(0.2)
         self.path, self.messages = path, []
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        while True:
+            try:
+                self.messages.append(self.sock.recv(4096).decode())
+            except OSError:
+                return
 
     def wait_for(self, needle: str, timeout: float = 60.0) -> str:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            for message in self.messages:
+            for message in list(self.messages):
                 if needle in message:
                     return message
-            try:
-                self.messages.append(self.sock.recv(4096).decode())
-            except TimeoutError:
-                pass
+            time.sleep(0.05)
         raise AssertionError(f"no {needle!r} notification; got {self.messages}")
 
 
@@ -55,8 +60,9 @@ def served(tmp_path):
     db = tmp_path / "cat.sqlite"
     env = {**os.environ, "NOTIFY_SOCKET": str(notes.path), "WATCHDOG_USEC": "1000000"}
     env.pop("WATCHDOG_PID", None)
+    log = open(tmp_path / "serve.log", "w")
     proc = subprocess.Popen([sys.executable, "-m", "psfd", "serve", "--socket", str(sock), "--catalogue", str(db),
-                             "--workers", "1"], env=env, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                             "--workers", "1"], env=env, stderr=log, start_new_session=True)
     try:
         notes.wait_for("READY=1")
         yield proc, sock, db, notes
@@ -65,6 +71,7 @@ def served(tmp_path):
             os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
         notes.sock.close()
+        log.close()
 
 
 def raw_request(sock: Path, line: bytes) -> dict:

@@ -6,7 +6,6 @@ import re
 import shutil
 import subprocess
 import zlib
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -99,7 +98,7 @@ def test_pdf_is_well_formed_and_draws_the_layout(tmp_path, capsys):
     assert len(re.findall(r" l h$", content, re.M)) == 2 * len(target.XCORNER_BLOCKS)
     cell = float(re.search(r"^([\d.]+) 0 0 -[\d.]+ [\d.]+ [\d.]+ cm$", content, re.M)[1])
     assert cell * 25.4 / 72 == pytest.approx(700 / 320, rel=1e-6)
-    assert "seed 7" in content and "2.188 mm" in content and "print at 100 %" in content
+    assert "seed 7" in content and "cell 2.1875 mm" in content and "print at 100 %" in content
     # the drawing is exactly the layout: same pixels as target.cells at 8 px per cell
     np.testing.assert_array_equal(rasterise_content(content, PX), target.cells(noise, PX))
     # small: a 256x256 noise target in well under 100 kB (one rectangle per row run, compressed)
@@ -186,3 +185,17 @@ def test_bad_input_one_line_nothing_written(tmp_path, capsys, argv, message):
     assert code == 2
     assert stderr.startswith("psfd: error: ") and stderr.count("\n") == 1 and message in stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file.txt"]
+
+
+def test_edge_target_pdf_is_well_formed(tmp_path, capsys):
+    from psfd.estimator import sharpedge
+
+    code, _, _ = run(capsys, "target", "--kind", "edges", "--out", str(tmp_path / "e.pdf"), "--size-mm", "400")
+    assert code == 0
+    pdf = parse_pdf((tmp_path / "e.pdf").read_bytes())
+    nx, ny = sharpedge.SQUARES
+    side_pt = 400 * (1 + 2 * sharpedge.BORDER / nx) / 25.4 * 72  # board plus its white border
+    assert pdf["mediabox"] == pytest.approx([0, 0, side_pt, side_pt], abs=1e-3)
+    assert pdf["content"].count(" re\n") == nx * ny // 2  # the black squares
+    assert pdf["content"].count(" c ") == 4 * nx * ny  # one disk of four Bezier arcs per square
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["e.pdf"]  # no noise file for this target

@@ -1,8 +1,8 @@
 """`psfd compare`: every method that applies to the photographs, side by side.
 
 Which methods apply is read from the frames: a frame of the Bernoulli
-target gives the Bernoulli estimate and the sharp-edge estimate of its
-edges; a frame of the edge target gives the sharp-edge target estimate;
+target gives the Bernoulli estimate and the sharp-edge estimate from the
+step edges of its marks; a frame of the edge target gives the sharp-edge target estimate;
 two frames without a target are a near/far pair (two-photo) and each frame
 also gives a blind sharp-edge estimate. The MTF profiles of all estimates
 are overlaid in one figure, and a table gives the MTF error of each against
@@ -46,9 +46,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "compare",
         help="run every applicable method on the same photographs and compare their MTFs",
         description=(
-            "Bernoulli-target frames give the Bernoulli and the sharp-edge estimates, edge-target frames the "
-            "sharp-edge target estimate, two frames of a textured plane the two-photo estimate (and sharp-edge "
-            "on each). Prints a table of MTF errors against --truth (or between the methods) and, with --out, "
+            "Bernoulli-target frames give the Bernoulli and the sharp-edge (from its marks) estimates, "
+            "edge-target frames the sharp-edge target estimate, two frames of a textured plane the two-photo "
+            "estimate (and sharp-edge on each). Prints a table of MTF errors against --truth (or between the methods) and, with --out, "
             "writes the overlaid MTF figure compare.png, compare.json and every estimate."
         ),
     )
@@ -141,8 +141,10 @@ def run_methods(frames: list[raw.Frame], s: int, support: int | None, weights: l
         return [
             e
             for w in weights
-            for e in _attempt(f"{kind} w={w:g} {Path(frame.source).name}",
-                              lambda w=w: sharpedge.estimate_edges(frame, s=s, support=support, weight=w, target=target))
+            for e in _attempt(
+                f"{kind} w={w:g} {Path(frame.source).name}",
+                lambda w=w: sharpedge.estimate_edges(frame, s=s, support=support, weight=w, target=target),
+            )
         ]
 
     out: list[Estimate] = []
@@ -153,7 +155,7 @@ def run_methods(frames: list[raw.Frame], s: int, support: int | None, weights: l
 
             out += _attempt(f"bernoulli {Path(frame.source).name}",
                             lambda f=frame: bernoulli.estimate_target(f, s=s, support=support))
-            out += edges(frame, target=False)
+            out += edges(frame, target=True)  # its marks: the noise cells are no isolated step edges
         elif _has_edge_target(frame):
             out += edges(frame, target=True)
         else:
@@ -210,7 +212,8 @@ def print_table(estimates: list[Estimate], table: dict, with_truth: bool, stream
     stream = sys.stdout if stream is None else stream
     width = max(len(e.label) for e in estimates) + 2
     if with_truth:
-        print(f"{'method':<{width}} {'MTF err <=Nyq':>14} {'MTF err >Nyq':>13} {'MTF50 x':>8} {'MTF50 y':>8}", file=stream)
+        head = f"{'MTF err <=Nyq':>14} {'MTF err >Nyq':>13} {'MTF50 x':>8} {'MTF50 y':>8}"
+        print(f"{'method':<{width}} {head}", file=stream)
     for e in estimates:
         if e.psf is None:
             print(f"{e.label:<{width}} skipped: {e.reason}", file=stream)
@@ -253,14 +256,15 @@ def mtf_figure(curves: list[tuple[str, np.ndarray, int]]) -> np.ndarray:
         for values, dotted in ((mx, False), (my, True)):
             xs, ys = px(f, values)
             pts = np.round(np.stack([xs, ys], 1)).astype(np.int32)
-            if dotted:
+            if dotted:  # OpenCV draws no dashed lines: every other short piece of the polyline
                 for j in range(0, len(pts) - 1, 4):
-                    cv2.line(img, tuple(map(int, pts[j])), tuple(map(int, pts[min(j + 2, len(pts) - 1)])), colour, 1, cv2.LINE_AA)
+                    end = pts[min(j + 2, len(pts) - 1)]
+                    cv2.line(img, tuple(map(int, pts[j])), tuple(map(int, end)), colour, 1, cv2.LINE_AA)
             else:
                 cv2.polylines(img, [pts], False, colour, 2, cv2.LINE_AA)
         ly = y0 + 14 + 18 * i
         cv2.line(img, (x1 + 12, ly - 4), (x1 + 32, ly - 4), colour, 2)
-        cv2.putText(img, label[:32], (x1 + 38, ly), cv2.FONT_HERSHEY_SIMPLEX, 0.38, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(img, label[:40], (x1 + 38, ly), cv2.FONT_HERSHEY_SIMPLEX, 0.33, (0, 0, 0), 1, cv2.LINE_AA)
     cv2.rectangle(img, (x0, y0), (x1, y1), (0, 0, 0), 1)
     for f in np.arange(0, fmax + 1e-9, 0.5):
         xx, _ = px(f, 0)
@@ -285,7 +289,7 @@ def _plain(value):
 
 
 def write_outputs(out: Path, estimates: list[Estimate], table: dict, truth: np.ndarray | None, s: int) -> None:
-    """The estimates (output.write_estimates), then compare.png and compare.json, each written under a temporary name."""
+    """The estimates (output.write_estimates), then compare.png and compare.json, each under a temporary name first."""
     output.write_estimates([e.psf for e in estimates], out)
     curves = [(e.label, e.psf.psf, e.psf.s) for e in estimates]
     if truth is not None:

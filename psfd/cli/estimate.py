@@ -9,12 +9,18 @@ reported before any numerical work.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 from psfd.cli import output
 from psfd.errors import BadInputError
 from psfd.estimator import raw, target
 from psfd.estimator.psf import PSF
+
+SOLVERS = ("ls", "ls-threshold", "nnls")  # bernoulli.estimate_target's; checked here for a one-line error
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -30,8 +36,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("frames", nargs="+", metavar="FRAME", help="RAW file or single-channel PGM/PNG/TIFF")
     _common(p, s=4)
     p.add_argument("--pattern", metavar="PGM", help="noise of the printed target (default: the published one)")
-    p.add_argument("--solver", choices=("ls", "ls-threshold", "nnls"), default="ls-threshold",
-                   help="least squares, least squares then clip negatives (default), non-negative least squares")
+    p.add_argument("--solver", default="ls-threshold",
+                   help="ls (least squares), ls-threshold (then clip negatives, default) or nnls (non-negative)")
     p.set_defaults(func=run_target)
 
     p = methods.add_parser(
@@ -42,7 +48,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("photo_a", metavar="PHOTO_A")
     p.add_argument("photo_b", metavar="PHOTO_B")
     _common(p, s=3)
-    p.add_argument("--clip", action="store_true", help="clip negative kernel values")
+    p.add_argument("--clip", action="store_true", help="set negative PSF values to 0 before normalising")
     p.set_defaults(func=run_pair)
 
     p = methods.add_parser(
@@ -52,9 +58,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("frames", nargs="+", metavar="FRAME")
     _common(p, s=4)
-    p.add_argument("--weight", help="regularisation weight (default: the estimator's)")
-    p.add_argument("--radius", help="edge search radius in channel pixels (default: the estimator's)")
-    p.add_argument("--target", action="store_true", help="the frame shows the Bernoulli target: use its marks' edges")
+    p.add_argument("--weight", help="lambda, the kernel smoothness weight of eq. (5) (default 2, the paper's)")
+    p.add_argument("--radius", help="use pixels within this many channel pixels of an edge (default: kernel radius)")
+    p.add_argument("--target", action="store_true",
+                   help="the frame shows the printed edge target: predict the sharp image from its geometry")
     p.set_defaults(func=run_edges)
 
 
@@ -85,9 +92,30 @@ def _optional_float(text: str | None, name: str) -> float | None:
     return None if text is None else output.parse_float(text, name)
 
 
+@contextlib.contextmanager
+def _libraw_quiet() -> Iterator[None]:
+    """Silence file descriptor 2 while LibRaw reads: it prints its own complaint about a
+    damaged file ("Unexpected end of file") before raising, and the CLI promises one line."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def load(path: str, channel: str) -> list[raw.Frame]:
+    """The requested planes of one file (`raw.load_frames`), without LibRaw's own stderr output."""
+    with _libraw_quiet():
+        return raw.load_frames(path, channel)
+
+
 def _load_all(paths: list[str], channel: str) -> list[raw.Frame]:
     """Every requested plane of every file; all files are read before any estimation starts."""
-    return [frame for path in paths for frame in raw.load_frames(path, channel)]
+    return [frame for path in paths for frame in load(path, channel)]
 
 
 def _report(args: argparse.Namespace, estimates: list[PSF]) -> int:
@@ -104,6 +132,8 @@ def _report(args: argparse.Namespace, estimates: list[PSF]) -> int:
 
 def run_target(args: argparse.Namespace) -> int:
     settings = _settings(args)
+    if args.solver not in SOLVERS:
+        raise BadInputError(f"--solver: use one of {', '.join(SOLVERS)}, got {args.solver!r}")
     noise = target.load_noise(args.pattern) if args.pattern else None
     frames = _load_all(args.frames, args.channel)
     from psfd.estimator import bernoulli
@@ -132,7 +162,7 @@ def pair_planes(a: list[raw.Frame], b: list[raw.Frame]) -> list[tuple[raw.Frame,
 
 def run_pair(args: argparse.Namespace) -> int:
     settings = _settings(args)
-    pairs = pair_planes(raw.load_frames(args.photo_a, args.channel), raw.load_frames(args.photo_b, args.channel))
+    pairs = pair_planes(load(args.photo_a, args.channel), load(args.photo_b, args.channel))
     from psfd.estimator import twoscale
 
     estimates = [psf for a, b in pairs for psf in twoscale.estimate_pair(a, b, clip=args.clip, **settings)]

@@ -60,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = subparsers.add_parser("demo", help="a complete plan on the simulated rig, then the query table and report")
     p.add_argument("--workdir", default="psfd-demo", metavar="DIR", help="working folder (default ./psfd-demo)")
-    p.add_argument("--workers", type=int, help="estimation processes (default: cores - 1)")
+    p.add_argument("--workers", type=int, help="estimation processes (default: one per core, at most 4)")
     p.add_argument("--catalogue", metavar="PATH", help="catalogue file (default: DIR/catalogue.sqlite)")
     p.set_defaults(func=run_demo)
 
@@ -71,7 +71,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--socket", default=None, metavar="PATH",
                    help=f"service control socket (default {service.default_socket_path()})")
     p.add_argument("--frames", default=None, metavar="DIR", help="frame store (default: beside the catalogue)")
-    p.add_argument("--workers", type=int, default=None, help="estimation processes (default: cores - 1)")
+    p.add_argument("--workers", type=int, default=None, help="estimation processes (default: one per core, at most 4)")
 
 
 def _rig_options(p: argparse.ArgumentParser) -> None:
@@ -117,11 +117,7 @@ def execute(plan: plans.Plan, catalogue_path: Path, frames_dir: Path, resume: bo
 
 
 def _report(result: RunResult | dict, plan_path: str) -> int:
-    r = result if isinstance(result, dict) else {
-        "run_id": result.run_id, "state": result.state, "reason": result.reason, "steps_done": result.steps_done,
-        "frames": result.frames, "psfs": result.psfs, "elapsed_s": result.elapsed_s,
-        "exit_code": result.error.exit_code if result.error else 0,
-    }
+    r = result if isinstance(result, dict) else service.result_dict(result)
     if r.get("run_id") is None:  # the service could not start the job
         raise ServiceError(f"{plan_path}: {r.get('reason')}")
     print(f"run {r['run_id']} {r['state']}: {r['steps_done']} steps, {r['frames']} frames, "
@@ -222,22 +218,20 @@ def run_capture(args: argparse.Namespace) -> int:
                                  timeout=None)
         result = answer["result"]
     else:
-        result = execute(plan, catalogue, frames, workers=args.workers)
-        result = {"run_id": result.run_id, "state": result.state, "reason": result.reason,
-                  "steps_done": result.steps_done, "frames": result.frames, "psfs": result.psfs,
-                  "elapsed_s": result.elapsed_s, "psf_ids": result.psf_ids,
-                  "exit_code": result.error.exit_code if result.error else 0}
+        run = execute(plan, catalogue, frames, workers=args.workers)
+        result = service.result_dict(run)
+        if run.psf_ids:
+            from psfd.catalogue import Catalogue
+
+            with Catalogue(catalogue, create=False) as cat:
+                result["rows"] = [cat.psf(i)[1] for i in run.psf_ids]
     code = _report(result, "capture")
-    if result.get("psf_ids"):
-        _print_psfs(catalogue, result["psf_ids"])
+    if result.get("rows"):
+        _print_psfs(result["rows"])
     return code
 
 
-def _print_psfs(catalogue_path: Path, ids: list[int]) -> None:
-    from psfd.catalogue import Catalogue
-
-    with Catalogue(catalogue_path, create=False) as catalogue:
-        rows = [catalogue.psf(i)[1] for i in ids]
+def _print_psfs(rows: list[dict]) -> None:
     print(f"{'id':>6} {'method':<10} {'ch':<3} {'f/':>5} {'field':>11} {'mtf50_x':>8} {'mtf50_y':>8}")
     for row in rows:
         print(f"{row['id']:>6} {row['method']:<10} {row['channel']:<3} {row['aperture'] or 0:>5g} "

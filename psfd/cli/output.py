@@ -239,11 +239,13 @@ def _imwrite(path: Path, img: np.ndarray) -> None:
 def _write_one(folder: Path, name: str, est: PSF) -> list[str]:
     import tifffile  # only the writers need it
 
-    files = [f"{name}.npy", f"{name}.tif", f"{name}.png"]
+    files = [f"{name}.npy", f"{name}.tif", f"{name}.png", f"{name}.json"]
     np.save(folder / files[0], est.psf)
     meta = {"method": est.method, "channel": est.channel, "s": est.s, "field": [float(v) for v in est.field]}
     tifffile.imwrite(folder / files[1], est.psf.astype(np.float32), metadata=meta)
     _imwrite(folder / files[2], psf_figure(est))
+    # the provenance and metrics beside the arrays, so a folder of results describes itself
+    (folder / files[3]).write_text(json.dumps(_plain(est.to_json()), allow_nan=False) + "\n")
     for key, array in est.figures.items():
         label = re.sub(r"[^A-Za-z0-9._+-]", "_", key)
         array = np.asarray(array)
@@ -259,7 +261,8 @@ def write_estimates(estimates: list[PSF], out_dir: str | os.PathLike) -> list[Pa
     """Write every estimate as .npy, 32-bit float .tif and a .png figure, plus its extra figures.
 
     Per estimate ``NAME`` (see `base_names`): ``NAME.npy`` (float64 kernel),
-    ``NAME.tif`` (float32), ``NAME.png`` (`psf_figure`), and for each entry
+    ``NAME.tif`` (float32), ``NAME.png`` (`psf_figure`), ``NAME.json`` (the
+    `print_json` record), and for each entry
     ``key`` of ``PSF.figures``: ``NAME.key.npy`` and, when 2-D, ``NAME.key.png``.
 
     Everything is written into a temporary folder beside ``out_dir`` and moved
@@ -319,8 +322,11 @@ def _fmt(value: float | None, spec: str = ".3f") -> str:
 def print_table(estimates: list[PSF], stream: TextIO | None = None) -> None:
     """A short human-readable table: one line per estimate, warnings below it."""
     stream = sys.stdout if stream is None else stream
-    header = f"{'source':<28} {'chan':<5} {'field x,y':<11} {'MTF50 x':>8} {'MTF50 y':>8} {'FWHM x':>7} {'FWHM y':>7} {'noise':>9}"
-    print(header, file=stream)
+    print(
+        f"{'source':<28} {'chan':<5} {'field x,y':<11} {'MTF50 x':>8} {'MTF50 y':>8} "
+        f"{'FWHM x':>7} {'FWHM y':>7} {'noise':>9}",
+        file=stream,
+    )
     for est in estimates:
         m = est.metrics()
         source = "+".join(Path(s).stem for s in est.sources)

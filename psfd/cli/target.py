@@ -1,4 +1,4 @@
-"""`psfd target`: render the Bernoulli calibration target for print."""
+"""`psfd target`: render a calibration target for print (Bernoulli noise, or sharp edges)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import argparse
 from psfd import printing
 from psfd.cli.output import parse_float, parse_int
 from psfd.errors import BadInputError
-from psfd.estimator import target
+from psfd.estimator import sharpedge, target
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,10 +24,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--noise", metavar="PGM", help="use this 256x256 noise pattern instead of a seed")
     parser.add_argument("--size-mm", default="700", help="side of the printed target in mm (PDF; default 700)")
     parser.add_argument("--px-per-cell", default="8", help="pixels per noise cell (PNG; default 8)")
+    parser.add_argument("--kind", default="bernoulli",
+                        help="bernoulli (default) or edges: the sharp-edge target of Joshi et al., CVPR 2008 "
+                             "(8x8 squares with disks; --size-mm is the board side, a square is 16 cells in PNG)")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.kind not in ("bernoulli", "edges"):
+        raise BadInputError(f"--kind: use bernoulli or edges, got {args.kind!r}")
+    if args.kind == "edges":
+        return run_edges(args)
     size_mm = parse_float(args.size_mm, "--size-mm")
     px_per_cell = parse_int(args.px_per_cell, "--px-per-cell", minimum=1)
     if args.noise is not None and args.seed is not None:
@@ -43,7 +50,22 @@ def run(args: argparse.Namespace) -> int:
         noise = target.default_noise()
         origin = "published noise"
     cell_mm = size_mm / target.SIZE
-    caption = f"psfd Bernoulli target - {origin} - cell {cell_mm:.4g} mm - print at 100 % (no scaling)"
+    caption = (
+        f"psfd Bernoulli target {size_mm:.5g} mm - {origin} - cell {cell_mm:.5g} mm - print at 100 % (no scaling)"
+    )
     out, pgm = printing.write_target(args.out, noise, size_mm=size_mm, caption=caption, px_per_cell=px_per_cell)
-    print(f"wrote {out} ({origin}, cell {cell_mm:.4g} mm) and its noise {pgm}")
+    print(f"wrote {out} ({origin}, cell {cell_mm:.5g} mm) and its noise {pgm}")
+    return 0
+
+
+def run_edges(args: argparse.Namespace) -> int:
+    """Write the sharp-edge target (psfd.estimator.sharpedge.edge_target) as a vector PDF or a PNG."""
+    if args.seed is not None or args.noise is not None:
+        raise BadInputError("--seed and --noise apply to the Bernoulli target only")
+    size_mm = parse_float(args.size_mm, "--size-mm")
+    px_per_cell = parse_int(args.px_per_cell, "--px-per-cell", minimum=1)
+    square_mm = size_mm / sharpedge.SQUARES[0]
+    caption = f"psfd sharp-edge target - square {square_mm:.4g} mm - print at 100 % (no scaling)"
+    out = printing.write_edge_target(args.out, size_mm=size_mm, caption=caption, px_per_cell=px_per_cell)
+    print(f"wrote {out} (sharp-edge target, square {square_mm:.4g} mm)")
     return 0

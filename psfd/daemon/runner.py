@@ -38,6 +38,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Any, Callable, Iterator
 
+from psfd.catalogue import FrameRecord
 from psfd.daemon import work
 from psfd.daemon.plan import Plan, Step
 from psfd.drivers.base import Camera, Rail
@@ -117,8 +118,12 @@ class Progress:
 
 
 def default_workers() -> int:
-    """One worker per core, leaving one core to the capture loop (and its rendering on the simulated rig)."""
-    return max(1, min(4, (os.cpu_count() or 2) - 1))
+    """One estimation process per core (at most 4).
+
+    The capture loop mostly waits on the camera and the rail, so it needs no core
+    of its own; estimation is the bottleneck (bench/bench_throughput.py).
+    """
+    return max(1, min(4, os.cpu_count() or 1))
 
 
 def frames_dir_for(catalogue_path: str | os.PathLike) -> Path:
@@ -316,15 +321,15 @@ class Runner:
                     # The rig waits only when every worker is busy and one more job is queued.
                     t0 = time.monotonic()
                     while len(inflight) > self.workers:
-                        self._commit_first(plan, run_id, focal, inflight, result, bar, block=True)
+                        self._commit_first(run_id, focal, inflight, result, bar)
                     result.rig_wait_s += time.monotonic() - t0
-                    self._commit_ready(plan, run_id, focal, inflight, result, bar)
+                    self._commit_ready(run_id, focal, inflight, result, bar)
                     if result.error is not None:
                         break
             finally:
                 release_rig(camera, rail)
                 while inflight:
-                    self._commit_first(plan, run_id, focal, inflight, result, bar, block=True)
+                    self._commit_first(run_id, focal, inflight, result, bar)
         bar.close()
         result.elapsed_s = time.monotonic() - started
         requested = self.control.requested
@@ -349,37 +354,49 @@ class Runner:
         for name, value in settings.items():
             camera.set(name, str(value))
 
-    def _capture(self, plan: Plan, step: Step, camera: Camera, rail: Rail) -> list:
+    def _capture(self, plan: Plan, step: Step, camera: Camera, rail: Rail) -> list[FrameRecord]:
         """Move, set the aperture, expose; returns the FrameRecords of the stored RAW files."""
-        from psfd.catalogue import FrameRecord
-
         camera.set("aperture", _aperture_choice(camera, step.aperture))
         distances = step.x if isinstance(step.x, tuple) else (step.x,)
-        records = []
-        for x in distances:
-            at = rail.move(x=x, y=step.y, z=step.z)
-            incoming = Path(tempfile.mkdtemp(prefix=INCOMING, dir=self.frames_dir))
-            try:
-                files = [p for p in camera.capture(incoming) if p.suffix.lower() in RAW_SUFFIXES]
-                if not files:
-                    raise CameraError("the camera produced no RAW file: set imageformat to RAW")
-                path, sha = store_frame(files[0], self.frames_dir)
-            finally:
-                shutil.rmtree(incoming, ignore_errors=True)
-            records.append(FrameRecord(
-                path=str(path), sha256=sha,
-                settings={"aperture": step.aperture, **{k: str(v) for k, v in plan.rig.get("settings", {}).items()}},
-                rail={"x": at.x, "y": at.y, "z": at.z},
-                taken_at=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            ))
+        settings = {"aperture": step.aperture, **{k: str(v) for k, v in plan.rig.get("settings", {}).items()}}
+        records: list[FrameRecord] = []
+        try:
+            for x in distances:
+                at = rail.move(x=x, y=step.y, z=step.z)
+                path, sha = self._expose(camera)
+                records.append(FrameRecord(
+                    path=str(path), sha256=sha, settings=settings, rail={"x": at.x, "y": at.y, "z": at.z},
+                    taken_at=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                ))
+        except BaseException:
+            self._discard(records)  # the near frame of a pair whose far frame failed
+            raise
         return records
 
-    def _commit_ready(self, plan, run_id, focal, inflight, result, bar) -> None:
-        while inflight and inflight[0][2].done():
-            self._commit_first(plan, run_id, focal, inflight, result, bar, block=False)
+    def _expose(self, camera: Camera) -> tuple[Path, str]:
+        """One exposure downloaded into a temporary folder of the store, its RAW file stored by hash."""
+        incoming = Path(tempfile.mkdtemp(prefix=INCOMING, dir=self.frames_dir))
+        try:
+            files = [p for p in camera.capture(incoming) if p.suffix.lower() in RAW_SUFFIXES]
+            if not files:
+                raise CameraError("the camera produced no RAW file: set imageformat to RAW")
+            return store_frame(files[0], self.frames_dir)
+        finally:
+            shutil.rmtree(incoming, ignore_errors=True)
 
-    def _commit_first(self, plan: Plan, run_id: int, focal: float | None, inflight: list,
-                      result: RunResult, bar: Progress, block: bool) -> None:
+    def _discard(self, records: list) -> None:
+        """Remove the frames of a failed step (the retry shoots new ones) unless another step holds them."""
+        known = self.catalogue.frame_hashes()
+        for record in records:
+            if record.sha256 not in known:
+                Path(record.path).unlink(missing_ok=True)
+
+    def _commit_ready(self, run_id, focal, inflight, result, bar) -> None:
+        while inflight and inflight[0][2].done():
+            self._commit_first(run_id, focal, inflight, result, bar)
+
+    def _commit_first(self, run_id: int, focal: float | None, inflight: list, result: RunResult,
+                      bar: Progress) -> None:
         """Wait for the oldest estimate and commit its step (steps commit in capture order)."""
         step, records, future = inflight.pop(0)
         try:
@@ -388,6 +405,7 @@ class Runner:
             error = exc if isinstance(exc, PsfdError) else EstimationError(
                 f"estimation failed ({type(exc).__name__}: {exc})")
             self._fail(result, run_id, step.key, error)
+            self._discard(records)
             bar.show(step.key, f"failed: {error}")
             return
         distance = step.x[1] if isinstance(step.x, tuple) else step.x

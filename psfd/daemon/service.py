@@ -61,6 +61,7 @@ def notify(message: str) -> bool:
         address = "\0" + address[1:]  # abstract namespace
     try:
         with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as sock:
+            sock.setblocking(False)  # a receiver that stopped reading must never stall the service
             sock.sendto(message.encode(), address)
         return True
     except OSError:
@@ -122,6 +123,7 @@ def service_up(path: str | os.PathLike) -> bool:
 class Job:
     plan: Plan
     resume: bool = False
+    wait: bool = False  # somebody waits for the answer: add the PSF rows to it
     done: threading.Event = field(default_factory=threading.Event)
     result: dict | None = None
 
@@ -241,14 +243,17 @@ class Service:
                     runner = Runner(catalogue, self.frames_dir, workers=self.workers, control=self.control,
                                     progress=None, on_step=self._on_step)
                     result = runner.run(job.plan, camera, rail, resume=job.resume)
-                job.result = _result_dict(result)
+                    job.result = result_dict(result)
+                    if job.wait:
+                        job.result["rows"] = [catalogue.psf(i)[1] for i in result.psf_ids]
                 self.paused = job.plan if result.state == "paused" else None
             except PsfdError as exc:
                 job.result = {"state": "failed", "reason": str(exc)}
             except Exception as exc:  # noqa: BLE001 - the service outlives a broken job and says why
                 job.result = {"state": "failed", "reason": f"{type(exc).__name__}: {exc}"}
             with self.lock:
-                self.last, self.current = {"plan": job.plan.path, **job.result}, None
+                last = {k: v for k, v in job.result.items() if k not in ("rows", "psf_ids")}
+                self.last, self.current = {"plan": job.plan.path, **last}, None
             notify(f"STATUS=idle; last run {job.result.get('run_id', '-')}: {job.result['state']}")
             job.done.set()
 
@@ -307,7 +312,7 @@ class Service:
     def _enqueue(self, plan: Plan, resume: bool, wait: bool) -> dict:
         if self.stopping.is_set():
             raise ServiceError("the service is stopping")
-        job = Job(plan, resume)
+        job = Job(plan, resume, wait)
         with self.lock:
             self.queued += 1
         self.jobs.put(job)
@@ -354,7 +359,8 @@ class Service:
         return self._enqueue(self.paused, True, bool(req.get("wait")))
 
 
-def _result_dict(result: RunResult) -> dict:
+def result_dict(result: RunResult) -> dict:
+    """A RunResult as JSON-ready answer fields."""
     return {
         "run_id": result.run_id, "state": result.state, "reason": result.reason,
         "exit_code": result.error.exit_code if result.error else 0,

@@ -33,18 +33,20 @@ from psfd.estimator import target
 # a factor 2 apart, a level sees the X-corners at 3 to 8 cells of smoothing for
 # targets imaged at 0.19 * 2**L to 0.5 * 2**L pixels per cell: the hourglass is
 # an exact saddle out to 16 cells while the noise is averaged down.
-_SIGMA = 1.5
+_SIGMA = 1.0
 _MAX_LEVEL = 3
 _MAX_CANDIDATES = 250
 _MAX_SEEDS = 120  # strongest candidates tried as seed pairs
-_MAX_HYPOTHESES = 300  # seed hypotheses grown, most promising first
+_MAX_HYPOTHESES = 40  # seed hypotheses grown per level, most promising first
 _STRENGTH_RATIO = 0.4  # weakest mark / strongest mark accepted in one target
+_REFINE_CELLS = 8.0  # half-size of the sub-pixel refinement window, in cells
+_AXIS_TOL = np.deg2rad(20.0)  # dark axis of a mark vs the pattern's y axis (perspective, noise)
 # Saddle strength (see _saddles) below which a point is not a candidate, as a
 # fraction of the strength of an ideal contrast-1 X-corner.
 _MIN_STRENGTH = 0.12
 # Spacing of adjacent ring marks (3 blocks) in level pixels: 96 cells at
 # 0.19 .. 0.5 px/cell is 18 .. 48 px; the bounds leave room for perspective.
-_SPACING = (10.0, 90.0)
+_SPACING = (8.0, 60.0)
 # Adjacent ring marks used to seed hypotheses: the three edges of the top row.
 _SEED_EDGES = ((6, 5), (5, 4), (4, 3))  # indices into target.XCORNER_BLOCKS
 _RING_CORNERS = ((0, 0), (9, 0), (9, 9), (0, 9))
@@ -107,18 +109,24 @@ def find_target(image: np.ndarray, saturated: np.ndarray | None = None) -> Detec
 
 
 def _normalise(image: np.ndarray, saturated: np.ndarray | None) -> np.ndarray:
-    """float32 copy stretched to [0, 1] between robust extremes (NaN read as black)."""
+    """float32 copy scaled to about [0, 1] between robust extremes (NaN read as black).
+
+    The extremes are taken on a 4x reduced copy, which averages the pixel noise
+    and hot pixels away, at the 0.05 and 99.95 percentiles: a target can cover
+    well under 1 % of a large frame and its whites must not be clipped.
+    """
     data = np.asarray(image)
     if data.ndim != 2 or min(data.shape) < 16:
         raise BadInputError(f"expected a 2-D image of at least 16x16 pixels, got shape {data.shape}")
     data = np.nan_to_num(data.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    sample = data[:: max(1, data.shape[0] // 512), :: max(1, data.shape[1] // 512)]
-    lo, hi = np.percentile(sample, (0.5, 99.5))
     if saturated is not None:
-        data[np.asarray(saturated, dtype=bool)] = hi
+        data[np.asarray(saturated, dtype=bool)] = data.max()
+    small = cv2.resize(data, (max(1, data.shape[1] // 4), max(1, data.shape[0] // 4)), interpolation=cv2.INTER_AREA)
+    lo, hi = np.percentile(small, (0.05, 99.95))
     if hi - lo <= 0:
         return np.zeros_like(data)
-    return np.clip((data - lo) / (hi - lo), 0.0, 1.0).astype(np.float32)
+    # No clipping: the sub-pixel refinement needs the linear data.
+    return ((data - lo) / (hi - lo)).astype(np.float32)
 
 
 def _search(norm: np.ndarray) -> list[np.ndarray]:
@@ -137,30 +145,54 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
     return found
 
 
-def _saddles(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Saddle points of the smoothed image: positions (n, 2) and strengths (n,), strongest first.
+@dataclass
+class _Saddles:
+    """Saddle points of one pyramid level, strongest first."""
+
+    points: np.ndarray  # (n, 2) level pixels
+    strength: np.ndarray  # (n,) scale-normalised, proportional to contrast
+    axis: np.ndarray  # (n,) angle of the dark axis (negative curvature), radians mod pi
+
+    def __post_init__(self) -> None:
+        self.tree = cKDTree(self.points)
+
+
+def _saddles(img: np.ndarray) -> _Saddles:
+    """Saddle points of the smoothed image.
 
     The strength sigma^2 sqrt(-det Hess) is scale-normalised and proportional
-    to contrast; an ideal X-corner of contrast 1 scores about 0.3 (see
-    _MIN_STRENGTH), a smooth edge or blob does not score (det Hess >= 0).
+    to contrast (an ideal contrast-1 hourglass scores _IDEAL); smooth edges and
+    blobs do not score (det Hess >= 0). The dark axis of an hourglass mark is
+    the pattern's y axis, which later tells marks from look-alike junctions.
     """
     smooth = cv2.GaussianBlur(img, (0, 0), _SIGMA)
-    ixx = cv2.Sobel(smooth, cv2.CV_32F, 2, 0, ksize=3) / 4.0
-    iyy = cv2.Sobel(smooth, cv2.CV_32F, 0, 2, ksize=3) / 4.0
-    ixy = cv2.Sobel(smooth, cv2.CV_32F, 1, 1, ksize=3) / 4.0
-    neg_det = ixy * ixy - ixx * iyy
-    strength = _SIGMA**2 * np.sqrt(np.maximum(neg_det, 0.0))
+    ixx, iyy, ixy = _hessian(smooth)
+    neg_det = cv2.subtract(cv2.multiply(ixy, ixy), cv2.multiply(ixx, iyy))
+    border = int(3 * _SIGMA)
+    neg_det[:border] = neg_det[-border:] = 0.0
+    neg_det[:, :border] = neg_det[:, -border:] = 0.0
+    floor = (_MIN_STRENGTH * _IDEAL / _SIGMA**2) ** 2
+    peaks = (neg_det >= cv2.dilate(neg_det, np.ones((5, 5), np.uint8))) & (neg_det > floor)
+    ys, xs = np.nonzero(peaks)
+    xx, yy, xy = ixx[ys, xs], iyy[ys, xs], ixy[ys, xs]
+    strength = _SIGMA**2 * np.sqrt(neg_det[ys, xs])
     # A saddle of an X-corner has opposite curvatures of similar size; an edge
     # crossing texture does not. Perspective skews the sectors, hence the slack.
-    strength[np.abs(ixx + iyy) * _SIGMA**2 > strength] = 0.0
-    border = int(3 * _SIGMA)
-    strength[:border] = strength[-border:] = 0.0
-    strength[:, :border] = strength[:, -border:] = 0.0
-    peaks = (strength >= cv2.dilate(strength, np.ones((5, 5), np.uint8))) & (strength > _MIN_STRENGTH * _IDEAL)
-    ys, xs = np.nonzero(peaks)
-    values = strength[ys, xs]
-    order = np.argsort(values)[::-1][:_MAX_CANDIDATES]
-    return np.column_stack([xs[order], ys[order]]).astype(np.float64), values[order]
+    keep = np.abs(xx + yy) * _SIGMA**2 <= strength
+    order = np.nonzero(keep)[0][np.argsort(strength[keep])[::-1][:_MAX_CANDIDATES]]
+    # Direction of positive curvature (the bright sectors), plus a quarter turn.
+    axis = 0.5 * np.arctan2(2 * xy[order], xx[order] - yy[order]) + np.pi / 2
+    points = np.column_stack([xs[order], ys[order]]).astype(np.float64)
+    return _Saddles(points, strength[order], np.mod(axis, np.pi))
+
+
+def _hessian(smooth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Second derivatives (xx, yy, xy) by 3 x 3 Sobel kernels (each has weight 4)."""
+    return (
+        cv2.Sobel(smooth, cv2.CV_32F, 2, 0, ksize=3) / 4.0,
+        cv2.Sobel(smooth, cv2.CV_32F, 0, 2, ksize=3) / 4.0,
+        cv2.Sobel(smooth, cv2.CV_32F, 1, 1, ksize=3) / 4.0,
+    )
 
 
 def _ideal_strength() -> float:
@@ -168,57 +200,67 @@ def _ideal_strength() -> float:
     side = 64
     v, u = np.mgrid[0:side, 0:side] - (side - 1) / 2.0
     mark = (np.abs(u) >= np.abs(v)).astype(np.float32)
-    smooth = cv2.GaussianBlur(mark, (0, 0), _SIGMA)
-    c = side // 2
-    ixx = cv2.Sobel(smooth, cv2.CV_32F, 2, 0, ksize=3)[c - 1 : c + 1, c - 1 : c + 1] / 4.0
-    iyy = cv2.Sobel(smooth, cv2.CV_32F, 0, 2, ksize=3)[c - 1 : c + 1, c - 1 : c + 1] / 4.0
-    ixy = cv2.Sobel(smooth, cv2.CV_32F, 1, 1, ksize=3)[c - 1 : c + 1, c - 1 : c + 1] / 4.0
+    ixx, iyy, ixy = (d[side // 2 - 1 : side // 2 + 1, side // 2 - 1 : side // 2 + 1] for d in _hessian(cv2.GaussianBlur(mark, (0, 0), _SIGMA)))
     return float(_SIGMA**2 * np.sqrt(np.maximum(ixy * ixy - ixx * iyy, 0)).max())
 
 
 _IDEAL = _ideal_strength()
 
 
+def _angle_gap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Difference between two axis angles, mod pi, in [0, pi/2]."""
+    d = np.mod(a - b, np.pi)
+    return np.minimum(d, np.pi - d)
+
+
 def _find_at_level(img: np.ndarray) -> list[np.ndarray]:
-    """Homographies (pattern -> level px, orientation up to a quarter turn) of ring-shaped saddle sets."""
-    points, strength = _saddles(img)
-    if len(points) < len(target.XCORNER_BLOCKS):
+    """Homographies (pattern -> level px, orientation up to a half turn) of ring-shaped sets of marks."""
+    sad = _saddles(img)
+    if len(sad.points) < len(target.XCORNER_BLOCKS):
         return []
-    tree = cKDTree(points)
-    seeds = cKDTree(points[:_MAX_SEEDS])
+    pts = sad.points
+    seeds = cKDTree(pts[:_MAX_SEEDS])
     pairs = np.array(sorted(seeds.query_pairs(_SPACING[1])), dtype=np.int64).reshape(-1, 2)
-    gaps = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
-    ratio = strength[pairs[:, 1]] / strength[pairs[:, 0]]  # <= 1: points are sorted by strength
-    pairs = pairs[(gaps >= _SPACING[0]) & (ratio > _STRENGTH_RATIO)]
     pairs = np.concatenate([pairs, pairs[:, ::-1]])  # both orders: no mirror images needed
-    if len(pairs) == 0:
-        return []
-    weakest = np.minimum(strength[pairs[:, 0]], strength[pairs[:, 1]])
+    step = pts[pairs[:, 1]] - pts[pairs[:, 0]]
+    gaps = np.linalg.norm(step, axis=1)
+    # Seeds are two neighbours on a row of the ring: as strong as each other,
+    # with their dark axes across the row (the hourglasses stand on the rows).
+    across = np.arctan2(step[:, 1], step[:, 0]) + np.pi / 2
+    keep = (
+        (gaps >= _SPACING[0])
+        & (np.minimum(sad.strength[pairs[:, 0]], sad.strength[pairs[:, 1]]) > _STRENGTH_RATIO * np.maximum(sad.strength[pairs[:, 0]], sad.strength[pairs[:, 1]]))
+        & (_angle_gap(sad.axis[pairs[:, 0]], across) < _AXIS_TOL)
+        & (_angle_gap(sad.axis[pairs[:, 1]], across) < _AXIS_TOL)
+    )
+    pairs = pairs[keep]
     pattern = target.xcorner_points()
     zpat = pattern[:, 0] + 1j * pattern[:, 1]
-    zimg = points[:, 0] + 1j * points[:, 1]
-    hypotheses = []
+    zimg = pts[:, 0] + 1j * pts[:, 1]
+    weakest = np.minimum(sad.strength[pairs[:, 0]], sad.strength[pairs[:, 1]])
+    scores, candidates = [], []
     for a, b in _SEED_EDGES:
         # Similarity z = alpha Z + beta taking mark a to the first point and b to the second.
         alpha = (zimg[pairs[:, 1]] - zimg[pairs[:, 0]]) / (zpat[b] - zpat[a])
         beta = zimg[pairs[:, 0]] - alpha * zpat[a]
-        pred = alpha[:, None] * zpat[None, :] + beta[:, None]
-        dist, idx = tree.query(np.column_stack([pred.real.ravel(), pred.imag.ravel()]))
-        dist, idx = dist.reshape(pred.shape), idx.reshape(pred.shape)
-        # A hit is a saddle near the predicted mark and about as strong as the seeds
-        # (the 12 marks share contrast and blur; the noise's saddles are weaker).
-        tol = 0.3 * np.abs(alpha) * 3 * target.BLOCK
-        hit = (dist < tol[:, None]) & (strength[idx] > _STRENGTH_RATIO * weakest[:, None])
-        hits = hit.sum(axis=1)
-        good = np.nonzero(hits >= 7)[0]
-        hypotheses.extend((hits[i], pred[i], (pairs[i, 0], pairs[i, 1])) for i in good)
-    hypotheses.sort(key=lambda item: -item[0])
+        models = np.zeros((len(pairs), 3, 3))
+        models[:, 0, 0] = models[:, 1, 1] = alpha.real
+        models[:, 1, 0], models[:, 0, 1] = alpha.imag, -alpha.imag
+        models[:, 0, 2], models[:, 1, 2], models[:, 2, 2] = beta.real, beta.imag, 1.0
+        scores.append((_match(sad, models, pattern, weakest, 0.3) >= 0).sum(axis=1))
+        candidates.append(models)
+    # Keep, for each seed pair, the ring edge it explains best; grow the best first.
+    scores, candidates = np.stack(scores), np.stack(candidates)
+    best = np.argmax(scores, axis=0)
+    hits = scores[best, np.arange(len(pairs))]
+    order = [k for k in np.argsort(-hits, kind="stable") if hits[k] >= 7][:_MAX_HYPOTHESES]
     results: list[np.ndarray] = []
     used: set[int] = set()
-    for _, pred, seed in hypotheses[:_MAX_HYPOTHESES]:
+    for k in order:
+        seed = tuple(pairs[k])
         if used.intersection(seed):
             continue
-        grown = _grow(points, tree, pattern, pred)
+        grown = _grow(sad, pattern, candidates[best[k], k], weakest[k])
         if grown is not None:
             h, members = grown
             used.update(members)
@@ -226,26 +268,76 @@ def _find_at_level(img: np.ndarray) -> list[np.ndarray]:
     return results
 
 
-def _grow(points: np.ndarray, tree: cKDTree, pattern: np.ndarray, pred: np.ndarray):
-    """Refit a homography to the saddles nearest the predicted marks.
+def _match(sad: _Saddles, models: np.ndarray, pattern: np.ndarray, seed_strength, tol: float) -> np.ndarray:
+    """Index of the saddle taken for each mark predicted by each model (-1: none).
 
-    Returns (homography, indices of the 12 saddles) when every mark has a
-    saddle within a twentieth of the mark spacing (plus the one-pixel
-    quantisation of the candidates) of the fitted homography, else None.
+    A mark is matched to the nearest saddle within ``tol`` of the mark spacing
+    that is about as strong as the seeds and whose dark axis follows the
+    pattern's y axis there. ``models`` is (m, 3, 3) (or one 3 x 3) and
+    ``seed_strength`` (m,) or a scalar; the result is (m, 12) (or (12,)).
     """
-    guess = np.column_stack([pred.real, pred.imag])
-    for tol in (0.3, 0.15, 0.05):
-        spacing = np.linalg.norm(np.roll(guess, -1, axis=0) - guess, axis=1)
-        local = 0.5 * (spacing + np.roll(spacing, 1))  # mean distance to the two ring neighbours
-        dist, idx = tree.query(guess)
-        ok = dist < tol * local + (1.0 if tol < 0.1 else 0.0)
-        if ok.sum() < 8 or len(set(idx[ok])) < ok.sum():
+    single = models.ndim == 2
+    models = models.reshape(-1, 3, 3)
+    guess = _apply_many(models, pattern)
+    up = _apply_many(models, pattern + [0.0, 8.0]) - _apply_many(models, pattern - [0.0, 8.0])
+    spacing = np.linalg.norm(np.roll(guess, -1, axis=1) - guess, axis=2)
+    local = 0.5 * (spacing + np.roll(spacing, 1, axis=1))  # mean distance to the two ring neighbours
+    bound = np.nan_to_num(tol * local, nan=0.0, posinf=0.0)
+    dist, idx = sad.tree.query(np.nan_to_num(guess.reshape(-1, 2), nan=-1e9), k=6, distance_upper_bound=max(bound.max(), 1e-9))
+    dist, idx = dist.reshape(*guess.shape[:2], 6), idx.reshape(*guess.shape[:2], 6)
+    valid = np.isfinite(dist) & (dist < bound[..., None])
+    idx = np.where(valid, idx, 0)
+    strong = _STRENGTH_RATIO * np.broadcast_to(np.asarray(seed_strength, dtype=float), (len(models),))
+    valid &= sad.strength[idx] > strong[:, None, None]
+    valid &= _angle_gap(sad.axis[idx], np.arctan2(up[..., 1], up[..., 0])[..., None]) < _AXIS_TOL
+    first = np.argmax(valid, axis=2)[..., None]
+    out = np.where(np.take_along_axis(valid, first, 2), np.take_along_axis(idx, first, 2), -1)[..., 0]
+    return out[0] if single else out
+
+
+def _grow(sad: _Saddles, pattern: np.ndarray, model: np.ndarray, seed_strength: float):
+    """Grow a seed transform into a homography by matching the marks it predicts.
+
+    Each round keeps the marks matched within a quarter of the mark spacing
+    and refits, so the fit spreads from the seed pair to the whole ring even
+    under perspective. Returns (homography, indices of the 12 saddles) when
+    every mark ends within a twentieth of the spacing (plus the one-pixel
+    quantisation of the candidates) of the fit, else None.
+    """
+    previous = None
+    for _ in range(8):
+        matched = _match(sad, model, pattern, seed_strength, 0.25)
+        ok = matched >= 0
+        if ok.sum() < 5 or len(set(matched[ok])) < ok.sum():
             return None
-        h, _ = cv2.findHomography(pattern[ok], points[idx[ok]], 0)
-        if h is None:
-            return None
-        guess = _apply(h, pattern)
-    return (h, set(idx.tolist())) if ok.all() else None
+        if previous is not None and np.array_equal(matched, previous):
+            break
+        previous = matched
+        model = _fit(pattern[ok], sad.points[matched[ok]])
+    if not ok.all():
+        return None
+    guess = _apply(model, pattern)
+    spacing = np.linalg.norm(np.roll(guess, -1, axis=0) - guess, axis=1)
+    if np.any(np.linalg.norm(sad.points[matched] - guess, axis=1) > 0.05 * spacing.min() + 1.0):
+        return None
+    return model, set(matched.tolist())
+
+
+def _fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Least-squares transform src -> dst: similarity on one line, affine below 7 points, else homography."""
+    centred = src - src.mean(axis=0)
+    if np.linalg.matrix_rank(centred, tol=1e-6 * target.SIZE) < 2:
+        zs, zd = centred[:, 0] + 1j * centred[:, 1], dst[:, 0] + 1j * dst[:, 1]
+        alpha = np.vdot(zs, zd - zd.mean()) / np.vdot(zs, zs)
+        zc = src.mean(axis=0) @ [1, 1j]
+        beta = zd.mean() - alpha * zc
+        return np.array([[alpha.real, -alpha.imag, beta.real], [alpha.imag, alpha.real, beta.imag], [0, 0, 1]])
+    if len(src) < 7:
+        design = np.column_stack([src, np.ones(len(src))])
+        coef, *_ = np.linalg.lstsq(design, dst, rcond=None)
+        return np.vstack([coef.T, [0.0, 0.0, 1.0]])
+    h, _ = cv2.findHomography(src, dst, 0)
+    return h
 
 
 def _orient(norm: np.ndarray, h: np.ndarray) -> np.ndarray | None:
@@ -275,15 +367,15 @@ def _looks_like_target(norm: np.ndarray, h: np.ndarray) -> bool:
     dark_corners = [c for c in _RING_CORNERS if all(_is_black(n) for n in _neighbours(c))]
     if dark_corners != [target.ORIENTATION_CORNER]:
         return False
-    # Hourglass sectors, sampled 6 and 10 cells from the saddle: black above and
-    # below, white left and right.
+    # Hourglass sectors, sampled 8 to 12 cells from the saddle (clear of the
+    # blurred apex even at 0.2 px/cell): black above and below, white left and right.
     marks = target.xcorner_points()
-    offsets = {"dark": ((0, -6), (0, -10), (0, 6), (0, 10)), "light": ((-6, 0), (-10, 0), (6, 0), (10, 0))}
-    dark = np.stack([_sample(norm, h, marks + o, 2.0) for o in offsets["dark"]])
-    light = np.stack([_sample(norm, h, marks + o, 2.0) for o in offsets["light"]])
-    if not (np.all(np.isfinite(dark)) and np.all(np.isfinite(light))):
+    along = (8.0, 10.0, 12.0)
+    sides = [[(sx * d, sy * d) for d in along] for sx, sy in ((0, -1), (0, 1), (-1, 0), (1, 0))]
+    means = np.stack([np.mean([_sample(norm, h, marks + o, 0.0) for o in side], axis=0) for side in sides])
+    if not np.all(np.isfinite(means)):
         return False
-    return bool(np.all(light.min(axis=0) - dark.max(axis=0) > 0.3 * contrast))
+    return bool(np.all(means[2:].min(axis=0) - means[:2].max(axis=0) > 0.25 * contrast))
 
 
 def _is_black(block: tuple[int, int]) -> bool:
@@ -303,15 +395,25 @@ def _quarter_turn(turns: int) -> np.ndarray:
 
 
 def _sample(norm: np.ndarray, h: np.ndarray, points: np.ndarray, radius_cells: float) -> np.ndarray:
-    """Mean image value in a square of +-``radius_cells`` around pattern points (NaN outside the image)."""
+    """Mean image value in a square of +-``radius_cells`` around pattern points (NaN outside the image).
+
+    Below one pixel the square is a single bilinear sample at the point.
+    """
     centres = _apply(h, points)
-    scale = _scale(_apply(h, target.xcorner_points()))
-    half = int(radius_cells * scale)
     rows, cols = norm.shape
+    half = int(radius_cells * _scale(_apply(h, target.xcorner_points())))
+    inside = np.all(np.isfinite(centres), axis=1)
+    inside &= (centres[:, 0] >= half) & (centres[:, 0] <= cols - 1 - half)
+    inside &= (centres[:, 1] >= half) & (centres[:, 1] <= rows - 1 - half)
     out = np.full(len(centres), np.nan)
-    for k, (x, y) in enumerate(np.rint(centres).astype(int)):
-        if half <= x < cols - half and half <= y < rows - half:
-            out[k] = norm[y - half : y + half + 1, x - half : x + half + 1].mean()
+    if half == 0:
+        xy = centres[inside].astype(np.float32).reshape(-1, 1, 2)
+        if len(xy):
+            out[inside] = cv2.remap(norm, xy[..., 0], xy[..., 1], cv2.INTER_LINEAR).ravel()
+        return out
+    for k in np.nonzero(inside)[0]:
+        x, y = np.rint(centres[k]).astype(int)
+        out[k] = norm[y - half : y + half + 1, x - half : x + half + 1].mean()
     return out
 
 
@@ -326,16 +428,35 @@ def _refine(norm: np.ndarray, corners: np.ndarray, scale: float) -> np.ndarray:
     """Sub-pixel saddle points by gradient orthogonality (cv2.cornerSubPix).
 
     Thesis App. A.1: window 7 x 7 (R = 3), tol 1e-5, 200 iterations, for a
-    target at about 0.37 px/cell; the window is scaled with the target so that
-    it always spans +-8 cells, half the mark, and never reaches the next block.
+    target at about 0.37 px/cell, i.e. a window of +-8 cells. The window is
+    kept at +-8 cells at every scale, half the mark, so that it never reaches
+    the neighbouring blocks whose edges would pull the estimate. Below
+    0.375 px/cell that is under 3 pixels, too few for the gradient
+    estimate, so the patch is first resampled (bicubic) on a u-times finer
+    grid; the blurred image is band-limited, so this adds no bias.
     """
-    radius = max(2, int(round(8 * scale)))
+    upsample = max(1, int(np.ceil(3.0 / (_REFINE_CELLS * scale))))
+    radius = int(round(_REFINE_CELLS * scale * upsample))
+    half = radius + 4
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-5)
-    pts = corners.astype(np.float32).reshape(-1, 1, 2).copy()
-    cv2.cornerSubPix(norm, pts, (radius, radius), (-1, -1), criteria)
-    refined = pts.reshape(-1, 2).astype(np.float64)
-    if np.any(np.linalg.norm(refined - corners, axis=1) > radius):
-        raise TargetNotFoundError("calibration target marks could not be located to sub-pixel precision")
+    refined = np.empty_like(corners)
+    for k, (x, y) in enumerate(corners):
+        x0, y0 = x - half / upsample, y - half / upsample
+        to_image = np.array([[1.0 / upsample, 0.0, x0], [0.0, 1.0 / upsample, y0]])
+        patch = cv2.warpAffine(
+            norm, to_image, (2 * half + 1, 2 * half + 1),
+            flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE,
+        )
+        point = np.array([[[half, half]]], dtype=np.float32)
+        cv2.cornerSubPix(patch, point, (radius, radius), (-1, -1), criteria)
+        refined[k] = (x0 + point[0, 0, 0] / upsample, y0 + point[0, 0, 1] / upsample)
+    # cornerSubPix leaves a point where it was when the iteration leaves the
+    # window; a mark that cannot be refined is not used with a coarse position.
+    moved = np.linalg.norm(refined - corners, axis=1)
+    if np.any(moved >= radius / upsample) or np.any(moved == 0):
+        raise TargetNotFoundError(
+            f"calibration target found at {scale:.2f} px/cell but its marks are too small or blurred to locate precisely"
+        )
     return refined
 
 
@@ -343,6 +464,13 @@ def _scale(corners: np.ndarray) -> float:
     """Image pixels per cell from the mean spacing of ring-adjacent marks (3 blocks)."""
     spacing = np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)
     return float(spacing.mean() / (3 * target.BLOCK))
+
+
+def _apply_many(hs: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply (m, 3, 3) homographies to (n, 2) points: (m, n, 2)."""
+    p = np.einsum("mij,nj->mni", hs, np.column_stack([points, np.ones(len(points))]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return p[..., :2] / p[..., 2:3]
 
 
 def _apply(h: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -74,7 +74,10 @@ def bound(observations: int, unknowns: int, a: float = 0.0, b: float = 1.0) -> f
 
 
 def bernoulli_formula(observations: int, unknowns: int, a: float = 0.0, b: float = 1.0) -> float:
-    """Expected gamma of an i.i.d. Bernoulli(0.5) view, (4/M)[1/(N(a+b)^2 + (b-a)^2) + (N-1)/(b-a)^2] (IJCV 2012, sec. 2)."""
+    """gamma of the expected Gram matrix of an i.i.d. Bernoulli(0.5) view (IJCV 2012, sec. 2).
+
+    (4/M)[1/(N(a+b)^2 + (b-a)^2) + (N-1)/(b-a)^2]: the large-window limit.
+    """
     m, n = observations, unknowns
     return 4.0 / m * (1.0 / (n * (a + b) ** 2 + (b - a) ** 2) + (n - 1) / (b - a) ** 2)
 
@@ -90,7 +93,7 @@ def band_limited_view(raster: np.ndarray, q: int = RASTER) -> np.ndarray:
     return low[q // 2 :: q, q // 2 :: q]
 
 
-def _crop(view: np.ndarray, pixels: int, s: int, support: int) -> np.ndarray:
+def window_view(view: np.ndarray, pixels: int, s: int, support: int) -> np.ndarray:
     """The samples a centred window of ``pixels`` x ``pixels`` observed pixels sees."""
     size = s * (pixels - 1) + support
     r0 = (view.shape[0] - size) // 2
@@ -141,4 +144,4 @@ def pattern_gamma(kind: str, support: int, s: int = 4, pixels: int = 80, **view_
         view = edge_view(s, pixels, **view_args)
     else:
         raise ValueError(f"unknown pattern {kind!r}")
-    return gamma(view_matrix(_crop(view, pixels, s, support), s, support))
+    return gamma(view_matrix(window_view(view, pixels, s, support), s, support))

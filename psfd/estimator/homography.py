@@ -13,6 +13,7 @@ Coordinates are (x, y) with pixel centres at integers, as everywhere in psfd.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from math import lgamma, log
 
 import cv2
 import numpy as np
@@ -60,16 +61,7 @@ class Registration:
 
     def jacobian(self, x: float, y: float) -> np.ndarray:
         """2x2 derivative of D at the far-plane point (x, y): columns d/dx, d/dy."""
-        d = self.to_near
-        w = d[2, 0] * x + d[2, 1] * y + d[2, 2]
-        X = (d[0, 0] * x + d[0, 1] * y + d[0, 2]) / w
-        Y = (d[1, 0] * x + d[1, 1] * y + d[1, 2]) / w
-        return np.array(
-            [
-                [(d[0, 0] - X * d[2, 0]) / w, (d[0, 1] - X * d[2, 1]) / w],
-                [(d[1, 0] - Y * d[2, 0]) / w, (d[1, 1] - Y * d[2, 1]) / w],
-            ]
-        )
+        return _jacobian(self.to_near, x, y)
 
     def geometry(self, x: float, y: float) -> tuple[float, float, float]:
         """Local zoom (lambda_x, lambda_y) and rotation (degrees) of D at a far-plane point.
@@ -82,6 +74,18 @@ class Registration:
         lam_x, lam_y = np.hypot(jac[0, 0], jac[1, 0]), np.hypot(jac[0, 1], jac[1, 1])
         rotation = np.degrees(np.arctan2(jac[1, 0] - jac[0, 1], jac[0, 0] + jac[1, 1]))
         return float(lam_x), float(lam_y), float(rotation)
+
+
+def _jacobian(h: np.ndarray, x: float, y: float) -> np.ndarray:
+    w = h[2, 0] * x + h[2, 1] * y + h[2, 2]
+    X = (h[0, 0] * x + h[0, 1] * y + h[0, 2]) / w
+    Y = (h[1, 0] * x + h[1, 1] * y + h[1, 2]) / w
+    return np.array(
+        [
+            [(h[0, 0] - X * h[2, 0]) / w, (h[0, 1] - X * h[2, 1]) / w],
+            [(h[1, 0] - Y * h[2, 0]) / w, (h[1, 1] - Y * h[2, 1]) / w],
+        ]
+    )
 
 
 def _apply(h: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -206,8 +210,6 @@ def _robust_fit(
 def log10_nfa(n: int, k: int, alpha: float) -> float:
     """log10 of (n - 4) C(n, k) C(k, 4) alpha^(k - 4): expected number of chance homographies
     with k of n matches within the precision of probability alpha (Moisan et al., IPOL 2012)."""
-    from math import lgamma, log
-
     def log_comb(a: int, b: int) -> float:
         return lgamma(a + 1) - lgamma(b + 1) - lgamma(a - b + 1)
 
@@ -231,7 +233,8 @@ def register(a: np.ndarray, b: np.ndarray) -> Registration:
     Raises
     ------
     PairError
-        Fewer than MIN_INLIERS consistent matches ("unrelated photos").
+        Fewer than MIN_INLIERS consistent matches, or no more than chance
+        would give ("unrelated photos").
     """
     images = (to_uint8(a), to_uint8(b))
     factors = [_factor(im.shape) for im in images]
@@ -252,8 +255,7 @@ def register(a: np.ndarray, b: np.ndarray) -> Registration:
 def _zoom(h: np.ndarray, points: np.ndarray) -> float:
     """Mean linear magnification of h at the centre of the points."""
     cx, cy = points.mean(axis=0)
-    jac = Registration(0, h, points, points, 0, 0.0).jacobian(cx, cy)
-    return float(np.sqrt(abs(np.linalg.det(jac))))
+    return float(np.sqrt(abs(np.linalg.det(_jacobian(h, cx, cy)))))
 
 
 def _near_index(h_ab: np.ndarray, points_a: np.ndarray) -> int:
@@ -301,13 +303,14 @@ def common_region(
     cx = np.array([0.0, cols - 1, cols - 1, 0.0])
     cy = np.array([0.0, 0.0, rows - 1, rows - 1])
     fx, fy = _apply(inv, cx, cy)
-    far_box = _clip_box(fx, fy, far_shape, 0)
+    far_box = bounding_box(fx, fy, far_shape, 0)
     x0, y0, x1, y1 = far_box
     nx, ny = _apply(to_near, np.array([x0, x1 - 1, x1 - 1, x0], float), np.array([y0, y0, y1 - 1, y1 - 1], float))
-    return far_box, _clip_box(nx, ny, near_shape, margin)
+    return far_box, bounding_box(nx, ny, near_shape, margin)
 
 
-def _clip_box(x: np.ndarray, y: np.ndarray, shape: tuple[int, int], margin: int) -> tuple[int, int, int, int]:
+def bounding_box(x: np.ndarray, y: np.ndarray, shape: tuple[int, int], margin: int) -> tuple[int, int, int, int]:
+    """Box (x0, y0, x1, y1), end exclusive, of the pixels around points (x, y), grown by margin, inside shape."""
     rows, cols = shape
     x0 = int(np.clip(np.floor(x.min()) - margin, 0, cols))
     x1 = int(np.clip(np.ceil(x.max()) + 1 + margin, 0, cols))

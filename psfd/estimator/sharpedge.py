@@ -12,12 +12,14 @@ maximum and minimum found by marching along each edge normal with the 90 %
 hysteresis rule, propagated to both sides up to the sub-pixel edge location.
 Target form (sec. 4.2): the printed edge target (`edge_target`) located by
 its checkerboard corners, rendered at s times through the fitted
-homography and radial distortion, and shaded from the photograph.
+homography and radial distortion, and shaded from the photograph; a frame
+of the Bernoulli target instead offers the step edges of its marks.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -26,11 +28,14 @@ from scipy import linalg, ndimage, optimize, sparse
 from scipy.spatial import cKDTree
 
 from psfd.errors import BadInputError, EstimationError, TargetNotFoundError
+from psfd.estimator import target as layout  # the Bernoulli target's layout
 from psfd.estimator.psf import PSF, field_of_window, split_grid
 from psfd.estimator.raw import Frame
 
 TILE = 2  # squares per tile side of the edge target
 DISK = 0.3  # disk radius of the edge target, in squares
+SQUARES = (8, 8)  # squares of the printed edge target (inner corners: 7 x 7)
+BORDER = 1.0  # white margin of the print, in squares
 
 
 def edge_pattern(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -50,7 +55,9 @@ def edge_pattern(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.where(black ^ inside, 0.0, 1.0)
 
 
-def edge_target(squares: tuple[int, int] = (8, 8), px_per_square: float = 64.0, border: float = 0.0) -> np.ndarray:
+def edge_target(
+    squares: tuple[int, int] = SQUARES, px_per_square: float = 64.0, border: float = BORDER
+) -> np.ndarray:
     """Raster of the edge target: ``squares`` = (nx, ny) squares, white ``border`` (in squares) around.
 
     Parameters
@@ -170,7 +177,6 @@ def detect_edges(image: np.ndarray, sigma: float = 1.0, threshold: float | None 
         noise = noise_sigma(image) if noise is None else noise
         # std of a derivative of Gaussian-smoothed white noise: sigma_n / sqrt(8 pi) / sigma^2
         threshold = max(10.0 * noise / np.sqrt(8 * np.pi) / sigma**2, 0.25 * float(np.percentile(mag, 99.5)))
-    rows, cols = image.shape
     border = int(np.ceil(3 * DOG_RATIO * sigma)) + 1
     cand = mag >= threshold
     cand[:border] = cand[-border:] = False
@@ -348,8 +354,6 @@ def solve_kernel(ata: np.ndarray, atb: np.ndarray, sigma: float, support: int, w
 
 # --------------------------------------------------------------------------- target form (sec. 4.2)
 
-SQUARES = (8, 8)  # squares of the printed edge target (inner corners: 7 x 7)
-BORDER = 1.0  # white margin of the print, in squares
 ANTI_ALIAS = 4  # coverage sub-samples per s-grid sample side
 
 
@@ -413,7 +417,7 @@ def locate_target(image: np.ndarray, squares: tuple[int, int] = SQUARES) -> Targ
     grey = np.clip((image - lo) / max(hi - lo, 1e-12) * 255, 0, 255).astype(np.uint8)
     inner = (squares[0] - 1, squares[1] - 1)
     # the sector-based detector is not deterministic (it missed a clean board about once in 25 runs): retry
-    for _ in range(4):
+    for _ in range(3):
         found, corners = cv2.findChessboardCornersSB(grey, inner, flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
         if found:
             break
@@ -444,9 +448,88 @@ def locate_target(image: np.ndarray, squares: tuple[int, int] = SQUARES) -> Targ
     return view
 
 
-def render_target(view: TargetView, shape: tuple[int, int], s: int, origin: tuple[float, float] = (0.0, 0.0)
+@dataclass
+class KnownPattern:
+    """A printed pattern located in a photograph: where it is, what it looks like, where it is known.
+
+    Attributes
+    ----------
+    to_pattern : callable
+        (x, y) channel pixels -> (X, Y) pattern coordinates.
+    reflectance : callable
+        (X, Y) -> reflectance in [0, 1].
+    region : callable
+        (X, Y) -> bool, where the reflectance is known and made of step edges.
+    name : str
+    """
+
+    to_pattern: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+    reflectance: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    region: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    name: str
+
+
+def _edge_print(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The printed edge target: `edge_pattern` on the board, white on its border."""
+    nx, ny = SQUARES
+    board = (x >= 0) & (x < nx) & (y >= 0) & (y < ny)
+    return np.where(board, edge_pattern(x, y), 1.0)
+
+
+def _on_print(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    nx, ny = SQUARES
+    return (x > -BORDER) & (x < nx + BORDER) & (y > -BORDER) & (y < ny + BORDER)
+
+
+def bernoulli_marks(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Reflectance of the Bernoulli target's ring of marks (target.cells without the noise), cell coordinates."""
+    bx, by = np.floor(x / layout.BLOCK), np.floor(y / layout.BLOCK)
+    u, v = x - layout.BLOCK * bx - layout.BLOCK / 2, y - layout.BLOCK * by - layout.BLOCK / 2
+    out = np.ones(np.broadcast(x, y).shape)
+    for cx, cy in layout.BLACK_BLOCKS:
+        out[(bx == cx) & (by == cy)] = 0.0
+    hourglass = np.abs(u) < np.abs(v)  # black triangles on the top and bottom edges, apexes at the centre
+    for cx, cy in layout.XCORNER_BLOCKS:
+        out[(bx == cx) & (by == cy) & hourglass] = 0.0
+    return out
+
+
+def _on_ring(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The ring of marks: inside the target, outside the noise (whose cells are no step edges at this scale)."""
+    lo, hi = layout.NOISE_START, layout.NOISE_STOP
+    on_target = (x >= 0) & (x < layout.SIZE) & (y >= 0) & (y < layout.SIZE)
+    return on_target & ~((x >= lo) & (x < hi) & (y >= lo) & (y < hi))
+
+
+def locate_pattern(image: np.ndarray, saturated: np.ndarray | None = None) -> KnownPattern:
+    """The printed pattern of the target form: the edge target, or else the marks of the Bernoulli target.
+
+    The Bernoulli target's black and white squares and X-corner hourglasses
+    are step edges of known geometry too, registered by the detection's
+    thin-plate spline; their edges only run at 0, 90 and about +-63 degrees,
+    which the orientation test (sec. 5.2) reports.
+
+    Raises
+    ------
+    TargetNotFoundError
+    """
+    try:
+        view = locate_target(image)
+        return KnownPattern(view.to_pattern, _edge_print, _on_print, "edge target")
+    except TargetNotFoundError:
+        pass
+    from psfd.estimator import detect, register  # the Bernoulli pipeline's registration steps
+
+    try:
+        _, to_pattern = register.target_maps(detect.find_target(image, saturated))
+    except TargetNotFoundError:
+        raise TargetNotFoundError("no edge target and no Bernoulli target found in the frame") from None
+    return KnownPattern(to_pattern, bernoulli_marks, _on_ring, "Bernoulli target marks")
+
+
+def render_target(known: KnownPattern, shape: tuple[int, int], s: int, origin: tuple[float, float] = (0.0, 0.0)
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Coverage of the edge target on the s-times grid, anti-aliased (sec. 5.1).
+    """Coverage of a located pattern on the s-times grid, anti-aliased (sec. 5.1).
 
     Sample (i, j) sits at pixel (origin_x + j / s, origin_y + i / s); its value
     is the mean reflectance over ANTI_ALIAS^2 points of its 1/s-pixel footprint.
@@ -454,10 +537,10 @@ def render_target(view: TargetView, shape: tuple[int, int], s: int, origin: tupl
     Returns
     -------
     alpha : ndarray of float64 in [0, 1]
-    inside : ndarray of bool, where the print (target and its white border) is
+    inside : ndarray of bool, where the pattern is known
     """
     iy, ix = np.mgrid[0 : shape[0], 0 : shape[1]]
-    px, py = view.to_pattern(origin[0] + ix / s, origin[1] + iy / s)
+    px, py = known.to_pattern(origin[0] + ix / s, origin[1] + iy / s)
     # the map is smooth at the scale of one sample: sub-sample points from its local Jacobian
     dxdj, dxdi = np.gradient(px)[::-1]
     dydj, dydi = np.gradient(py)[::-1]
@@ -465,12 +548,9 @@ def render_target(view: TargetView, shape: tuple[int, int], s: int, origin: tupl
     sub = (np.arange(ANTI_ALIAS) + 0.5) / ANTI_ALIAS - 0.5
     for oy in sub:
         for ox in sub:
-            alpha += edge_pattern(px + dxdj * ox + dxdi * oy, py + dydj * ox + dydi * oy)
+            alpha += known.reflectance(px + dxdj * ox + dxdi * oy, py + dydj * ox + dydi * oy)
     alpha /= ANTI_ALIAS**2
-    nx, ny = view.squares
-    inside = (px > -BORDER) & (px < nx + BORDER) & (py > -BORDER) & (py < ny + BORDER)
-    alpha[inside & ((px < 0) | (px > nx) | (py < 0) | (py > ny))] = 1.0
-    return alpha, inside
+    return alpha, known.region(px, py)
 
 
 def target_edges(alpha: np.ndarray, inside: np.ndarray, s: int) -> Edgels:
@@ -532,7 +612,7 @@ def estimate_edges(
     ----------
     frame : Frame
         A photograph with strong step edges at all orientations (blind), or of
-        the printed edge target (``target=True``, `edge_target`).
+        a printed target (``target=True``).
     s : int
         Super-resolution factor of the kernel grid.
     support : int, optional
@@ -545,7 +625,9 @@ def estimate_edges(
     grid : (int, int)
         (nx, ny) local windows.
     target : bool
-        The frame shows the edge target: predict the sharp image from its known geometry.
+        Predict the sharp image from a printed pattern of known geometry: the
+        edge target (`edge_target`), or else the marks of the Bernoulli target
+        (`locate_pattern`).
 
     Returns
     -------
@@ -556,7 +638,7 @@ def estimate_edges(
     BadInputError
         Invalid parameters.
     TargetNotFoundError
-        ``target`` and no edge target in the frame.
+        ``target`` and neither target in the frame.
     EstimationError
         A window has fewer usable pixels near edges than kernel unknowns (sec. 5.2, test (a)).
     """
@@ -567,18 +649,18 @@ def estimate_edges(
     radius = max(kernel_radius, 1.0) if radius is None else radius
     band = radius + kernel_radius
     length = int(np.ceil(2 * kernel_radius)) + 2  # march far enough to leave the blurred ramp
-    view = locate_target(image) if target else None
+    known = locate_pattern(image, frame.saturated) if target else None
     rows, cols = image.shape
     out = []
     for window in split_grid((0, 0, cols, rows), grid):
-        kernel, info, warnings = _estimate_window(image, frame.saturated, window, s, support, weight, radius,
-                                                  band, length, sigma, view)
+        kernel, info, warnings = _estimate_window(image, frame.saturated, window, s, support, weight, band, length,
+                                                  sigma, known)
         out.append(PSF(
             psf=kernel, s=s, method="sharp-edge", channel=frame.channel, sources=[frame.source],
             field=field_of_window(window, (rows, cols)), window=window,
             noise_floor=info.pop("noise_floor"), residual=info.pop("residual"),
             params={"support": support, "weight": weight, "gamma": support**2, "radius": radius, "grid": list(grid),
-                    "target": target, **info},
+                    "pattern": known.name if known else "blind", **info},
             warnings=warnings,
         ))
     return out
@@ -599,7 +681,8 @@ def _check(s, support, weight, radius) -> tuple[int, int, float, float | None]:
     return s, int(support), weight, radius
 
 
-def _estimate_window(image, saturated, window, s, support, weight, radius, band, length, sigma, view):
+def _estimate_window(image, saturated, window, s, support, weight, band, length, sigma, known):
+    """One window: predict the sharp image around it, mask, solve eq. (5); (kernel, diagnostics, warnings)."""
     x0, y0, x1, y1 = window
     rows, cols = image.shape
     margin = int(np.ceil(band + length)) + 6
@@ -607,14 +690,14 @@ def _estimate_window(image, saturated, window, s, support, weight, radius, band,
     cx1, cy1 = min(cols, x1 + margin), min(rows, y1 + margin)
     crop = image[cy0:cy1, cx0:cx1]
     grid_shape = (s * (crop.shape[0] - 1) + 1, s * (crop.shape[1] - 1) + 1)
-    if view is None:
+    if known is None:
         edges = edge_levels(crop, detect_edges(crop, noise=sigma), length)
-        sharp, known = predict_sharp(edges, grid_shape, s, band)
+        sharp, predicted = predict_sharp(edges, grid_shape, s, band)
     else:
-        alpha, inside = render_target(view, grid_shape, s, origin=(cx0, cy0))
-        sharp, known, edges = shade_target(crop, alpha, inside, s, band, length)
+        alpha, inside = render_target(known, grid_shape, s, origin=(cx0, cy0))
+        sharp, predicted, edges = shade_target(crop, alpha, inside, s, band, length)
     # observed pixels whose whole kernel footprint sees predicted samples (eq. (4)'s mask M)
-    footprint = ndimage.binary_erosion(known, np.ones((support, support), bool), border_value=0)
+    footprint = ndimage.binary_erosion(predicted, np.ones((support, support), bool), border_value=0)
     valid = footprint[::s, ::s].copy()
     near_clip = ndimage.binary_dilation(saturated[cy0:cy1, cx0:cx1], iterations=int(np.ceil(band)) + 1)
     valid &= ~near_clip

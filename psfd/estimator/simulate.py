@@ -141,6 +141,8 @@ def diffraction_psf(
     # phase ramp (exact sub-sample shift); a few passes because the window
     # moves with the shift.
     half = (support - 1) // 2
+    if support % 2 == 0 or q * half >= n // 2:
+        raise ValueError(f"support must be odd and below {n // q} samples")
     idx = n // 2 + q * np.arange(-half, half + 1)
     near = np.arange(n // 2 - q * half, n // 2 + q * half + 1)
     offsets = near - n // 2
@@ -238,7 +240,6 @@ def render_plane(
     if psf.ndim != 2 or psf.shape[0] % 2 == 0 or psf.shape[1] % 2 == 0:
         raise ValueError("psf must be a 2-D kernel of odd size")
     background = _border_mean(scene) if background is None else float(background)
-    rows, cols = shape
     out = np.full(shape, background * float(psf.sum()), dtype=np.float64)
     box = _scene_box(scene.shape, to_scene, shape, psf.shape[0] // (2 * s) + 2)
     if box is None:
@@ -650,7 +651,7 @@ def simulate_pair(
     rp = float(raster_per_pixel)
     theta = np.radians(rotation_deg)
     if scene is None:
-        side = int(np.ceil(rp * lam * max(far_shape) * 1.5)) + 16
+        side = int(np.ceil(rp * lam * max(far_shape))) + 32  # the far view; beyond it, background
         scene = texture_scene((side, side), seed=seed)
     scy, scx = (scene.shape[0] - 1) / 2, (scene.shape[1] - 1) / 2
     ncy, ncx = (near_shape[0] - 1) / 2, (near_shape[1] - 1) / 2

@@ -27,7 +27,7 @@ from scipy import fft, signal
 
 from psfd.errors import BadInputError, PairError
 from psfd.estimator import homography
-from psfd.estimator.psf import PSF, clip_negatives, field_of_window, normalise, split_grid
+from psfd.estimator.psf import PSF, centroid, clip_negatives, field_of_window, normalise, split_grid
 from psfd.estimator.raw import CHANNELS, Frame
 from psfd.estimator.resample import keys_bicubic
 
@@ -40,6 +40,7 @@ TILT_WARN, TILT_MAX = 0.02, 0.10  # relative change of the zoom across a window
 TEXTURE_MIN = 0.1  # neighbour correlation of a photo below which it shows no texture, only noise
 NOISE_MAX = 0.5  # relative noise floor of k above which the scene is too poor in the band
 CHUNK = 4096  # rows of the least-squares system built at a time
+OVERSAMPLE = 2.0  # grid of the near photo's band before Keys interpolation, per kept DCT coefficient
 
 
 def estimate_pair(
@@ -80,7 +81,7 @@ def estimate_pair(
     """
     p = _check_inputs(a, b, s, support)
     try:
-        reg = homography.register(_normalised(a), _normalised(b))
+        reg = homography.register(a.data, b.data)  # SIFT sees each stretched to 8 bits
     except PairError:
         # a plane showing only noise has no consistent matches either: say why
         for frame in (a, b):
@@ -118,10 +119,6 @@ def _check_inputs(a: Frame, b: Frame, s: int, support: int | None) -> int:
             f"({a.sensor_shape} and {b.sensor_shape}): use two photos of the same camera"
         )
     return p
-
-
-def _normalised(frame: Frame) -> np.ndarray:
-    return frame.data / frame.white
 
 
 def texture(image: np.ndarray) -> float:
@@ -216,7 +213,7 @@ def _estimate_window(
             f"the kernel would be {100 * fit['relative_noise']:.0f}% noise"
         )
     k = normalise(fit["kernel"])
-    shift = _centroid(k)
+    shift = core_centroid(k)
     h = psf_from_kernel(_shift(k, shift), (lam_x, lam_y))
     h = clip_negatives(h) if clip else normalise(h)
     params = {
@@ -275,27 +272,28 @@ def resample_near(
     gx = x0 + np.arange(s * (x1 - x0 - 1) + 1) / s
     gy = y0 + np.arange(s * (y1 - y0 - 1) + 1) / s
     X, Y = reg.map(gx[None, :], gy[:, None])
-    nx0, ny0, nx1, ny1 = homography._clip_box(X, Y, near.shape, 3)
+    nx0, ny0, nx1, ny1 = homography.bounding_box(X, Y, near.shape, 3)
     crop = near.data[ny0:ny1, nx0:nx1] / near.white
+    saturated = near.saturated[ny0:ny1, nx0:nx1]
+    if saturated.any():
+        # the low-pass would spread the clipped plateau's edge (ringing): fill it
+        # smoothly from its surroundings first, and leave out its neighbourhood below
+        crop = cv2.inpaint(crop.astype(np.float32), saturated.astype(np.uint8), 3, cv2.INPAINT_NS)
     # keep the near photo's frequencies the s-times grid can hold: below s/lambda
     # of its Nyquist band, i.e. DCT indices below (s/lambda) M1 (IPOL 2013, sec. 4.2, step 1b)
     keep = (math.ceil(crop.shape[0] * s / lam[1]), math.ceil(crop.shape[1] * s / lam[0]))
     band, zoom = band_limited(crop, keep)
-    X = (X - nx0 + 0.5) * zoom[1] - 0.5
-    Y = (Y - ny0 + 0.5) * zoom[0] - 0.5
-    upsampled = keys_bicubic(band, X, Y, a=-0.5, fill=np.nan)
+    bx, by = (X - nx0 + 0.5) * zoom[1] - 0.5, (Y - ny0 + 0.5) * zoom[0] - 0.5
+    upsampled = keys_bicubic(band, bx, by, a=-0.5, fill=np.nan)
     valid = np.isfinite(upsampled)
-    saturated = near.saturated[ny0:ny1, nx0:nx1]
     if saturated.any():
-        # a clipped pixel corrupts the 4 x 4 bicubic footprint around it
-        bad = cv2.dilate(saturated.astype(np.uint8), np.ones((5, 5), np.uint8))
-        iy = np.clip(np.round(Y).astype(int), 0, crop.shape[0] - 1)
-        ix = np.clip(np.round(X).astype(int), 0, crop.shape[1] - 1)
+        # two lobes of the low-pass kernel (width lambda/s near pixels) and the cubic footprint
+        radius = 2 + math.ceil(2 * max(lam) / s)
+        bad = cv2.dilate(saturated.astype(np.uint8), np.ones((2 * radius + 1,) * 2, np.uint8))
+        iy = np.clip(np.round(Y - ny0).astype(int), 0, crop.shape[0] - 1)
+        ix = np.clip(np.round(X - nx0).astype(int), 0, crop.shape[1] - 1)
         valid &= bad[iy, ix] == 0
     return np.where(valid, upsampled, 0.0), valid
-
-
-OVERSAMPLE = 2.0
 
 
 def band_limited(image: np.ndarray, keep: tuple[int, int]) -> tuple[np.ndarray, tuple[float, float]]:
@@ -320,11 +318,15 @@ def band_limited(image: np.ndarray, keep: tuple[int, int]) -> tuple[np.ndarray, 
     keep_r, keep_c = min(int(keep[0]), rows), min(int(keep[1]), cols)
     out_r = max(keep_r, int(math.ceil(OVERSAMPLE * keep_r)))
     out_c = max(keep_c, int(math.ceil(OVERSAMPLE * keep_c)))
-    coeffs = fft.dctn(np.asarray(image, dtype=np.float64), type=2, norm="ortho", workers=-1)
-    padded = np.zeros((out_r, out_c))
-    padded[:keep_r, :keep_c] = coeffs[:keep_r, :keep_c]
+    # one axis at a time, so that the second transform only sees the kept rows; single
+    # precision (24-bit mantissa, beyond any sensor's 14 bits) halves the cost
+    coeffs = fft.dct(np.asarray(image, dtype=np.float32), type=2, axis=0, norm="ortho", workers=-1)[:keep_r]
+    coeffs = fft.dct(coeffs, type=2, axis=1, norm="ortho", workers=-1)[:, :keep_c]
+    # the inverse transforms zero-pad the kept coefficients to the new lengths
+    band = fft.idct(coeffs, type=2, n=out_c, axis=1, norm="ortho", workers=-1)
+    band = fft.idct(band, type=2, n=out_r, axis=0, norm="ortho", workers=-1)
     # orthonormal DCTs of different lengths: sqrt(new / old) keeps the amplitude
-    band = fft.idctn(padded, type=2, norm="ortho", workers=-1) * math.sqrt(out_r * out_c / (rows * cols))
+    band = band.astype(np.float64) * math.sqrt(out_r * out_c / (rows * cols))
     return band, (out_r / rows, out_c / cols)
 
 
@@ -372,10 +374,10 @@ def solve_kernel(upsampled: np.ndarray, v2: np.ndarray, rows: np.ndarray, s: int
     evals, evecs = np.linalg.eigh(ata)
     keep = evals > evals[-1] * 1e-12
     inv_evals = np.where(keep, 1.0 / np.where(keep, evals, 1.0), 0.0)
-    x = evecs @ (inv_evals * (evecs.T @ atb))
-    kernel = x.reshape(p, p)[::-1, ::-1]
-    # prediction S_s(C * k) on the far grid: the same convolution, all at once
-    pred = signal.fftconvolve(upsampled, kernel, mode="same")[::s, ::s]
+    flipped = (evecs @ (inv_evals * (evecs.T @ atb))).reshape(p, p)
+    kernel = flipped[::-1, ::-1]
+    # prediction S_s(C * k) on the far grid, all at once: filter2D correlates, with the flipped kernel
+    pred = cv2.filter2D(upsampled, -1, flipped, borderType=cv2.BORDER_CONSTANT)[::s, ::s]
     residual = np.where(rows, v2 - pred, 0.0)
     rss = float(np.sum(residual[rows] ** 2))
     sigma = math.sqrt(rss / max(n - p * p, 1))
@@ -399,6 +401,16 @@ def solve_kernel(upsampled: np.ndarray, v2: np.ndarray, rows: np.ndarray, s: int
 # --------------------------------------------------------------------------- k -> h
 
 
+def core_centroid(kernel: np.ndarray, level: float = 0.05) -> tuple[float, float]:
+    """Centre of mass (x, y), in samples from the centre, of the kernel's values above ``level`` x its peak.
+
+    The noise in the tails (a few per mille per sample, at up to (p - 1)/2
+    samples from the centre) would move a plain centroid by a sizeable
+    fraction of a sample; the core carries the position.
+    """
+    return centroid(np.where(kernel > level * kernel.max(), kernel, 0.0))
+
+
 def _sample(kernel: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Keys bicubic (a = -0.5) samples of a kernel at (x, y), 0 outside its support.
 
@@ -409,19 +421,8 @@ def _sample(kernel: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return keys_bicubic(np.pad(kernel, 2), x + 2, y + 2, a=-0.5, fill=0.0)
 
 
-def _centroid(kernel: np.ndarray) -> tuple[float, float]:
-    """Centre of mass (x, y) of the kernel's positive part, in samples from its centre."""
-    pos = np.maximum(kernel, 0.0)
-    rows, cols = kernel.shape
-    total = pos.sum()
-    return (
-        float((pos.sum(axis=0) @ np.arange(cols)) / total - (cols - 1) / 2),
-        float((pos.sum(axis=1) @ np.arange(rows)) / total - (rows - 1) / 2),
-    )
-
-
 def _shift(kernel: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
-    """The kernel moved by -shift so that its centre of mass sits on the centre sample.
+    """The kernel moved by -shift, so that a kernel whose core is centred at ``shift`` becomes centred.
 
     A blind pair fixes h only up to the sub-pixel translation left by the
     registration (SIAM 2012, sec. 5.1: the PSFs "differ only by a subpixel

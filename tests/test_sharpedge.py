@@ -1,0 +1,237 @@
+"""Sharp-edge prediction baseline (Joshi, Szeliski, Kriegman, CVPR 2008) and the gamma of its target.
+
+Ground truth: frames rendered by psfd.estimator.simulate from a known PSF,
+and the closed forms of Delbracio et al., IJCV 2012, sec. 2.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from psfd.errors import BadInputError, EstimationError, TargetNotFoundError
+from psfd.estimator import gamma, mtf, sharpedge, simulate
+from psfd.estimator.psf import centroid
+from psfd.estimator.raw import Frame
+
+S = 4
+SUPPORT = 17
+WHITE = 16383.0
+
+
+def edge_frame(psf, *, px_per_square=20.0, angle=8.0, shape=(220, 220), seed=0, distortion=0.0):
+    """A channel plane of the printed edge target (8 x 8 squares, white border) rendered with ``psf``."""
+    pps = 32  # raster pixels per square
+    scene = sharpedge.edge_target(px_per_square=pps)
+    a, k = np.deg2rad(angle), pps / px_per_square
+    cy, cx = (shape[0] - 1) / 2, (shape[1] - 1) / 2
+    norm = np.hypot(cx, cy)
+
+    def to_scene(x, y):
+        x, y = np.asarray(x) - cx, np.asarray(y) - cy
+        f = 1.0 + distortion * (x * x + y * y) / norm**2  # barrel/pincushion about the plane centre
+        x, y = x * f, y * f
+        return (k * (np.cos(a) * x - np.sin(a) * y) + scene.shape[1] / 2 - 0.5,
+                k * (np.sin(a) * x + np.cos(a) * y) + scene.shape[0] / 2 - 0.5)
+
+    ideal = simulate.render_plane(scene, to_scene, shape, psf, S, background=1.0)
+    data = simulate.expose(ideal, black=0, white=int(WHITE), rng=np.random.default_rng(seed))
+    return Frame(data=data, channel="g1", white=WHITE, saturated=data >= WHITE, source="edges.sim")
+
+
+def mtf_rms(psf, truth, band):
+    f, mx, my = mtf.profiles(psf, S)
+    _, tx, ty = mtf.profiles(truth, S)
+    sel = (f >= band[0]) & (f <= band[1])
+    d = np.concatenate([(mx - tx)[sel], (my - ty)[sel]])
+    return float(np.sqrt(np.mean(d * d)))
+
+
+# ---------------------------------------------------------------- gamma
+
+
+def test_view_matrix_is_the_decimated_convolution():
+    rng = np.random.default_rng(0)
+    u = rng.random((S * 9 + SUPPORT, S * 9 + SUPPORT))
+    h = rng.random((SUPPORT, SUPPORT))
+    a = gamma.view_matrix(u, S, SUPPORT)
+    direct = signal.convolve2d(u, h, mode="valid")[::S, ::S]  # S_s (u * h), IJCV 2012 problem (P)
+    assert a.shape == (direct.size, SUPPORT * SUPPORT)
+    np.testing.assert_allclose(a @ h.ravel(), direct.ravel(), rtol=1e-12)
+
+
+def test_gamma_of_iid_bernoulli_matches_the_closed_form():
+    # gamma(E[U^T U]) = (4/M)(1/(N+1) + N - 1) for i.i.d. {0,1} (IJCV 2012, sec. 2) is the large-M limit;
+    # a finite window inflates it by the inverse-Wishart mean factor M / (M - N - 1) (8 % at M = 3600,
+    # N = 289). The realisation scatters by O(1/sqrt(M - N)) around that: 3 %.
+    rng = np.random.default_rng(1)
+    m, n = 60 * 60, SUPPORT**2
+    u = rng.integers(0, 2, (S * 59 + SUPPORT, S * 59 + SUPPORT)).astype(float)
+    value = gamma.gamma(gamma.view_matrix(u, S, SUPPORT))
+    limit = gamma.bernoulli_formula(m, n)
+    assert value == pytest.approx(limit * m / (m - n - 1), rel=0.03)
+    assert value > gamma.bound(m, n)
+
+
+def test_gamma_bernoulli_target_versus_edge_target():
+    """17x17 support, s = 4, 80x80 window (IJCV 2012 Table 2 / thesis Table 2.2: 0.69 vs 1133.05, bound 0.35)."""
+    bern = gamma.pattern_gamma("bernoulli", SUPPORT)
+    edges = gamma.pattern_gamma("edges", SUPPORT)
+    print(f"\ngamma 17x17: bernoulli {bern:.3f} (thesis 0.69, bound 0.35), edges {edges:.1f} (thesis 1133.05), "
+          f"ratio {edges / bern:.0f}")
+    # Our view differs from the thesis's in raster and low-pass details (not given in the text): 30 %.
+    assert bern == pytest.approx(0.69, rel=0.3)
+    assert bern > 0.35
+    # The edge pattern's straight edges carry one phase each: its gamma is far above the noise's.
+    assert edges > 30 * bern
+
+
+def test_aligned_edge_target_is_degenerate():
+    """A print aligned with the pixel grid sees every straight edge at one sub-pixel phase."""
+    aligned = gamma.pattern_gamma("edges", SUPPORT, tiles=2, angle=0.0)
+    assert aligned > 100 * gamma.pattern_gamma("edges", SUPPORT, tiles=2)
+
+
+# ---------------------------------------------------------------- estimator pieces
+
+
+def test_edges_are_located_to_a_fraction_of_a_pixel():
+    # a blurred straight step at x = 40.3 (a symmetric PSF does not move its DoG zero crossing)
+    x = np.arange(100) - 40.3
+    profile = 0.2 + 0.6 * 0.5 * (1 + np.tanh(x / 1.2))
+    image = np.tile(profile, (60, 1)) + np.random.default_rng(2).normal(0, 0.005, (60, 100))
+    edges = sharpedge.detect_edges(image)
+    assert len(edges) > 40
+    assert np.median(edges.x) == pytest.approx(40.3, abs=0.05)
+    assert np.all(edges.nx > 0.99)  # normal points to the bright side
+    levelled = sharpedge.edge_levels(image, edges, length=8)
+    # the paper's max/min rule averages near the plateau: within 2 % of the contrast
+    assert np.median(levelled.hi) == pytest.approx(0.8, abs=0.012)
+    assert np.median(levelled.lo) == pytest.approx(0.2, abs=0.012)
+
+
+def test_noise_sigma_ignores_edges():
+    rng = np.random.default_rng(3)
+    image = np.where(np.arange(200)[None, :] > 90, 0.8, 0.2) * np.ones((200, 1)) + rng.normal(0, 0.01, (200, 200))
+    assert sharpedge.noise_sigma(image) == pytest.approx(0.01, rel=0.1)
+
+
+def test_solver_recovers_a_kernel_from_a_known_sharp_image():
+    rng = np.random.default_rng(4)
+    truth = simulate.gaussian_psf(0.6, 0.4, theta=0.3, s=S, support=SUPPORT)
+    sharp = rng.random((S * 49 + 1, S * 49 + 1))
+    observed = signal.fftconvolve(sharp, truth, mode="same")[::S, ::S]
+    valid = np.zeros(observed.shape, bool)
+    valid[3:-3, 3:-3] = True
+    ata, atb, _ = sharpedge._normal_equations(sharp, observed, valid, S, SUPPORT)
+    k, _ = sharpedge.solve_kernel(ata, atb, 1e-3, SUPPORT, weight=0.0)
+    np.testing.assert_allclose(k, truth, atol=1e-6)
+
+
+# ---------------------------------------------------------------- whole estimates
+
+
+@pytest.fixture(scope="module")
+def smooth_truth():
+    return simulate.gaussian_psf(0.8, 0.5, theta=0.5, s=S, support=SUPPORT)
+
+
+@pytest.fixture(scope="module")
+def smooth_frame(smooth_truth):
+    return edge_frame(smooth_truth, distortion=0.02)
+
+
+@pytest.mark.parametrize("target", [False, True])
+def test_estimate_recovers_a_smooth_psf(smooth_frame, smooth_truth, target):
+    """Blind and target forms at the paper's lambda = 2 on a well-sampled PSF.
+
+    The paper reports no error figures; the noise-target method claims 2-5 %
+    MTF error (IJCV 2012, sec. 5.6). The edge levels are averages of samples
+    within 10 % of the plateau (sec. 4.1), which biases the contrast by a few
+    per cent: we allow an RMS MTF error of 0.05 below Nyquist.
+    """
+    [est] = sharpedge.estimate_edges(smooth_frame, s=S, target=target)
+    low = mtf_rms(est.psf, smooth_truth, (0, 0.5))
+    print(f"\ntarget={target}: RMS MTF error below Nyquist {low:.4f}, params {est.params}")
+    assert est.method == "sharp-edge" and est.psf.shape == (SUPPORT, SUPPORT)
+    assert est.psf.sum() == pytest.approx(1.0) and est.psf.min() >= 0
+    assert low < 0.05
+    # edge locations fix the kernel's position: centred to half an s-grid sample (1/8 pixel)
+    assert np.hypot(*centroid(est.psf)) < 0.5
+    assert est.params["weight"] == 2.0 and est.params["gamma"] == SUPPORT**2
+    # the residual cannot beat the sensor noise; prediction errors near corners and junctions add to it
+    assert est.residual >= 0.8 * est.params["sigma"]
+
+
+def test_target_form_on_the_bernoulli_marks(tmp_path):
+    """The Bernoulli target's flat squares and hourglasses, registered by its X-corners, as known step edges.
+
+    Fewer edge pixels and only three edge directions (0, 90, +-63 degrees):
+    the orientation test is reported. At the target's design scale a mark is
+    only 8 pixels wide, so the marches and the prediction band of a wide PSF
+    cross the next mark (0.12 RMS MTF error for sigma = 0.8 pixel); for the
+    in-focus PSF the thesis compares with, the tolerance above holds.
+    """
+    from psfd.estimator import raw
+
+    truth = simulate.gaussian_psf(0.4, 0.3, theta=0.5, s=S, support=SUPPORT)
+    simulate.simulate_target(tmp_path / "bern.dng", psf=truth, s=S, pixels_per_cell=0.25, rotation_deg=5, seed=3)
+    [est] = sharpedge.estimate_edges(raw.load_frame(tmp_path / "bern.dng", "g1"), s=S, target=True)
+    low = mtf_rms(est.psf, truth, (0, 0.5))
+    print(f"\nBernoulli marks: RMS MTF error below Nyquist {low:.4f}, {est.params['valid_pixels']} pixels")
+    assert est.params["pattern"] == "Bernoulli target marks"
+    assert low < 0.05
+    assert any("orientations uneven" in w for w in est.warnings)
+
+
+def test_grid_gives_one_psf_per_window(smooth_frame):
+    ests = sharpedge.estimate_edges(smooth_frame, s=2, grid=(2, 1))
+    assert [e.window for e in ests] == [(0, 0, 110, 220), (110, 0, 220, 220)]
+    assert ests[0].field == pytest.approx((0.25, 0.5))
+    # half a target per window: some orientations are rare, which the paper's test (b) reports
+    assert all(e.psf.shape == (9, 9) for e in ests)
+
+
+def test_bad_inputs(smooth_frame):
+    with pytest.raises(BadInputError):
+        sharpedge.estimate_edges(smooth_frame, support=16)
+    with pytest.raises(BadInputError):
+        sharpedge.estimate_edges(smooth_frame, weight=-1)
+    with pytest.raises(BadInputError):
+        sharpedge.estimate_edges(smooth_frame, radius=0)
+    flat = Frame(data=np.full((120, 120), 8000.0) + np.random.default_rng(5).normal(0, 5, (120, 120)),
+                 channel="g1", white=WHITE, saturated=np.zeros((120, 120), bool), source="flat")
+    with pytest.raises(EstimationError, match="usable pixels near edges"):
+        sharpedge.estimate_edges(flat)
+    with pytest.raises(TargetNotFoundError):
+        sharpedge.estimate_edges(flat, target=True)
+
+
+# ---------------------------------------------------------------- psfd target --kind edges
+
+
+def test_target_cli_writes_the_edge_target(tmp_path, capsys):
+    import shutil
+    import subprocess
+
+    import cv2
+
+    from psfd.cli import main
+
+    assert main(["target", "--kind", "edges", "--out", str(tmp_path / "edges.png"), "--px-per-cell", "2"]) == 0
+    png = cv2.imread(str(tmp_path / "edges.png"), cv2.IMREAD_GRAYSCALE)
+    expected = sharpedge.edge_target(px_per_square=32)
+    np.testing.assert_array_equal(png, (expected * 255).astype(np.uint8))
+    assert main(["target", "--kind", "edges", "--out", str(tmp_path / "edges.pdf"), "--size-mm", "200"]) == 0
+    if shutil.which("pdftoppm"):  # the vector PDF, rasterised by poppler, draws the same target
+        subprocess.run(["pdftoppm", "-r", "32", "-png", str(tmp_path / "edges.pdf"), str(tmp_path / "r")], check=True)
+        page = cv2.imread(str(next(tmp_path.glob("r*.png"))), cv2.IMREAD_GRAYSCALE).astype(float)
+        square = page.shape[1] / (sharpedge.SQUARES[0] + 2 * sharpedge.BORDER)
+        ref = sharpedge.edge_target(px_per_square=square)[: page.shape[0], : page.shape[1]] * 255
+        body = slice(0, int(page.shape[0] - square))  # the caption sits in the bottom border
+        assert np.mean(np.abs(page[body] - ref[body])) < 8  # anti-aliased edge pixels only
+    assert main(["target", "--kind", "lines", "--out", str(tmp_path / "x.png")]) == 2
+    assert main(["target", "--kind", "edges", "--seed", "3", "--out", str(tmp_path / "x.png")]) == 2
+    assert not (tmp_path / "x.png").exists()
+    capsys.readouterr()
