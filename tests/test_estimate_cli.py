@@ -11,7 +11,6 @@ import cv2
 import numpy as np
 import pytest
 import tifffile
-
 from scipy.special import ndtr
 
 from psfd.cli import main, output

@@ -32,6 +32,7 @@ def test_dng_round_trip_splits_bayer_planes_and_marks_saturation(tmp_path):
         assert planes[name].offset == (dy, dx)
         assert planes[name].white == 4095 - 512
         assert planes[name].sensor_shape == (40, 60)
+        assert planes[name].from_mosaic
     assert planes["r"].saturated[1, 1] and planes["r"].saturated.sum() == 1
     assert raw.load_frame(path, "b").channel == "b"
 
@@ -47,6 +48,7 @@ def test_other_cfa_phases_keep_their_names(tmp_path):
 def test_pgm_is_one_plane_named_by_the_caller(data_dir):
     frame = raw.load_frame(data_dir / "img_example.pgm", "g1")
     assert frame.channel == "g1" and frame.shape == (292, 328) and frame.white == 255
+    assert not frame.from_mosaic
     assert raw.load_frames(data_dir / "img_example.pgm")[0].channel == "mono"
 
 

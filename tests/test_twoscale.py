@@ -113,8 +113,9 @@ def test_psf_from_kernel_inverts_the_inter_image_relation():
 
 def test_real_pair_in_either_order(data_dir):
     near_path, far_path = data_dir / "IMG_0608_v1.pgm", data_dir / "IMG_0602_v1_CUT.pgm"
-    a = raw.load_frame(data_dir / "IMG_0602_v1_CUT.pgm", "mono")
-    b = raw.load_frame(data_dir / "IMG_0608_v1.pgm", "mono")
+    # named g1 as the user would: single-channel images are never compared as sensors
+    a = raw.load_frame(data_dir / "IMG_0602_v1_CUT.pgm", "g1")
+    b = raw.load_frame(data_dir / "IMG_0608_v1.pgm", "g1")
     [ab] = twoscale.estimate_pair(a, b, s=S, support=13)
     [ba] = twoscale.estimate_pair(b, a, s=S, support=13)
     for est in (ab, ba):
@@ -228,7 +229,7 @@ def _frame(shape, channel="g1", sensor=(100, 100), mask_shape=None):
     data = np.zeros(shape)
     return raw.Frame(
         data=data, channel=channel, white=1.0, saturated=np.zeros(mask_shape or shape, bool),
-        source=f"{channel}.dng", sensor_shape=sensor,
+        source=f"{channel}.dng", sensor_shape=sensor, from_mosaic=True,
     )
 
 

@@ -60,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = subparsers.add_parser("demo", help="a complete plan on the simulated rig, then the query table and report")
     p.add_argument("--workdir", default="psfd-demo", metavar="DIR", help="working folder (default ./psfd-demo)")
-    p.add_argument("--workers", type=int, help="estimation processes (default: one per core, at most 4)")
+    p.add_argument("--workers", help="estimation processes (default: one per core, at most 4)")
     p.add_argument("--catalogue", metavar="PATH", help="catalogue file (default: DIR/catalogue.sqlite)")
     p.set_defaults(func=run_demo)
 
@@ -71,13 +71,19 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--socket", default=None, metavar="PATH",
                    help=f"service control socket (default {service.default_socket_path()})")
     p.add_argument("--frames", default=None, metavar="DIR", help="frame store (default: beside the catalogue)")
-    p.add_argument("--workers", type=int, default=None, help="estimation processes (default: one per core, at most 4)")
+    p.add_argument("--workers", help="estimation processes (default: one per core, at most 4)")
 
 
 def _rig_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--simulate", action="store_true", help="use the simulated rig")
     p.add_argument("--camera-port", help="gphoto2 port, e.g. usb:001,004 (default: the first camera)")
     p.add_argument("--rail-port", help="serial port of the rail, e.g. /dev/ttyUSB0")
+
+
+def _workers(args: argparse.Namespace) -> int | None:
+    from psfd.cli.output import parse_int
+
+    return None if args.workers is None else parse_int(args.workers, "--workers", minimum=1)
 
 
 def _paths(args: argparse.Namespace) -> tuple[Path, Path, Path]:
@@ -138,7 +144,7 @@ def run_plan(args: argparse.Namespace) -> int:
         print(f"submitted {args.plan} to the service at {sock} ({answer['queued']} queued); "
               "follow it with: psfd status")
         return 0
-    return _report(execute(plan, catalogue, frames, args.resume, args.workers), args.plan)
+    return _report(execute(plan, catalogue, frames, args.resume, _workers(args)), args.plan)
 
 
 def parse_rail(values: list[str]) -> dict[str, float]:
@@ -218,7 +224,7 @@ def run_capture(args: argparse.Namespace) -> int:
                                  timeout=None)
         result = answer["result"]
     else:
-        run = execute(plan, catalogue, frames, workers=args.workers)
+        run = execute(plan, catalogue, frames, workers=_workers(args))
         result = service.result_dict(run)
         if run.psf_ids:
             from psfd.catalogue import Catalogue
@@ -300,7 +306,7 @@ def run_plan_check(args: argparse.Namespace) -> int:
 
 def run_serve(args: argparse.Namespace) -> int:
     catalogue, frames, sock = _paths(args)
-    return service.Service(catalogue, frames, sock, workers=args.workers).serve()
+    return service.Service(catalogue, frames, sock, workers=_workers(args)).serve()
 
 
 # -- demo ----------------------------------------------------------------------------------------
@@ -333,7 +339,7 @@ def run_demo(args: argparse.Namespace) -> int:
     catalogue = Path(args.catalogue) if args.catalogue else workdir / "catalogue.sqlite"
     plan = plans.load_plan(plan_path)
     print(f"demo: {len(plan.steps())} steps on the simulated rig into {catalogue}")
-    result = execute(plan, catalogue, frames_dir_for(catalogue), resume=True, workers=args.workers)
+    result = execute(plan, catalogue, frames_dir_for(catalogue), resume=True, workers=_workers(args))
     code = _report(result, str(plan_path))
     _demo_outputs(catalogue, workdir)
     return code

@@ -6,9 +6,10 @@ a coarse search for the whole mark configuration, then sub-pixel refinement of
 each X-corner by gradient orthogonality (Delbracio et al., IJCV 2012, sec. 4.1;
 thesis App. A.1, "Sub-pixel corner refinement").
 
-The coarse search differs from the thesis, which groups LSD line segments:
-LSD is not part of OpenCV's free modules in every build, and the X-corners are
-found more directly as saddle points of the smoothed image. At a smoothing of
+The coarse search differs from the thesis, which groups LSD line segments into
+the shape of the marks: here the X-corners are found directly as saddle
+points of the smoothed image, which needs no segment model of the marks and
+works at any rotation and at 0.2 to 2 px/cell alike. At a smoothing of
 several cells the Bernoulli noise averages out while each hourglass mark stays
 a perfect saddle, so the 12 marks are among the strongest saddles of the image
 at the octave of the target's scale. Candidates are grouped by hypothesising
@@ -30,14 +31,15 @@ from psfd.errors import BadInputError, MultipleTargetsError, TargetNotFoundError
 from psfd.estimator import target
 
 # Smoothing of the saddle detector, in pixels of each pyramid level. With levels
-# a factor 2 apart, a level sees the X-corners at 3 to 8 cells of smoothing for
-# targets imaged at 0.19 * 2**L to 0.5 * 2**L pixels per cell: the hourglass is
-# an exact saddle out to 16 cells while the noise is averaged down.
+# a factor 2 apart, level L smooths by 3 to 8 cells for targets imaged at
+# 2**L / 8 to 2**L / 3 pixels per cell (levels 0-3 cover 0.125 to 2.7 px/cell):
+# the hourglass is an exact saddle out to 16 cells while the noise averages out.
 _SIGMA = 1.0
 _MAX_LEVEL = 3
 _MAX_CANDIDATES = 250
 _MAX_SEEDS = 120  # strongest candidates tried as seed pairs
 _MAX_HYPOTHESES = 40  # seed hypotheses grown per level, most promising first
+_MIN_SEED_HITS = 7  # marks a seed similarity must already explain to be grown
 _STRENGTH_RATIO = 0.4  # weakest mark / strongest mark accepted in one target
 _REFINE_CELLS = 8.0  # half-size of the sub-pixel refinement window, in cells
 _AXIS_TOL = np.deg2rad(20.0)  # dark axis of a mark vs the pattern's y axis (perspective, noise)
@@ -45,7 +47,7 @@ _AXIS_TOL = np.deg2rad(20.0)  # dark axis of a mark vs the pattern's y axis (per
 # fraction of the strength of an ideal contrast-1 X-corner.
 _MIN_STRENGTH = 0.12
 # Spacing of adjacent ring marks (3 blocks) in level pixels: 96 cells at
-# 0.19 .. 0.5 px/cell is 18 .. 48 px; the bounds leave room for perspective.
+# 2**L / 8 .. 2**L / 3 px/cell is 12 .. 32 px; the bounds leave room for perspective.
 _SPACING = (8.0, 60.0)
 # Adjacent ring marks used to seed hypotheses: the three edges of the top row.
 _SEED_EDGES = ((6, 5), (5, 4), (4, 3))  # indices into target.XCORNER_BLOCKS
@@ -200,7 +202,8 @@ def _ideal_strength() -> float:
     side = 64
     v, u = np.mgrid[0:side, 0:side] - (side - 1) / 2.0
     mark = (np.abs(u) >= np.abs(v)).astype(np.float32)
-    ixx, iyy, ixy = (d[side // 2 - 1 : side // 2 + 1, side // 2 - 1 : side // 2 + 1] for d in _hessian(cv2.GaussianBlur(mark, (0, 0), _SIGMA)))
+    centre = slice(side // 2 - 1, side // 2 + 1)
+    ixx, iyy, ixy = (d[centre, centre] for d in _hessian(cv2.GaussianBlur(mark, (0, 0), _SIGMA)))
     return float(_SIGMA**2 * np.sqrt(np.maximum(ixy * ixy - ixx * iyy, 0)).max())
 
 
@@ -227,9 +230,10 @@ def _find_at_level(img: np.ndarray) -> list[np.ndarray]:
     # Seeds are two neighbours on a row of the ring: as strong as each other,
     # with their dark axes across the row (the hourglasses stand on the rows).
     across = np.arctan2(step[:, 1], step[:, 0]) + np.pi / 2
+    first, second = sad.strength[pairs[:, 0]], sad.strength[pairs[:, 1]]
     keep = (
         (gaps >= _SPACING[0])
-        & (np.minimum(sad.strength[pairs[:, 0]], sad.strength[pairs[:, 1]]) > _STRENGTH_RATIO * np.maximum(sad.strength[pairs[:, 0]], sad.strength[pairs[:, 1]]))
+        & (np.minimum(first, second) > _STRENGTH_RATIO * np.maximum(first, second))
         & (_angle_gap(sad.axis[pairs[:, 0]], across) < _AXIS_TOL)
         & (_angle_gap(sad.axis[pairs[:, 1]], across) < _AXIS_TOL)
     )
@@ -253,7 +257,7 @@ def _find_at_level(img: np.ndarray) -> list[np.ndarray]:
     scores, candidates = np.stack(scores), np.stack(candidates)
     best = np.argmax(scores, axis=0)
     hits = scores[best, np.arange(len(pairs))]
-    order = [k for k in np.argsort(-hits, kind="stable") if hits[k] >= 7][:_MAX_HYPOTHESES]
+    order = [k for k in np.argsort(-hits, kind="stable") if hits[k] >= _MIN_SEED_HITS][:_MAX_HYPOTHESES]
     results: list[np.ndarray] = []
     used: set[int] = set()
     for k in order:
@@ -283,7 +287,9 @@ def _match(sad: _Saddles, models: np.ndarray, pattern: np.ndarray, seed_strength
     spacing = np.linalg.norm(np.roll(guess, -1, axis=1) - guess, axis=2)
     local = 0.5 * (spacing + np.roll(spacing, 1, axis=1))  # mean distance to the two ring neighbours
     bound = np.nan_to_num(tol * local, nan=0.0, posinf=0.0)
-    dist, idx = sad.tree.query(np.nan_to_num(guess.reshape(-1, 2), nan=-1e9), k=6, distance_upper_bound=max(bound.max(), 1e-9))
+    dist, idx = sad.tree.query(
+        np.nan_to_num(guess.reshape(-1, 2), nan=-1e9), k=6, distance_upper_bound=max(bound.max(), 1e-9)
+    )
     dist, idx = dist.reshape(*guess.shape[:2], 6), idx.reshape(*guess.shape[:2], 6)
     valid = np.isfinite(dist) & (dist < bound[..., None])
     idx = np.where(valid, idx, 0)
@@ -356,16 +362,23 @@ def _orient(norm: np.ndarray, h: np.ndarray) -> np.ndarray | None:
 
 
 def _looks_like_target(norm: np.ndarray, h: np.ndarray) -> bool:
-    """Check the hourglass sectors and the flat squares under the labelling ``h``."""
-    black = _sample(norm, h, np.array([target.block_centre(b) for b in target.BLACK_BLOCKS]), 8.0)
-    white = _sample(norm, h, np.array([target.block_centre(b) for b in target.WHITE_BLOCKS]), 8.0)
-    if not (np.all(np.isfinite(black)) and np.all(np.isfinite(white))):
+    """Check the flat squares and the hourglass sectors under the labelling ``h``."""
+    flats = target.BLACK_BLOCKS + target.WHITE_BLOCKS
+    level = _sample(norm, h, np.array([target.block_centre(b) for b in flats]), 8.0)
+    if not np.all(np.isfinite(level)):
         return False
-    contrast = np.median(white) - np.median(black)
-    if contrast < 0.1 or white.min() - black.max() < 0.3 * contrast:
+    # 12 dark and 12 light squares, well apart.
+    ranked = np.sort(level)
+    contrast = np.median(ranked[12:]) - np.median(ranked[:12])
+    if contrast < 0.1 or ranked[12] - ranked[11] < 0.3 * contrast:
         return False
-    dark_corners = [c for c in _RING_CORNERS if all(_is_black(n) for n in _neighbours(c))]
-    if dark_corners != [target.ORIENTATION_CORNER]:
+    dark = {b for b, v in zip(flats, level) if v < 0.5 * (ranked[11] + ranked[12])}
+    # Orientation: the only ring corner with dark squares on both sides is (9, 9) ...
+    flanked = [c for c in _RING_CORNERS if all(n in dark for n in _neighbours(c))]
+    if flanked != [target.ORIENTATION_CORNER]:
+        return False
+    # ... and every other square must then be where the layout puts it.
+    if dark != set(target.BLACK_BLOCKS):
         return False
     # Hourglass sectors, sampled 8 to 12 cells from the saddle (clear of the
     # blurred apex even at 0.2 px/cell): black above and below, white left and right.
@@ -376,10 +389,6 @@ def _looks_like_target(norm: np.ndarray, h: np.ndarray) -> bool:
     if not np.all(np.isfinite(means)):
         return False
     return bool(np.all(means[2:].min(axis=0) - means[:2].max(axis=0) > 0.25 * contrast))
-
-
-def _is_black(block: tuple[int, int]) -> bool:
-    return block in target.BLACK_BLOCKS
 
 
 def _neighbours(corner: tuple[int, int]) -> list[tuple[int, int]]:

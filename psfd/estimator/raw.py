@@ -45,6 +45,9 @@ class Frame:
         (row, col) of the plane's first photosite on the full sensor.
     sensor_shape : tuple of int
         Shape of the full sensor (for a single-channel image, its own shape).
+    from_mosaic : bool
+        True for a plane split from a RAW Bayer mosaic, False for a single-channel image
+        (whose ``channel`` is only the name the caller gave it).
     """
 
     data: np.ndarray
@@ -54,6 +57,7 @@ class Frame:
     source: str
     offset: tuple[int, int] = (0, 0)
     sensor_shape: tuple[int, int] = field(default=(0, 0))
+    from_mosaic: bool = False
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -141,6 +145,7 @@ def _load_raw(path: Path) -> dict[str, Frame]:
                 source=str(path),
                 offset=(dy, dx),
                 sensor_shape=mosaic.shape,
+                from_mosaic=True,
             )
     return planes
 

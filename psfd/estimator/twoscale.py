@@ -28,7 +28,7 @@ from scipy import fft, signal
 from psfd.errors import BadInputError, PairError
 from psfd.estimator import homography
 from psfd.estimator.psf import PSF, centroid, clip_negatives, field_of_window, normalise, split_grid
-from psfd.estimator.raw import CHANNELS, Frame
+from psfd.estimator.raw import Frame
 from psfd.estimator.resample import keys_bicubic
 
 METHOD = "two-photo"
@@ -111,7 +111,7 @@ def _check_inputs(a: Frame, b: Frame, s: int, support: int | None) -> int:
             raise BadInputError(f"{frame.source}: channel plane {frame.data.shape} is too small")
     if a.channel != b.channel:
         raise BadInputError(f"the pair must use the same channel in both photos, got {a.channel} and {b.channel}")
-    if a.channel in CHANNELS and tuple(a.sensor_shape) != tuple(b.sensor_shape):
+    if a.from_mosaic and b.from_mosaic and tuple(a.sensor_shape) != tuple(b.sensor_shape):
         # RAW planes of one camera always have one size: different sizes mean
         # different cameras or crop modes, and so different PSFs
         raise BadInputError(
