@@ -9,10 +9,6 @@ reported before any numerical work.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import os
-import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 from psfd.cli import output
@@ -92,30 +88,9 @@ def _optional_float(text: str | None, name: str) -> float | None:
     return None if text is None else output.parse_float(text, name)
 
 
-@contextlib.contextmanager
-def _libraw_quiet() -> Iterator[None]:
-    """Silence file descriptor 2 while LibRaw reads: it prints its own complaint about a
-    damaged file ("Unexpected end of file") before raising, and the CLI promises one line."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-
-
-def load(path: str, channel: str) -> list[raw.Frame]:
-    """The requested planes of one file (`raw.load_frames`), without LibRaw's own stderr output."""
-    with _libraw_quiet():
-        return raw.load_frames(path, channel)
-
-
 def _load_all(paths: list[str], channel: str) -> list[raw.Frame]:
     """Every requested plane of every file; all files are read before any estimation starts."""
-    return [frame for path in paths for frame in load(path, channel)]
+    return [frame for path in paths for frame in raw.load_frames(path, channel)]
 
 
 def _report(args: argparse.Namespace, estimates: list[PSF]) -> int:
@@ -162,7 +137,7 @@ def pair_planes(a: list[raw.Frame], b: list[raw.Frame]) -> list[tuple[raw.Frame,
 
 def run_pair(args: argparse.Namespace) -> int:
     settings = _settings(args)
-    pairs = pair_planes(load(args.photo_a, args.channel), load(args.photo_b, args.channel))
+    pairs = pair_planes(raw.load_frames(args.photo_a, args.channel), raw.load_frames(args.photo_b, args.channel))
     from psfd.estimator import twoscale
 
     estimates = [psf for a, b in pairs for psf in twoscale.estimate_pair(a, b, clip=args.clip, **settings)]

@@ -9,7 +9,10 @@ model v = S_s(u_D * h) + n that every method relies on.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -108,11 +111,26 @@ def load_frame(path: str | os.PathLike, channel: str = "g1") -> Frame:
     return load_frames(path, channel)[0]
 
 
+@contextlib.contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """Silence file descriptor 2 while LibRaw reads: it prints its own complaint about a
+    damaged file ("Unexpected end of file") before raising, and errors must stay one line."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def _load_raw(path: Path) -> dict[str, Frame]:
     import rawpy  # imported here: LibRaw is only needed for RAW input
 
     try:
-        with rawpy.imread(str(path)) as raw:
+        with _quiet_stderr(), rawpy.imread(str(path)) as raw:
             mosaic = raw.raw_image_visible.astype(np.float64)
             colors = raw.raw_colors_visible
             desc = raw.color_desc.decode("ascii", "replace")
