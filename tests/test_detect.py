@@ -171,6 +171,13 @@ def test_two_targets():
         detect.find_target(np.hstack([left, right]))
 
 
+def test_too_blurred_to_locate():
+    # A PSF of 8 cells (sigma) on a 32-cell mark: the hourglass is gone.
+    image, _ = render_target(frame_for(0.25), 0.25, angle=30, blur=2.0)
+    with pytest.raises(TargetNotFoundError):
+        detect.find_target(image)
+
+
 def test_bad_input():
     with pytest.raises(BadInputError):
         detect.find_target(np.zeros((10, 10, 3)))

@@ -224,3 +224,13 @@ def test_seeded_noise_is_reproducible_and_round_trips(tmp_path):
     target.save_noise(np.zeros((10, 10)), tmp_path / "small.pgm")
     with pytest.raises(BadInputError, match="256x256"):
         target.load_noise(tmp_path / "small.pgm")
+
+
+def test_dct_lowpass_resynthesises_a_band_on_a_finer_grid():
+    n, m = 40, 100
+    x = np.arange(n)
+    image = np.add.outer(np.cos(np.pi * 3 * (x + 0.5) / n), np.zeros(n))
+    fine = resample.dct_lowpass(image, (10, 10), size=(m, m))
+    xf = (np.arange(m) + 0.5) * n / m - 0.5  # fine sample i sits at this original coordinate
+    np.testing.assert_allclose(fine, np.add.outer(np.cos(np.pi * 3 * (xf + 0.5) / n), np.zeros(m)), atol=1e-10)
+    assert resample.dct_lowpass(image.astype(np.float32), (10, 10)).dtype == np.float32

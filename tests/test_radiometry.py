@@ -84,10 +84,11 @@ def test_flats_outside_the_image():
         radiometry.illumination(np.ones(SHAPE), to_image_of(h))
 
 
-def test_normalise_refuses_white_below_black():
-    x = np.zeros(3)
-    with pytest.raises(EstimationError):
-        radiometry.normalise(np.ones(3), lambda x, y: x + 2.0, lambda x, y: x + 1.0, x, x)
+def test_normalise_has_no_value_where_white_is_below_black():
+    x = np.array([0.0, 1.0, 2.0])
+    v = radiometry.normalise(np.array([5.0, 5.0, 5.0]), lambda x, y: 0 * x, lambda x, y: 10.0 - 5 * x, x, x)
+    np.testing.assert_allclose(v[:2], [0.5, 1.0])
+    assert np.isnan(v[2])
 
 
 def blurred_noise(rng) -> np.ndarray:

@@ -196,13 +196,14 @@ def test_sigkill_at_random_steps_then_resume(tmp_path):
     done_at_kill = []
     for _ in range(3):
         proc = _run_cli(args, env)
-        # wait for a random number of committed steps, then a random fraction of a step more:
-        # the kill lands during a capture, a frame store, an estimate or a commit
-        goal = rng.randint(_done_steps(db), total - 1)
+        # wait for a random number of committed steps (not the last ones), then a random part of
+        # a step more: the kill lands during a capture, a frame store, an estimate or a commit
+        done = _done_steps(db)
+        goal = rng.randint(done, max(done, total - 2))
         deadline = time.monotonic() + 120
         while proc.poll() is None and _done_steps(db) < goal and time.monotonic() < deadline:
             time.sleep(0.05)
-        time.sleep(rng.uniform(0.0, 1.5))
+        time.sleep(rng.uniform(0.0, 0.8))
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()

@@ -9,7 +9,14 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+
+# The estimators solve many small systems (a few hundred unknowns): BLAS threads
+# gain nothing there and, on a loaded 2-core machine, stall them for up to a
+# second. Must be set before numpy loads OpenBLAS; a user's own setting wins.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
 from psfd import __version__
 from psfd.errors import PsfdError

@@ -296,6 +296,8 @@ class Runner:
         ctx = multiprocessing.get_context("spawn")  # no fork of a threaded service
         with cf.ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=work.init_worker,
                                     initargs=(os.getpid(),)) as pool:
+            for _ in range(self.workers):  # start every worker now, not on the first estimate
+                pool.submit(work.warm_up)
             try:
                 try:
                     self._apply_settings(camera, plan.rig.get("settings", {}))

@@ -32,6 +32,12 @@ def init_worker(parent_pid: int) -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
+def warm_up() -> None:
+    """Import the estimators (a second or two per process) while the rig shoots the first frame."""
+    import psfd.estimator.bernoulli  # noqa: F401
+    import psfd.estimator.twoscale  # noqa: F401
+
+
 def estimate_step(kind: str, paths: list[str], channels: list[str], options: dict) -> list:
     """Estimate the PSFs of one step's frames.
 

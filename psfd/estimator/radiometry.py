@@ -55,13 +55,14 @@ def illumination(image: np.ndarray, to_image: Callable) -> tuple[Field, Field]:
 def normalise(image: np.ndarray, black: Field, white: Field, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """(v - B) / (W - B) at image coordinates (x, y) of the values ``image`` (IJCV 2012, sec. 4.1).
 
-    Raises EstimationError where the white field does not exceed the black one.
+    NaN where the fitted white field does not exceed the black one: far from
+    the target the two extrapolated quadratics may cross, and those pixels
+    carry no usable value.
     """
     b = black(x, y)
     span = white(x, y) - b
-    if np.any(span <= 0):
-        raise EstimationError("white squares are not brighter than black squares: under-exposed or wrong target")
-    return (np.asarray(image, dtype=np.float64) - b) / span
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(span > 0, (np.asarray(image, dtype=np.float64) - b) / span, np.nan)
 
 
 def crf_alpha(values: np.ndarray) -> float:

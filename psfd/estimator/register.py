@@ -1,11 +1,13 @@
 """Geometric registration of the target: approximating thin-plate splines.
 
-The whole distortion between the pattern and the image (perspective and lens)
-is one smoothing thin-plate spline fitted on the 12 X-corners, with no
-separate homography or lens model (Delbracio et al., IJCV 2012, sec. 4.1;
-Delbracio PhD thesis 2013, App. A.2, after Sprengel et al. 1996). Both
-directions are fitted: pattern -> image to find the flat squares and the noise
-region, image -> pattern to render the pattern on the camera grid.
+The thesis models the whole distortion between the pattern and the image
+(perspective and lens) by one smoothing thin-plate spline fitted on the 12
+X-corners (Delbracio et al., IJCV 2012, sec. 4.1; Delbracio PhD thesis 2013,
+App. A.2, after Sprengel et al. 1996). `target_maps` by default puts a
+homography under the spline so that a target seen at an angle is registered
+exactly (see its docstring); the spline alone is kept as an option. Both
+directions are fitted: pattern -> image to find the flat squares and the
+noise region, image -> pattern to render the pattern on the camera grid.
 """
 
 from __future__ import annotations

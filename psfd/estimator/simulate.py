@@ -532,7 +532,8 @@ def simulate_target(
     (cells -> undistorted sensor), ``distortion``, ``to_pattern`` and
     ``to_image`` (per channel: channel plane <-> cell coordinates),
     ``corners`` (per channel: (12, 2) X-corners in channel coordinates, in
-    target.XCORNER_BLOCKS order) and ``pixels_per_cell``.
+    target.XCORNER_BLOCKS order), ``pixels_per_cell`` and ``light`` (the
+    light field ``f(x, y)`` at normalised sensor coordinates).
     """
     noise = target.default_noise() if noise is None else np.asarray(noise, dtype=np.float64)
     rows, cols = sensor

@@ -23,10 +23,10 @@ import math
 import cv2
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy import fft, signal
+from scipy import signal
 
 from psfd.errors import BadInputError, PairError
-from psfd.estimator import homography
+from psfd.estimator import homography, resample
 from psfd.estimator.psf import PSF, centroid, clip_negatives, field_of_window, normalise, split_grid
 from psfd.estimator.raw import Frame
 from psfd.estimator.resample import keys_bicubic
@@ -318,15 +318,9 @@ def band_limited(image: np.ndarray, keep: tuple[int, int]) -> tuple[np.ndarray, 
     keep_r, keep_c = min(int(keep[0]), rows), min(int(keep[1]), cols)
     out_r = max(keep_r, int(math.ceil(OVERSAMPLE * keep_r)))
     out_c = max(keep_c, int(math.ceil(OVERSAMPLE * keep_c)))
-    # one axis at a time, so that the second transform only sees the kept rows; single
-    # precision (24-bit mantissa, beyond any sensor's 14 bits) halves the cost
-    coeffs = fft.dct(np.asarray(image, dtype=np.float32), type=2, axis=0, norm="ortho", workers=-1)[:keep_r]
-    coeffs = fft.dct(coeffs, type=2, axis=1, norm="ortho", workers=-1)[:, :keep_c]
-    # the inverse transforms zero-pad the kept coefficients to the new lengths
-    band = fft.idct(coeffs, type=2, n=out_c, axis=1, norm="ortho", workers=-1)
-    band = fft.idct(band, type=2, n=out_r, axis=0, norm="ortho", workers=-1)
-    # orthonormal DCTs of different lengths: sqrt(new / old) keeps the amplitude
-    band = band.astype(np.float64) * math.sqrt(out_r * out_c / (rows * cols))
+    # single precision (24-bit mantissa, beyond any sensor's 14 bits) halves the cost
+    band = resample.dct_lowpass(np.asarray(image, dtype=np.float32), (keep_r, keep_c), size=(out_r, out_c))
+    band = band.astype(np.float64)
     return band, (out_r / rows, out_c / cols)
 
 

@@ -1,0 +1,218 @@
+"""The resumable runner on the simulated rig, with a real catalogue and real estimators."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from psfd.catalogue import Catalogue
+from psfd.daemon.plan import parse_plan
+from psfd.daemon.runner import Control, Runner, frames_dir_for, store_frame, sweep_frames
+from psfd.drivers import open_rig
+from psfd.errors import CameraError, EstimationError, RailAlarm
+
+# 2 apertures x 2 field positions x 1 channel: small enough for the default suite.
+PLAN = """
+[rig]
+simulate = true
+
+[target]
+kind = "bernoulli"
+
+[capture]
+apertures = [4, 11]
+x = [{x}]
+y = [{y0}, {y1}]
+channels = ["g1"]
+"""
+
+
+def small_plan(extra: str = "") -> str:
+    from psfd.drivers.sim import SimRig
+
+    rig = SimRig()
+    y0, y1 = (float(v) for v in rig.field_offsets(2)[0])
+    return PLAN.format(x=rig.distance_for_scale(), y0=y0, y1=y1) + extra
+
+
+def stored_files(frames: Path) -> set[str]:
+    return {p.name.split(".")[0] for p in frames.glob("??/*")}
+
+
+def check_complete(catalogue_path: Path, frames: Path, plan) -> None:
+    """Integrity ok, every step done once with its PSF, and the frame store equals the catalogue's frames."""
+    with Catalogue(catalogue_path) as cat:
+        assert cat.integrity_check() == []
+        rows = cat.query().rows
+        hashes = cat.frame_hashes()
+    keys = sorted(r["step"] for r in rows)
+    assert keys == sorted(s.key for s in plan.steps())  # every expected PSF exactly once
+    assert stored_files(frames) == hashes  # no orphan, none missing
+    assert not list(frames.glob(".incoming-*"))
+
+
+class FailingCamera:
+    """The simulated camera, unplugged after ``after`` captures."""
+
+    def __init__(self, camera, after: int) -> None:
+        self.camera, self.left = camera, after
+
+    def __getattr__(self, name):
+        return getattr(self.camera, name)
+
+    def capture(self, dest):
+        if self.left == 0:
+            raise CameraError("camera not found on usb:001,004 (unplugged?)")
+        self.left -= 1
+        return self.camera.capture(dest)
+
+
+def test_store_frame_is_content_addressed_and_sweep_removes_orphans(tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for name in ("a.dng", "b.dng"):
+        (tmp_path / name).write_bytes(b"same bytes")
+    first, sha = store_frame(tmp_path / "a.dng", frames)
+    second, sha2 = store_frame(tmp_path / "b.dng", frames)
+    assert first == second and sha == sha2 and first.name == f"{sha}.dng"
+    assert not (tmp_path / "b.dng").exists()  # the duplicate was dropped, not stored twice
+    (frames / ".incoming-x").mkdir()
+    orphan = frames / "ff" / ("f" * 64 + ".dng")
+    orphan.parent.mkdir()
+    orphan.write_bytes(b"left by a crash")
+    keep = frames / "ff" / "notes.txt"
+    keep.write_text("not a frame")
+    removed = sweep_frames(frames, {sha})
+    assert set(removed) == {frames / ".incoming-x", orphan}
+    assert first.exists() and keep.exists()
+
+
+def test_run_failure_pauses_keeps_work_and_resume_completes(tmp_path):
+    plan = parse_plan(small_plan(), "small.toml")
+    db, frames = tmp_path / "cat.sqlite", tmp_path / "frames"
+    camera, rail = open_rig(plan.rig_config())
+    with Catalogue(db) as cat:
+        result = Runner(cat, frames, workers=1, progress=None).run(plan, FailingCamera(camera, 2), rail)
+        assert result.state == "paused" and isinstance(result.error, CameraError)
+        assert "unplugged" in result.reason
+        summary = cat.run_summary(result.run_id)
+        assert (summary["done"], summary["failed"], summary["pending"]) == (2, 1, 1)
+        assert cat.runs()[0]["state"] == "paused"
+        # resume: only the failed and pending steps run again
+        camera, rail = open_rig(plan.rig_config())
+        again = Runner(cat, frames, workers=1, progress=None).run(plan, camera, rail, resume=True)
+        assert again.run_id == result.run_id and again.state == "done" and again.steps_done == 2
+        assert cat.run_summary(result.run_id)["done"] == 4
+    check_complete(db, frames, plan)
+
+
+def test_missing_target_pauses_the_run(tmp_path):
+    """Y at the end of travel puts the target half out of the frame: no target, the run pauses."""
+    plan = parse_plan(small_plan().replace("apertures = [4, 11]", "apertures = [4]")
+                      .replace("y = [", "y = [60, "), "edge.toml")
+    camera, rail = open_rig(plan.rig_config())
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        result = Runner(cat, tmp_path / "frames", workers=1, progress=None).run(plan, camera, rail)
+        assert result.state == "paused" and isinstance(result.error, EstimationError)
+        (failed,) = cat.steps(result.run_id, ("failed",))
+        assert failed["key"].startswith("a4/x1300/y60") and failed["reason"] == str(result.error)
+        # the failed step's frame is not kept (the retry shoots a new one), the others are catalogued
+        assert stored_files(tmp_path / "frames") == cat.frame_hashes()
+        # the step shot while the failed one was being estimated is kept: work done is never thrown away
+        summary = cat.run_summary(result.run_id)
+        assert (summary["failed"], summary["done"], summary["pending"]) == (1, 1, 1)
+
+
+def test_rail_alarm_pauses_the_run(tmp_path):
+    plan = parse_plan(small_plan(), "small.toml")
+
+    class AlarmRail:
+        def __init__(self, rail):
+            self.rail = rail
+
+        def __getattr__(self, name):
+            return getattr(self.rail, name)
+
+        def move(self, x=None, y=None, z=None):
+            raise RailAlarm("rail in ALARM (hard limit): home it before moving")
+
+    camera, rail = open_rig(plan.rig_config())
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        result = Runner(cat, tmp_path / "frames", workers=1, progress=None).run(plan, camera, AlarmRail(rail))
+        assert result.state == "paused" and "ALARM" in result.reason
+        assert cat.run_summary(result.run_id)["failed"] == 1
+
+
+def test_pause_request_stops_after_the_current_frame(tmp_path):
+    plan = parse_plan(small_plan(), "small.toml")
+    control = Control()
+    seen = []
+
+    def on_step(key, state, reason):
+        seen.append((key, state))
+        if state == "running":
+            control.request("pause")
+
+    camera, rail = open_rig(plan.rig_config())
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        result = Runner(cat, tmp_path / "frames", workers=1, control=control, progress=None,
+                        on_step=on_step).run(plan, camera, rail)
+        assert result.state == "paused" and result.steps_done == 1
+        assert seen == [(plan.steps()[0].key, "running"), (plan.steps()[0].key, "done")]
+        assert cat.run_summary(result.run_id)["pending"] == 3
+
+
+def _run_cli(args: list[str], env: dict) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "psfd", *args], env=env, start_new_session=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _done_steps(db: Path) -> int:
+    if not db.exists():
+        return 0
+    with Catalogue(db) as cat:
+        runs = cat.runs()
+        return cat.run_summary(runs[0]["id"])["done"] if runs else 0
+
+
+def test_sigkill_at_random_steps_then_resume(tmp_path):
+    """Kill the whole process group (like a power cut) at random points several times, then resume."""
+    plan_path = tmp_path / "plan.toml"
+    plan_path.write_text(small_plan())
+    plan = parse_plan(plan_path.read_text(), str(plan_path))
+    total = len(plan.steps())
+    db = tmp_path / "cat.sqlite"
+    frames = frames_dir_for(db)
+    env = {**os.environ, "PSFD_SOCKET": str(tmp_path / "none.sock")}
+    args = ["run", str(plan_path), "--resume", "--catalogue", str(db), "--workers", "1"]
+    rng = random.Random(1)
+    done_at_kill = []
+    for _ in range(3):
+        proc = _run_cli(args, env)
+        # wait for a random number of committed steps (not the last ones), then a random part of
+        # a step more: the kill lands during a capture, a frame store, an estimate or a commit
+        done = _done_steps(db)
+        goal = rng.randint(done, max(done, total - 2))
+        deadline = time.monotonic() + 120
+        while proc.poll() is None and _done_steps(db) < goal and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(rng.uniform(0.0, 0.8))
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        done_at_kill.append(_done_steps(db))
+    print('KILLS', done_at_kill); assert any(0 < n < total for n in done_at_kill), done_at_kill  # at least one kill fell mid-run
+    proc = _run_cli(args, env)
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    assert "done" in out
+    with Catalogue(db) as cat:
+        assert len(cat.runs()) == 1  # every attempt resumed the same run
+    check_complete(db, frames, plan)
