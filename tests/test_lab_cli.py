@@ -60,6 +60,9 @@ def test_capture_goes_through_the_service_when_it_is_up(served, tmp_path):  # no
     (["capture", "--aperture", "f/abc", "--simulate"], "--aperture: expected an f-number"),
     (["capture", "--aperture", "5.6", "--rail", "W=3", "--simulate"], "--rail: expected AXIS=MM"),
     (["capture", "--aperture", "5.6"], "--rail X=MM is needed"),
+    (["capture", "--aperture", "5.6", "--target", "pair", "--rail", "X=900", "--simulate"], "give --near MM"),
+    (["capture", "--aperture", "5.6", "--target", "pair", "--near", "close", "--simulate"], "--near: expected a number"),
+    (["capture", "--aperture", "5.6", "--simulate", "--workers", "0"], "--workers: must be at least 1"),
 ])
 def test_bad_capture_arguments(argv, message, tmp_path, capsys):
     db = tmp_path / "cat.sqlite"
@@ -111,3 +114,8 @@ def test_demo(tmp_path):
     assert {r["aperture"] for r in rows} == {4.0, 8.0, 16.0}
     assert {r["channel"] for r in rows} == {"r", "g1", "g2", "b"}
     assert "done: 27 steps" in cli.stdout
+    assert "$ psfd query" in cli.stdout and (workdir / "report.png").stat().st_size > 0
+    # physical sanity of what was stored: at every field point f/16 (diffraction) is softer than f/4
+    mtf = {(r["aperture"], r["channel"], r["step"].split("/", 1)[1]): r["mtf50_x"] for r in rows}
+    softer = [mtf[(16.0, c, where)] < mtf[(4.0, c, where)] for (a, c, where) in mtf if a == 4.0]
+    assert len(softer) == 36 and all(softer)

@@ -139,4 +139,4 @@ def test_plan_check_command_lists_all_problems(tmp_path, capsys):
     assert all(line.startswith(f"{bad}: ") for line in err[:-1])
     assert err[-1].startswith("psfd: error:")
     assert main(["plan", "check", str(good)]) == 0
-    assert "ok, 16 steps" in capsys.readouterr().out
+    assert "ok, 16 steps, 16 frames, 64 PSFs" in capsys.readouterr().out  # 2 channels x 2x1 grid

@@ -92,7 +92,7 @@ def test_normalise_has_no_value_where_white_is_below_black():
 
 
 def blurred_noise(rng) -> np.ndarray:
-    """Values of a blurred Bernoulli(0.5) image with mean exactly 1/2, in [0, 1]."""
+    """Values of a blurred Bernoulli(0.5) image in [0, 1], mean about 1/2."""
     u = cv2.GaussianBlur(rng.integers(0, 2, (128, 128)).astype(float), (0, 0), 0.8)
     return np.clip(u - u.mean() + 0.5, 0, 1)
 

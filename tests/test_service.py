@@ -149,8 +149,11 @@ def test_pause_resume_then_sigterm_mid_run_and_resume_from_the_cli(served, tmp_p
 
 def test_cancel_closes_the_run(served, tmp_path):
     proc, sock, db, notes = served
-    text = small_plan()
-    service.request(sock, {"cmd": "submit", "plan": text, "path": "plan.toml"})
+    plan_path = tmp_path / "plan.toml"
+    plan_path.write_text(small_plan())
+    cli = subprocess.run([sys.executable, "-m", "psfd", "run", str(plan_path), "--socket", str(sock)],
+                         capture_output=True, text=True, timeout=60)
+    assert cli.returncode == 0 and "submitted" in cli.stdout  # `psfd run` hands the plan to the service
     wait_status(sock, lambda s: s["current"] is not None)
     service.request(sock, {"cmd": "cancel"})
     status = wait_status(sock, lambda s: s["last"] is not None)

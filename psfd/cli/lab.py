@@ -122,16 +122,18 @@ def execute(plan: plans.Plan, catalogue_path: Path, frames_dir: Path, resume: bo
             signal.signal(sig, handler)
 
 
-def _report(result: RunResult | dict, plan_path: str) -> int:
+def _report(result: RunResult | dict, plan_path: str | None) -> int:
+    """Print how a run ended; the exit code of the error that paused it, else 0."""
     r = result if isinstance(result, dict) else service.result_dict(result)
-    if r.get("run_id") is None:  # the service could not start the job
-        raise ServiceError(f"{plan_path}: {r.get('reason')}")
+    if r.get("run_id") is None:  # the service could not start the job (camera not found, ...)
+        print(f"psfd: error: {r.get('reason')}", file=sys.stderr)
+        return int(r.get("exit_code", ServiceError.exit_code))
     print(f"run {r['run_id']} {r['state']}: {r['steps_done']} steps, {r['frames']} frames, "
           f"{r['psfs']} PSFs in {r['elapsed_s']:.1f} s")
     if r["state"] == "paused":
-        print(f"run {r['run_id']} paused ({r['reason']}); continue with: psfd run {plan_path} --resume",
-              file=sys.stderr)
-        return int(r["exit_code"]) or 0
+        hint = f"; continue with: psfd run {plan_path} --resume" if plan_path else ""
+        print(f"run {r['run_id']} paused ({r['reason']}){hint}", file=sys.stderr)
+        return int(r["exit_code"])
     return 0
 
 
@@ -181,6 +183,8 @@ def capture_plan(args: argparse.Namespace) -> str:
             lines.append(f"{key} = {json.dumps(getattr(args, key))}")
     lines += ["", "[target]", f'kind = "{args.target}"']
     if args.target == "pair":
+        if "x" in rail:
+            raise BadInputError("--rail X does not apply to a pair: give --near MM and --far MM")
         near, far = _pair_distances(args)
         lines += [f"near = {near}", f"far = {far}"]
     lines += ["", "[capture]", f"apertures = [{aperture}]"]
@@ -201,14 +205,17 @@ def _default_distance(args: argparse.Namespace) -> float:
 
 
 def _pair_distances(args: argparse.Namespace) -> tuple[float, float]:
-    if args.near is not None and args.far is not None:
-        return float(args.near), float(args.far)
-    if not args.simulate:
-        raise BadInputError("--near MM and --far MM are needed for a pair")
-    from psfd.drivers import sim
+    from psfd.cli.output import parse_float
 
-    near, far = sim.SimRig(scene="texture").pair_distances()
-    return float(args.near or near), float(args.far or far)
+    if args.near is None or args.far is None:
+        if not args.simulate:
+            raise BadInputError("--near MM and --far MM are needed for a pair")
+        from psfd.drivers import sim
+
+        near, far = sim.SimRig(scene="texture").pair_distances()
+    near = parse_float(args.near, "--near") if args.near is not None else near
+    far = parse_float(args.far, "--far") if args.far is not None else far
+    return near, far
 
 
 def run_capture(args: argparse.Namespace) -> int:
@@ -231,21 +238,12 @@ def run_capture(args: argparse.Namespace) -> int:
 
             with Catalogue(catalogue, create=False) as cat:
                 result["rows"] = [cat.psf(i)[1] for i in run.psf_ids]
-    code = _report(result, "capture")
+    code = _report(result, None)
     if result.get("rows"):
-        _print_psfs(result["rows"])
+        from psfd.cli.query import format_table
+
+        print(format_table(result["rows"]))
     return code
-
-
-def _print_psfs(rows: list[dict]) -> None:
-    print(f"{'id':>6} {'method':<10} {'ch':<3} {'f/':>5} {'field':>11} {'mtf50_x':>8} {'mtf50_y':>8}")
-    for row in rows:
-        print(f"{row['id']:>6} {row['method']:<10} {row['channel']:<3} {row['aperture'] or 0:>5g} "
-              f"{row['field_x']:>5.2f},{row['field_y']:<5.2f} {_num(row['mtf50_x']):>8} {_num(row['mtf50_y']):>8}")
-
-
-def _num(value: float | None) -> str:
-    return "-" if value is None else f"{value:.3f}"
 
 
 # -- status, plan check, serve -------------------------------------------------------------------
@@ -298,9 +296,10 @@ def run_plan_check(args: argparse.Namespace) -> int:
     if problems:
         raise BadInputError(f"{path}: {len(problems)} problem{'s' * (len(problems) > 1)} found")
     plan = plans.parse_plan(text, str(path))
-    steps = plan.steps()
-    print(f"{path}: ok, {len(steps)} steps, {len(steps) * (2 if plan.kind == 'pair' else 1)} frames, "
-          f"{len(steps) * len(plan.channels)} PSF windows x grid")
+    steps = len(plan.steps())
+    nx, ny = plan.estimator_options().get("grid", (1, 1))
+    print(f"{path}: ok, {steps} steps, {steps * (2 if plan.kind == 'pair' else 1)} frames, "
+          f"{steps * len(plan.channels) * nx * ny} PSFs")
     return 0
 
 

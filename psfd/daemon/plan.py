@@ -3,7 +3,8 @@
 A plan has four tables::
 
     [rig]                       # simulate = true, or the ports of real hardware
-    simulate = true
+    simulate = true             # any other key of psfd.drivers.open_rig may follow
+    # scene = "texture"         # simulated rig: the textured plane a pair needs
     # camera_port = "usb:001,004"
     # rail_port = "/dev/ttyUSB0"
     # rail_limits = { x = [0, 2000], y = [-150, 150], z = [-100, 100] }

@@ -248,9 +248,9 @@ class Service:
                         job.result["rows"] = [catalogue.psf(i)[1] for i in result.psf_ids]
                 self.paused = job.plan if result.state == "paused" else None
             except PsfdError as exc:
-                job.result = {"state": "failed", "reason": str(exc)}
+                job.result = {"state": "failed", "reason": str(exc), "exit_code": exc.exit_code}
             except Exception as exc:  # noqa: BLE001 - the service outlives a broken job and says why
-                job.result = {"state": "failed", "reason": f"{type(exc).__name__}: {exc}"}
+                job.result = {"state": "failed", "reason": f"{type(exc).__name__}: {exc}", "exit_code": 1}
             with self.lock:
                 last = {k: v for k, v in job.result.items() if k not in ("rows", "psf_ids")}
                 self.last, self.current = {"plan": job.plan.path, **last}, None

@@ -93,12 +93,13 @@ def find_target(image: np.ndarray, saturated: np.ndarray | None = None) -> Detec
     Notes
     -----
     On symmetric X-corners the refinement is unbiased up to the pixel
-    sampling: 0.02-0.08 px on simulated frames at 0.25-2 px/cell with a PSF
-    below 3 cells (sigma), 0.07-0.15 px on heavily aliased planes at
-    0.25 px/cell. With a PSF wider than about 3.5 cells (e.g. sigma 1.1 px at
-    0.25 px/cell, f/32 on a small target) the blurred neighbouring squares reach
-    the refinement window and bias the saddles by up to half a pixel; place
-    the target closer for such apertures.
+    sampling. Measured on rendered and simulated frames (noise ~0.5-1 %):
+    0.02-0.08 px at 0.3-2 px/cell; at 0.2-0.25 px/cell with a sharp PSF the
+    aliased marks give a bias that follows the sub-pixel phase (up to 0.1 px,
+    a common shift when all marks share the phase); with a PSF wider than
+    about 3 cells (sigma; e.g. 0.8 px at 0.25 px/cell, f/32 on a small
+    target) the blurred neighbouring squares reach the refinement window and
+    the error grows to 0.15-0.5 px: place the target closer for such apertures.
 
     Raises
     ------
@@ -249,6 +250,8 @@ def _find_at_level(img: np.ndarray) -> list[np.ndarray]:
         & (_angle_gap(sad.axis[pairs[:, 1]], across) < _AXIS_TOL)
     )
     pairs = pairs[keep]
+    if len(pairs) == 0:
+        return []
     pattern = target.xcorner_points()
     zpat = pattern[:, 0] + 1j * pattern[:, 1]
     zimg = pts[:, 0] + 1j * pts[:, 1]
@@ -453,29 +456,37 @@ def _refine(norm: np.ndarray, corners: np.ndarray, scale: float) -> np.ndarray:
     the neighbouring blocks whose edges would pull the estimate. Below
     0.375 px/cell that is under 3 pixels, too few for the gradient
     estimate, so the patch is first resampled (bicubic) on a u-times finer
-    grid; the blurred image is band-limited, so this adds no bias.
+    grid; the resampling is symmetric about every pixel, so it adds no bias.
     """
     upsample = max(1, int(np.ceil(3.0 / (_REFINE_CELLS * scale))))
     radius = int(round(_REFINE_CELLS * scale * upsample))
-    half = radius + 4
+    half = (radius + 4) // upsample + 2  # crop half-size in image pixels
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-5)
-    refined = np.empty_like(corners)
+    rows, cols = norm.shape
+    refined = corners.copy()
+    lost = np.zeros(len(corners), dtype=bool)
     for k, (x, y) in enumerate(corners):
-        x0, y0 = x - half / upsample, y - half / upsample
-        to_image = np.array([[1.0 / upsample, 0.0, x0], [0.0, 1.0 / upsample, y0]])
-        patch = cv2.warpAffine(
-            norm, to_image, (2 * half + 1, 2 * half + 1),
-            flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE,
-        )
-        point = np.array([[[half, half]]], dtype=np.float32)
-        cv2.cornerSubPix(patch, point, (radius, radius), (-1, -1), criteria)
-        refined[k] = (x0 + point[0, 0, 0] / upsample, y0 + point[0, 0, 1] / upsample)
-    # cornerSubPix leaves a point where it was when the iteration leaves the
-    # window; a mark that cannot be refined is not used with a coarse position.
-    moved = np.linalg.norm(refined - corners, axis=1)
-    if np.any(moved >= radius / upsample) or np.any(moved == 0):
+        # An integer-aligned crop, resized by an integer factor: warpAffine would
+        # quantise a fractional shift to 1/32 px and bias the result by ~0.03 px.
+        cx, cy = int(round(x)), int(round(y))
+        if not (half <= cx < cols - half and half <= cy < rows - half):
+            lost[k] = True
+            continue
+        crop = norm[cy - half : cy + half + 1, cx - half : cx + half + 1]
+        if upsample > 1:
+            crop = cv2.resize(crop, None, fx=upsample, fy=upsample, interpolation=cv2.INTER_CUBIC)
+        # Patch pixel p sits at crop coordinate (p + 0.5) / u - 0.5.
+        start = ((np.array([x - cx + half, y - cy + half]) + 0.5) * upsample - 0.5).astype(np.float32)
+        point = start.reshape(1, 1, 2).copy()
+        cv2.cornerSubPix(crop, point, (radius, radius), (-1, -1), criteria)
+        # cornerSubPix puts a point back where it started when the iteration
+        # leaves the window: such a mark cannot be located.
+        step = np.linalg.norm(point[0, 0] - start)
+        lost[k] = step == 0 or step >= radius
+        refined[k] = (point[0, 0] + 0.5) / upsample - 0.5 + [cx - half, cy - half]
+    if np.any(lost):
         raise TargetNotFoundError(
-            f"calibration target found at {scale:.2f} px/cell but its marks are too small or blurred to locate precisely"
+            f"calibration target found at {scale:.2f} px/cell but its marks are too blurred to locate precisely"
         )
     return refined
 

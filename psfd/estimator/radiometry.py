@@ -136,7 +136,8 @@ def _flat_samples(image: np.ndarray, to_image: Callable, blocks) -> tuple[np.nda
 
 def _quadratic(xy: np.ndarray, values: np.ndarray, centre: np.ndarray, spread: float) -> Field:
     """Least-squares surface a + b x + c y + d x^2 + e x y + f y^2 in centred, scaled coordinates."""
-    coef, *_ = np.linalg.lstsq(_design((xy[:, 0] - centre[0]) / spread, (xy[:, 1] - centre[1]) / spread), values, rcond=None)
+    u, v = (xy[:, 0] - centre[0]) / spread, (xy[:, 1] - centre[1]) / spread
+    coef, *_ = np.linalg.lstsq(_design(u, v), values, rcond=None)
 
     def field(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
