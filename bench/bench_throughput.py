@@ -5,7 +5,7 @@ worker processes), the share of the run the rig spent waiting on estimation, and
 the speed-up over doing the same steps one after the other (capture, estimate,
 capture, ...) in one process.
 
-    python bench/bench_throughput.py [--steps 8] [--workers N] [--channels g1,r]
+    python bench/bench_throughput.py [--steps 12] [--workers N] [--channels g1,r]
 """
 
 from __future__ import annotations
@@ -15,6 +15,10 @@ import os
 import tempfile
 import time
 from pathlib import Path
+
+# Same conditions for the serial reference as for the workers: one BLAS thread (set before numpy loads).
+for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_name] = "1"
 
 from psfd.catalogue import Catalogue
 from psfd.daemon import work
@@ -37,7 +41,6 @@ def bench_plan(steps: int, channels: list[str]) -> str:
 
 def serial_reference(plan, folder: Path) -> float:
     """Seconds to capture and estimate every step one after the other, in this process."""
-    sim._psf.cache_clear()  # render from scratch, as the runner did
     camera, rail = open_rig(plan.rig_config())
     options = plan.estimator_options()
     t0 = time.perf_counter()
@@ -63,10 +66,11 @@ def main() -> None:
     plan = parse_plan(bench_plan(args.steps, args.channels.split(",")), "bench")
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
+        serial = serial_reference(plan, folder)
+        sim._psf.cache_clear()
         camera, rail = open_rig(plan.rig_config())
         with Catalogue(folder / "cat.sqlite") as cat:
             result = Runner(cat, folder / "frames", workers=args.workers, progress=None).run(plan, camera, rail)
-        serial = serial_reference(plan, folder)
     minutes = result.elapsed_s / 60
     load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
     print(f"steps {result.steps_done}, channels {args.channels}, workers {args.workers}, "

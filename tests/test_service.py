@@ -100,7 +100,7 @@ def test_socket_is_0660_and_bad_requests_leave_the_service_running(served):
     with pytest.raises(ServiceError, match="no paused run"):
         service.request(sock, {"cmd": "resume"})
     assert service.request(sock, {"cmd": "status"})["state"] == "idle"
-    # the CLI reports a bad plan sent through the service as one line, exit 2
+    # `psfd status` asks the service when its socket answers
     cli = subprocess.run([sys.executable, "-m", "psfd", "status", "--socket", str(sock)],
                          capture_output=True, text=True)
     assert cli.returncode == 0 and "idle" in cli.stdout

@@ -60,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = subparsers.add_parser("demo", help="a complete plan on the simulated rig, then the query table and report")
     p.add_argument("--workdir", default="psfd-demo", metavar="DIR", help="working folder (default ./psfd-demo)")
-    p.add_argument("--workers", help="estimation processes (default: one per core, at most 4)")
+    p.add_argument("--workers", help="estimation processes (default: cores - 1, at least 1)")
     p.add_argument("--catalogue", metavar="PATH", help="catalogue file (default: DIR/catalogue.sqlite)")
     p.set_defaults(func=run_demo)
 
@@ -71,7 +71,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--socket", default=None, metavar="PATH",
                    help=f"service control socket (default {service.default_socket_path()})")
     p.add_argument("--frames", default=None, metavar="DIR", help="frame store (default: beside the catalogue)")
-    p.add_argument("--workers", help="estimation processes (default: one per core, at most 4)")
+    p.add_argument("--workers", help="estimation processes (default: cores - 1, at least 1)")
 
 
 def _rig_options(p: argparse.ArgumentParser) -> None:

@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from psfd.drivers import _REAL_KEYS, _SIM_KEYS
+from psfd.drivers import REAL_KEYS, SIM_KEYS
 from psfd.errors import BadInputError
 from psfd.estimator.raw import CHANNELS
 
@@ -50,7 +50,7 @@ SOLVERS = ("ls", "ls-threshold", "nnls")
 AXES = ("x", "y", "z")
 # [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys) and our
 # camera settings, applied once before the first step.
-RIG_KEYS = {"simulate", "recording", "settings", *_SIM_KEYS, *_REAL_KEYS}
+RIG_KEYS = {"simulate", "recording", "settings", *SIM_KEYS, *REAL_KEYS}
 TABLES = {
     "rig": RIG_KEYS,
     "target": {"kind", "near", "far"},

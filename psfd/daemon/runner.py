@@ -118,12 +118,13 @@ class Progress:
 
 
 def default_workers() -> int:
-    """One estimation process per core (at most 4).
+    """One estimation process per core but one (at least 1, at most 4).
 
-    The capture loop mostly waits on the camera and the rail, so it needs no core
-    of its own; estimation is the bottleneck (bench/bench_throughput.py).
+    The capture loop keeps a core: downloading and hashing RAW files, and on the
+    simulated rig rendering them, is CPU work too. On 2 cores one worker ran
+    the bench 1.8x faster than two (bench/bench_throughput.py).
     """
-    return max(1, min(4, os.cpu_count() or 1))
+    return max(1, min(4, (os.cpu_count() or 2) - 1))
 
 
 def frames_dir_for(catalogue_path: str | os.PathLike) -> Path:

@@ -8,9 +8,9 @@ from psfd.errors import BadInputError
 __all__ = ["Camera", "CameraInfo", "Position", "Rail", "open_camera", "open_rail", "open_rig"]
 
 # Keys of a plan's [rig] table: for the simulated rig, and for real hardware.
-_SIM_KEYS = ("scene", "seed", "sensor", "pitch_um", "focal_mm", "cell_mm", "texture_mm", "s", "support",
-             "corner_aberration", "exposure", "limits")
-_REAL_KEYS = ("camera_port", "timeout", "rail_port", "rail_limits", "rail_baudrate", "rail_feed", "rail_timeout")
+SIM_KEYS = ("scene", "seed", "sensor", "pitch_um", "focal_mm", "cell_mm", "texture_mm", "s", "support",
+            "corner_aberration", "exposure", "limits")
+REAL_KEYS = ("camera_port", "timeout", "rail_port", "rail_limits", "rail_baudrate", "rail_feed", "rail_timeout")
 
 
 def open_rig(config: dict) -> tuple[Camera, Rail]:
@@ -87,10 +87,10 @@ def open_rail(config: dict) -> Rail:
 def _sim_rig(config: dict):
     from psfd.drivers.sim import SimRig
 
-    options = {k: config[k] for k in _SIM_KEYS if k in config}
+    options = {k: config[k] for k in SIM_KEYS if k in config}
     if "rail_limits" in config and "limits" not in options:
         options["limits"] = config["rail_limits"]
-    unknown = set(config) - set(_SIM_KEYS) - set(_REAL_KEYS) - {"simulate"}
+    unknown = set(config) - set(SIM_KEYS) - set(REAL_KEYS) - {"simulate"}
     if unknown:
         raise BadInputError(f"unknown simulated rig option(s): {', '.join(sorted(unknown))}")
     try:
