@@ -10,7 +10,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
 
 from psfd.catalogue import Catalogue
 from psfd.daemon.plan import parse_plan
@@ -119,7 +118,8 @@ def test_missing_target_pauses_the_run(tmp_path):
                       .replace("y = [", "y = [60, "), "edge.toml")
     camera, rail = open_rig(plan.rig_config())
     with Catalogue(tmp_path / "cat.sqlite") as cat:
-        result = Runner(cat, tmp_path / "frames", workers=1, progress=None).run(plan, camera, rail)
+        # backlog 1: exactly one more step is shot while the failing one is estimated
+        result = Runner(cat, tmp_path / "frames", workers=1, backlog=1, progress=None).run(plan, camera, rail)
         assert result.state == "paused" and isinstance(result.error, EstimationError)
         (failed,) = cat.steps(result.run_id, ("failed",))
         assert failed["key"].startswith("a4/x1300/y60") and failed["reason"] == str(result.error)
@@ -191,7 +191,8 @@ def test_sigkill_at_random_steps_then_resume(tmp_path):
     db = tmp_path / "cat.sqlite"
     frames = frames_dir_for(db)
     env = {**os.environ, "PSFD_SOCKET": str(tmp_path / "none.sock")}
-    args = ["run", str(plan_path), "--resume", "--catalogue", str(db), "--workers", "1"]
+    # backlog 1: commits follow captures closely, so kills land between commits
+    args = ["run", str(plan_path), "--resume", "--catalogue", str(db), "--workers", "1", "--backlog", "1"]
     rng = random.Random(7)
     done_at_kill = []
     for _ in range(3):

@@ -16,7 +16,7 @@ from pathlib import Path
 from psfd.daemon import plan as plans
 from psfd.daemon import service
 from psfd.daemon.runner import Control, Runner, RunResult, frames_dir_for
-from psfd.errors import BadInputError, PsfdError, ServiceError
+from psfd.errors import BadInputError, ServiceError
 from psfd.estimator.raw import CHANNELS
 
 
@@ -60,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = subparsers.add_parser("demo", help="a complete plan on the simulated rig, then the query table and report")
     p.add_argument("--workdir", default="psfd-demo", metavar="DIR", help="working folder (default ./psfd-demo)")
-    p.add_argument("--workers", help="estimation processes (default: cores - 1, at least 1)")
+    _runner_options(p)
     p.add_argument("--catalogue", metavar="PATH", help="catalogue file (default: DIR/catalogue.sqlite)")
     p.set_defaults(func=run_demo)
 
@@ -71,7 +71,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--socket", default=None, metavar="PATH",
                    help=f"service control socket (default {service.default_socket_path()})")
     p.add_argument("--frames", default=None, metavar="DIR", help="frame store (default: beside the catalogue)")
-    p.add_argument("--workers", help="estimation processes (default: cores - 1, at least 1)")
+    _runner_options(p)
 
 
 def _rig_options(p: argparse.ArgumentParser) -> None:
@@ -80,10 +80,17 @@ def _rig_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rail-port", help="serial port of the rail, e.g. /dev/ttyUSB0")
 
 
-def _workers(args: argparse.Namespace) -> int | None:
+def _runner_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--workers", help="estimation processes (default: cores - 1, at least 1)")
+    p.add_argument("--backlog", help="frames that may wait for estimation before the rig waits (default 4 per worker)")
+
+
+def _runner(args: argparse.Namespace) -> dict[str, int]:
+    """The Runner's ``workers`` and ``backlog`` given on the command line (the others keep its defaults)."""
     from psfd.cli.output import parse_int
 
-    return None if args.workers is None else parse_int(args.workers, "--workers", minimum=1)
+    return {name: parse_int(getattr(args, name), f"--{name}", minimum=1)
+            for name in ("workers", "backlog") if getattr(args, name) is not None}
 
 
 def _paths(args: argparse.Namespace) -> tuple[Path, Path, Path]:
@@ -99,7 +106,7 @@ def _paths(args: argparse.Namespace) -> tuple[Path, Path, Path]:
 
 
 def execute(plan: plans.Plan, catalogue_path: Path, frames_dir: Path, resume: bool = False,
-            workers: int | None = None) -> RunResult:
+            runner_options: dict[str, int] | None = None) -> RunResult:
     """Run a plan in this process on the rig its [rig] table names."""
     from psfd.catalogue import Catalogue
     from psfd.drivers import open_rig
@@ -115,7 +122,7 @@ def execute(plan: plans.Plan, catalogue_path: Path, frames_dir: Path, resume: bo
     try:
         with Catalogue(catalogue_path) as catalogue:
             camera, rail = open_rig(plan.rig_config())
-            runner = Runner(catalogue, frames_dir, workers=workers, control=control)
+            runner = Runner(catalogue, frames_dir, control=control, **(runner_options or {}))
             return runner.run(plan, camera, rail, resume=resume)
     finally:
         for sig, handler in previous.items():
@@ -146,7 +153,7 @@ def run_plan(args: argparse.Namespace) -> int:
         print(f"submitted {args.plan} to the service at {sock} ({answer['queued']} queued); "
               "follow it with: psfd status")
         return 0
-    return _report(execute(plan, catalogue, frames, args.resume, _workers(args)), args.plan)
+    return _report(execute(plan, catalogue, frames, args.resume, _runner(args)), args.plan)
 
 
 def parse_rail(values: list[str]) -> dict[str, float]:
@@ -231,7 +238,7 @@ def run_capture(args: argparse.Namespace) -> int:
                                  timeout=None)
         result = answer["result"]
     else:
-        run = execute(plan, catalogue, frames, workers=_workers(args))
+        run = execute(plan, catalogue, frames, runner_options=_runner(args))
         result = service.result_dict(run)
         if run.psf_ids:
             from psfd.catalogue import Catalogue
@@ -305,7 +312,7 @@ def run_plan_check(args: argparse.Namespace) -> int:
 
 def run_serve(args: argparse.Namespace) -> int:
     catalogue, frames, sock = _paths(args)
-    return service.Service(catalogue, frames, sock, workers=_workers(args)).serve()
+    return service.Service(catalogue, frames, sock, runner_options=_runner(args)).serve()
 
 
 # -- demo ----------------------------------------------------------------------------------------
@@ -338,7 +345,7 @@ def run_demo(args: argparse.Namespace) -> int:
     catalogue = Path(args.catalogue) if args.catalogue else workdir / "catalogue.sqlite"
     plan = plans.load_plan(plan_path)
     print(f"demo: {len(plan.steps())} steps on the simulated rig into {catalogue}")
-    result = execute(plan, catalogue, frames_dir_for(catalogue), resume=True, workers=_workers(args))
+    result = execute(plan, catalogue, frames_dir_for(catalogue), resume=True, runner_options=_runner(args))
     code = _report(result, str(plan_path))
     _demo_outputs(catalogue, workdir)
     return code

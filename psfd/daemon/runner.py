@@ -222,6 +222,11 @@ class Runner:
         Called with (key, state, reason) whenever a step changes state (service status).
     estimate : callable
         Module-level function run in the workers, signature of `work.estimate_step`.
+    backlog : int, optional
+        Frames captured but not yet estimated before the rig waits (default 4 per
+        worker). A queue deeper than the workers lets the rig keep moving while
+        estimation catches up; the steps in it are journalled "running", so a
+        crash only redoes them.
     """
 
     def __init__(
@@ -234,6 +239,7 @@ class Runner:
         progress: IO[str] | None = sys.stderr,
         on_step: Callable[[str, str, str | None], None] | None = None,
         estimate: Callable[..., list] = work.estimate_step,
+        backlog: int | None = None,
     ) -> None:
         self.catalogue = catalogue
         self.frames_dir = Path(frames_dir)
@@ -242,6 +248,7 @@ class Runner:
         self.progress_stream = progress
         self.on_step = on_step or (lambda key, state, reason: None)
         self.estimate = estimate
+        self.backlog = backlog or 4 * self.workers
 
     # -- public -------------------------------------------------------------------------------
 
@@ -321,9 +328,9 @@ class Runner:
                     paths = [r.path for r in records]
                     future = pool.submit(self.estimate, plan.kind, paths, plan.channels, options)
                     inflight.append((step, records, future))
-                    # The rig waits only when every worker is busy and one more job is queued.
+                    # The rig waits only when the backlog of unestimated frames is full.
                     t0 = time.monotonic()
-                    while len(inflight) > self.workers:
+                    while len(inflight) > self.backlog:
                         self._commit_first(run_id, focal, inflight, result, bar)
                     result.rig_wait_s += time.monotonic() - t0
                     self._commit_ready(run_id, focal, inflight, result, bar)

@@ -137,16 +137,16 @@ class Service:
         Catalogue file and frame store every run writes to.
     socket_path : path
         Control socket to create.
-    workers : int, optional
-        Estimation processes per run.
+    runner_options : dict, optional
+        ``workers`` and ``backlog`` for each run's `Runner` (absent: its defaults).
     """
 
     def __init__(self, catalogue_path: str | os.PathLike, frames_dir: str | os.PathLike,
-                 socket_path: str | os.PathLike, workers: int | None = None) -> None:
+                 socket_path: str | os.PathLike, runner_options: dict[str, int] | None = None) -> None:
         self.catalogue_path = Path(catalogue_path)
         self.frames_dir = Path(frames_dir)
         self.socket_path = Path(socket_path)
-        self.workers = workers
+        self.runner_options = runner_options or {}
         self.jobs: queue.Queue[Job | None] = queue.Queue()
         self.control = Control()
         self.stopping = threading.Event()
@@ -240,7 +240,7 @@ class Service:
             try:
                 with Catalogue(self.catalogue_path) as catalogue:
                     camera, rail = open_rig(job.plan.rig_config())
-                    runner = Runner(catalogue, self.frames_dir, workers=self.workers, control=self.control,
+                    runner = Runner(catalogue, self.frames_dir, control=self.control, **self.runner_options,
                                     progress=None, on_step=self._on_step)
                     result = runner.run(job.plan, camera, rail, resume=job.resume)
                     job.result = result_dict(result)
