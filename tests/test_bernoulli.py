@@ -11,7 +11,12 @@ standard deviation <= floor; over the ~260 frequencies of two profiles we allow
 4 floors. Fixed terms cover the rendering mismatch between the simulator's
 band-limiting (FFT, raised cosine, cubic remap) and the estimator's (DCT, Keys):
 on noise-free frames of the four test PSFs it measured at most 0.0072 relative
-L2 error and 0.004 MTF error.
+L2 error and 0.004 MTF error. A rotated target adds the mismatch between the
+simulator's band (a tapered square in pattern axes, which aliases once
+turned) and the estimator's (the camera's s-band): on noise-free frames at
+0-60 degrees and with a tilt, at most 0.0193 L2 (f/5.6 at exactly 45 degrees,
+a pattern near (1, 1) cycles per pixel, invisible in the MTF profiles) and
+0.005 MTF error.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from psfd.estimator import bernoulli, detect, mtf, psf as psf_mod, raw, register
 S = 4
 MODEL_L2 = 0.01  # rendering mismatch, see the module docstring
 MODEL_MTF = 0.005
+MODEL_L2_ROTATED = 0.02  # rotated targets, see the module docstring
 
 PSFS = {
     "gaussian": lambda: simulate.gaussian_psf(0.6, s=S),
@@ -75,6 +81,52 @@ def test_recovers_known_psf(tmp_path, name):
     assert err < 0.02
     # sigma_n from the residual matches the simulated sensor noise at mid-grey
     assert result["sigma"] == pytest.approx(truth["sigma"], rel=0.25)
+
+
+ROTATIONS = [dict(rotation_deg=r) for r in (0.0, 15.0, 30.0, 45.0, 60.0)]
+ROTATIONS.append(dict(rotation_deg=20.0, tilt=(0.06, -0.05)))
+
+
+@pytest.mark.parametrize("geometry", ROTATIONS, ids=lambda g: "-".join(f"{k}{v}" for k, v in g.items()))
+def test_rotated_target(tmp_path, geometry):
+    """The s-band turns with the target (bernoulli.s_band): no aliasing, no empty band corners.
+
+    With the band a square in pattern axes, the same frames gave relative L2
+    errors of 0.03, 0.24 and 0.34 at 15, 22.5 and 45 degrees, and a noise
+    floor 70 times larger at 30 degrees (corners of the s-band left empty).
+    """
+    h = PSFS["f/5.6"]()
+    v, truth, _ = _plane(tmp_path / "t.dng", h, seed=8, pixels_per_cell=0.33, sensor=(320, 320), **geometry)
+    (result,) = bernoulli.estimate_plane(v, truth["to_pattern"]["g1"], s=S)
+    norm = np.linalg.norm(h)
+    floor = result["noise_floor"]
+    rel = np.linalg.norm(result["psf"] - h) / norm
+    assert rel < 1.5 * floor / norm + MODEL_L2_ROTATED
+    assert rel < 0.05
+    err = _mtf_error(result["psf"], h)
+    assert err < 4 * floor + MODEL_MTF
+    assert err < 0.02
+
+
+def test_s_band_is_the_camera_band_pulled_back():
+    """Upright: the thesis' truncation at s x (target size in pixels).
+
+    Turned: the same area, and every kept frequency inside the camera band."""
+    s, ppc, factor, shape = S, 0.33, 4, (1280, 1280)
+    same, cross = bernoulli.s_band(shape, factor, s, np.eye(2) / ppc)
+    keep = int(np.ceil(320 * s * ppc))
+    assert same.shape == (keep, keep) and same.all() and cross.all()
+    areas = []
+    for angle in np.radians([0.0, 15.0, 30.0, 45.0, 60.0]):
+        rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        jacobian = rot / ppc  # camera pixel -> cells
+        same, cross = bernoulli.s_band(shape, factor, s, jacobian)
+        areas.append(same.sum() + cross.sum())
+        i, j = np.nonzero(same)
+        xi = jacobian.T @ np.stack([j, i]) * factor / (2 * shape[0])  # camera cycles per pixel
+        assert np.abs(xi).max() < s / 2
+    # the band's area in pattern frequencies is the camera square's over |det J|: rotation-invariant
+    np.testing.assert_allclose(areas, areas[0], rtol=0.01)
 
 
 def test_solvers_agree(tmp_path):
@@ -154,6 +206,33 @@ def test_rejects_bad_arguments(tmp_path):
 # test_estimate_target_end_to_end from the measured misregistration).
 
 
+def _registration_terms(frame: raw.Frame, est: psf_mod.PSF, truth: dict, pixels_per_cell: float,
+                        centred: bool = True) -> tuple[float, float, float]:
+    """Misregistration delta and the L2 and MTF errors it explains.
+
+    The thin-plate spline misplaces the s-grid by delta (RMS, channel pixels,
+    measured against the true map over the window; with ``centred`` its mean,
+    a translation the re-centred kernel no longer carries, is removed). A
+    random displacement of RMS delta multiplies the MTF by about
+    exp(-2 pi^2 f^2 delta^2); a shift of delta changes the kernel by about
+    delta ||grad h|| in L2.
+    """
+    h = truth["psf"][frame.channel]
+    to_pattern = register.target_maps(detect.find_target(frame.data, frame.saturated))[1]
+    x0, y0, x1, y1 = est.window
+    yy, xx = np.mgrid[y0:y1, x0:x1].astype(float)
+    (X, Y), (Xt, Yt) = to_pattern(xx, yy), truth["to_pattern"][frame.channel](xx, yy)
+    dx, dy = X - Xt, Y - Yt
+    if centred:
+        dx, dy = dx - dx.mean(), dy - dy.mean()
+    delta = pixels_per_cell * float(np.sqrt(np.mean(dx**2 + dy**2)))
+    freqs, tx, ty = mtf.profiles(h, S)
+    reg_mtf = float(np.max(np.maximum(tx, ty) * (1 - np.exp(-2 * np.pi**2 * freqs**2 * delta**2))))
+    gy, gx = np.gradient(h)
+    reg_l2 = S * delta * float(np.sqrt(np.sum(gx**2 + gy**2))) / float(np.linalg.norm(h))
+    return delta, reg_l2, reg_mtf
+
+
 @pytest.fixture(scope="module")
 def photo(tmp_path_factory) -> tuple[Path, dict]:
     path = tmp_path_factory.mktemp("bernoulli") / "target.dng"
@@ -173,27 +252,40 @@ def test_estimate_target_end_to_end(photo):
     assert est.warnings == []
     assert est.params["solver"] == "ls-threshold" and est.params["support"] == 17
     assert est.params["scale"] == pytest.approx(S * 0.37, rel=0.05)
-    # Registration terms: the thin-plate spline misplaces the s-grid by delta (RMS,
-    # channel pixels, measured against the true map). A random displacement of
-    # RMS delta multiplies the MTF by about exp(-2 pi^2 f^2 delta^2); a shift of
-    # delta changes the kernel by about delta ||grad h|| in L2.
-    to_pattern = register.target_maps(detect.find_target(frame.data, frame.saturated))[1]
-    x0, y0, x1, y1 = est.window
-    yy, xx = np.mgrid[y0:y1, x0:x1].astype(float)
-    (X, Y), (Xt, Yt) = to_pattern(xx, yy), truth["to_pattern"]["g1"](xx, yy)
-    delta = 0.37 * np.sqrt(np.mean((X - Xt) ** 2 + (Y - Yt) ** 2))
+    delta, reg_l2, reg_mtf = _registration_terms(frame, est, truth, 0.37, centred=False)
     assert delta < 0.1  # registration to a tenth of a pixel
-    freqs, tx, ty = mtf.profiles(h, S)
-    reg_mtf = float(np.max(np.maximum(tx, ty) * (1 - np.exp(-2 * np.pi**2 * freqs**2 * delta**2))))
-    gy, gx = np.gradient(h)
     norm = np.linalg.norm(h)
-    reg_l2 = S * delta * np.sqrt(np.sum(gx**2 + gy**2)) / norm
     err = _mtf_error(est.psf, h)
     assert err < 4 * est.noise_floor + MODEL_MTF + reg_mtf
     rel = np.linalg.norm(est.psf - h) / norm
     assert rel < 1.5 * est.noise_floor / norm + MODEL_L2 + reg_l2
     # the window is the noise region around the target centre (0.5, 0.5) of the sensor
     assert est.field == pytest.approx((0.5, 0.5), abs=0.03)
+
+
+def test_estimate_target_recentres_the_kernel(tmp_path):
+    """At s/t = 1 the X-corners' common bias (up to 0.1 px, detect.find_target) moves
+    the raw kernel by a fraction of a pixel; the reported kernel is centred and
+    the shift removed is recorded (the raw one is still available)."""
+    h = PSFS["f/5.6"]()
+    path = tmp_path / "t.dng"
+    truth = simulate.simulate_target(path, psf=h, s=S, pixels_per_cell=0.25, sensor=(240, 320), seed=0)
+    frame = raw.load_frame(path, "g1")
+    (uncentred,) = bernoulli.estimate_target(frame, recentre=False)
+    (est,) = bernoulli.estimate_target(frame)
+    assert uncentred.params["kernel_shift"] == [0.0, 0.0]
+    shift = est.params["kernel_shift"]
+    assert shift == pytest.approx(bernoulli.core_centre(uncentred.psf), abs=0.02)
+    assert np.hypot(*bernoulli.core_centre(est.psf)) < 0.02  # s-grid samples
+    assert est.psf.min() >= 0 and est.psf.sum() == pytest.approx(1.0)
+    np.testing.assert_allclose(
+        bernoulli.recentre(uncentred.psf, shift), est.psf, atol=0.05 * est.psf.max()
+    )
+    # what is left once the translation is removed: the floor and the non-translational misregistration
+    delta, reg_l2, reg_mtf = _registration_terms(frame, est, truth, 0.25)
+    norm = np.linalg.norm(h)
+    assert np.linalg.norm(est.psf - h) / norm < 1.5 * est.noise_floor / norm + MODEL_L2 + reg_l2
+    assert _mtf_error(est.psf, h) < 4 * est.noise_floor + MODEL_MTF + reg_mtf
 
 
 def test_estimate_target_grid_gives_field_locations(photo):

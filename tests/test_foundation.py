@@ -234,3 +234,41 @@ def test_dct_lowpass_resynthesises_a_band_on_a_finer_grid():
     xf = (np.arange(m) + 0.5) * n / m - 0.5  # fine sample i sits at this original coordinate
     np.testing.assert_allclose(fine, np.add.outer(np.cos(np.pi * 3 * (xf + 0.5) / n), np.zeros(m)), atol=1e-10)
     assert resample.dct_lowpass(image.astype(np.float32), (10, 10)).dtype == np.float32
+
+
+def test_dct_lowpass_with_masks_filters_the_symmetric_extension():
+    """mask / cross_mask filter the DCT's half-sample-symmetric extension with any centrally symmetric band.
+
+    Reference: the 2-D FFT of the explicit 2R x 2C extension, multiplied by a
+    rotated square band (not symmetric under a mirror), first quadrant kept.
+    """
+    rng = np.random.default_rng(0)
+    rows, cols = 40, 52
+    image = rng.random((rows, cols))
+    extended = np.block([[image, image[:, ::-1]], [image[::-1], image[::-1, ::-1]]])
+    ky, kx = np.meshgrid(np.fft.fftfreq(2 * rows) * 2 * rows, np.fft.fftfreq(2 * cols) * 2 * cols, indexing="ij")
+
+    def band(kx, ky):  # a square of half-width 1/2 (in units of the size) turned by 0.4 rad
+        u = np.cos(0.4) * kx / cols + np.sin(0.4) * ky / rows
+        v = -np.sin(0.4) * kx / cols + np.cos(0.4) * ky / rows
+        return (np.abs(u) < 0.5) & (np.abs(v) < 0.5)
+
+    expected = np.real(np.fft.ifft2(np.fft.fft2(extended) * band(kx, ky)))[:rows, :cols]
+    i, j = np.mgrid[0:rows, 0:cols]
+    same, cross = band(j, i), band(j, -i)
+    out = resample.dct_lowpass(image, (rows, cols), mask=same, cross_mask=cross)
+    np.testing.assert_allclose(out, expected, atol=1e-12)
+    # cropping ``keep`` drops the coefficients beyond it, as zeroing them in the masks does
+    cut = np.zeros_like(same)
+    cut[:30, :40] = True
+    np.testing.assert_allclose(
+        resample.dct_lowpass(image, (30, 40), mask=same, cross_mask=cross),
+        resample.dct_lowpass(image, (rows, cols), mask=same & cut, cross_mask=cross & cut),
+        atol=1e-12,
+    )
+    # a mask alone weights the DCT coefficients: a rectangle is the plain truncation
+    np.testing.assert_allclose(
+        resample.dct_lowpass(image, (rows, cols), mask=cut), resample.dct_lowpass(image, (30, 40)), atol=1e-12
+    )
+    with pytest.raises(ValueError, match="coefficients"):
+        resample.dct_lowpass(image, (30, 40), mask=np.ones((10, 10)))

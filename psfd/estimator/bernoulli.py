@@ -12,7 +12,8 @@ well conditioned because the target u is Bernoulli(0.5) white noise
 
 1. detection, thin-plate spline D, illumination and response curve
    (detect.py, register.py, radiometry.py),
-2. u~_D: the target rasterised, DCT low-passed at the s-grid band, warped by D
+2. u~_D: the target rasterised, DCT low-passed with the s-grid band pulled
+   back through the local linear part of D (`s_band`, `u_tilde`), warped by D
    onto the s-times grid with Keys' bicubic kernel (`u_tilde_d`),
 3. mask of the noise region, eroded by (k-1)/(2s) (`noise_mask`),
 4. normal equations of S_s U h = v (`normal_equations`) and a solver (`solve`).
@@ -24,7 +25,7 @@ from typing import Callable
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy import linalg, optimize
+from scipy import fft, linalg, optimize
 
 from psfd.errors import BadInputError, EstimationError, SaturatedError
 from psfd.estimator import psf as psf_mod
@@ -41,36 +42,111 @@ SCALE_RANGE = (0.7, 2.0)  # s/t range of near-optimal conditioning, IJCV 2012 se
 
 
 def raster_factor(s: int, pixels_per_cell: float) -> int:
-    """Raster pixels per target cell: at least 4 (IJCV 2012 sec. 4, "Pattern Rasterization") and 2x the s-grid rate."""
+    """Raster pixels per target cell: at least 4 (IJCV 2012 sec. 4, "Pattern Rasterization") and 2x the s-grid rate.
+
+    ``pixels_per_cell`` is 1/t for an upright target; for a rotated or
+    sheared one pass `band_reach`, the rate along the pattern axis the
+    pulled-back band reaches furthest (sqrt(2)/t at 45 degrees).
+    """
     return int(min(16, max(4, np.ceil(2 * s * pixels_per_cell))))
 
 
-def u_tilde(noise: np.ndarray, s: int, pixels_per_cell: float, factor: int) -> np.ndarray:
+def jacobian_of(to_pattern: Map, at: tuple[float, float]) -> np.ndarray:
+    """Local linear part of D at channel point ``at``: [[dX/dx, dX/dy], [dY/dx, dY/dy]], cells per pixel."""
+    x0, y0 = at
+    X, Y = to_pattern(np.array([x0, x0 + 1.0, x0]), np.array([y0, y0, y0 + 1.0]))
+    return np.array([[X[1] - X[0], X[2] - X[0]], [Y[1] - Y[0], Y[2] - Y[0]]], dtype=np.float64)
+
+
+def band_reach(jacobian: np.ndarray) -> float:
+    """Channel pixels per cell seen by the pulled-back s-band along its furthest pattern axis.
+
+    A camera frequency xi (cycles per pixel) is the pattern frequency
+    J^-T xi with J = ``jacobian``; over the square |xi_x|, |xi_y| <= s/2 its
+    pattern X and Y components reach s/2 times the column sums of |J^-1|.
+    """
+    return float(np.abs(np.linalg.inv(jacobian)).sum(axis=0).max())
+
+
+def s_band(shape: tuple[int, int], factor: int, s: int, jacobian: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The s-grid band of the camera pulled back to the DCT coefficients of the pattern raster.
+
+    LPF_s keeps the camera frequencies |xi_x|, |xi_y| < s/2 cycles per
+    channel pixel, the band of the s-times grid (IJCV 2012 sec. 3.1, Lemma 1).
+    The paper filters the pattern before warping because D is locally close
+    to a similarity (IJCV 2012 sec. 4); a similarity includes a rotation, so
+    the band in pattern coordinates is the camera square seen through the
+    local linear part J of D: u(J x) has at camera frequency xi the pattern
+    frequency f with xi = J^T f. Truncating the pattern's DCT at a square
+    instead (right for an upright target only) both aliases the rotated
+    square's corners on the s-grid and leaves the corners of the camera band
+    empty, which makes S_s U singular there (the noise floor of a 30 degree
+    rotation grows 70x).
+
+    DCT coefficient (i, j) of an R x C raster at ``factor`` pixels per cell
+    holds the frequencies (+-j factor / 2C, +-i factor / 2R) cycles per cell;
+    a rotated square is symmetric under f -> -f but not under a mirror, so
+    the pairs with equal signs and with opposite signs get their own masks
+    (see `resample.dct_lowpass`).
+
+    Returns
+    -------
+    same, cross : ndarray of bool (rows, cols)
+        Masks of the frequencies (j, i) and (j, -i), cropped to the
+        smallest box holding both.
+    """
+    rows, cols = shape
+    # only the box the band can reach (`band_reach`) is evaluated
+    reach = np.abs(np.linalg.inv(jacobian)).sum(axis=0) * (s / 2)
+    box_r = min(rows, int(reach[1] * 2 * rows / factor) + 2)
+    box_c = min(cols, int(reach[0] * 2 * cols / factor) + 2)
+    f_y = np.arange(box_r)[:, None] * (factor / (2.0 * rows))
+    f_x = np.arange(box_c)[None, :] * (factor / (2.0 * cols))
+    (a, b), (c, d) = jacobian
+
+    def inside(sign: float) -> np.ndarray:
+        # xi = J^T f; strict inequality as the rectangular truncation keeps indices below s/2
+        return (np.abs(a * f_x + c * sign * f_y) < s / 2) & (np.abs(b * f_x + d * sign * f_y) < s / 2)
+
+    same, cross = inside(1.0), inside(-1.0)
+    either = same | cross
+    keep_r = int(np.nonzero(either.any(axis=1))[0].max()) + 1 if either.any() else 1
+    keep_c = int(np.nonzero(either.any(axis=0))[0].max()) + 1 if either.any() else 1
+    return same[:keep_r, :keep_c], cross[:keep_r, :keep_c]
+
+
+def u_tilde(
+    noise: np.ndarray, s: int, jacobian: np.ndarray, factor: int, raster: np.ndarray | None = None
+) -> np.ndarray:
     """The target raster band-limited to the s-grid band, before warping (u~ of IJCV 2012 sec. 3.1).
 
     The whole target (noise, marks and flat squares) is rasterised at
-    ``factor`` pixels per cell and its DCT truncated at index s x (size of the
-    target in channel pixels), the thesis' cut-off (m s, n s) (Delbracio PhD
-    thesis 2013, App. A.1): frequencies above the s-grid Nyquist are removed.
+    ``factor`` pixels per cell and its DCT (no border ringing, Delbracio PhD
+    thesis 2013, App. A.1) restricted to `s_band`: for an upright target this
+    is the thesis' truncation at index s x (size of the target in channel
+    pixels), the cut-off (m s, n s); for a rotated one the same band turned
+    with the target.
 
     Parameters
     ----------
     noise : ndarray (256, 256)
     s : int
-    pixels_per_cell : float
-        Channel pixels per cell (1/t).
+    jacobian : ndarray (2, 2)
+        Local linear part of D (`jacobian_of`); diag(t, t) for an upright target.
     factor : int
         Raster pixels per cell.
+    raster : ndarray, optional
+        ``target.cells(noise, factor)`` as float32, to share it between windows.
 
     Returns
     -------
     ndarray (320 factor, 320 factor); raster pixel (i, j) is centred on cell
     coordinates ((j + 0.5) / factor, (i + 0.5) / factor).
     """
-    raster = target.cells(noise, factor)
-    keep = int(round(target.SIZE * s * pixels_per_cell))
     # float32: 4x faster on the 1280 x 1280 raster, rounding far below sensor noise
-    return resample.dct_lowpass(raster.astype(np.float32), (keep, keep))
+    raster = target.cells(noise, factor).astype(np.float32) if raster is None else raster
+    same, cross = s_band(raster.shape, factor, s, jacobian)
+    return resample.dct_lowpass(raster, same.shape, mask=same, cross_mask=cross)
 
 
 def u_tilde_d(
@@ -317,23 +393,29 @@ def estimate_plane(
         raise EstimationError("no usable pixel in the noise region of the target")
     rows, cols = np.nonzero(mask)
     bounds = (int(cols.min()), int(rows.min()), int(cols.max()) + 1, int(rows.max()) + 1)
-    pixels_per_cell = pixels_per_cell_of(to_pattern, (float(cols.mean()), float(rows.mean())))
-    factor = raster_factor(s, pixels_per_cell)
-    raster = u_tilde(noise, s, pixels_per_cell, factor)
+    windows = psf_mod.split_grid(bounds, grid)
+    # The band follows D's linear part at each window's centre (the centroid
+    # of its usable pixels): with perspective and lens distortion it changes
+    # across the target, and filtering costs ~15 ms per window.
+    jacobians = [jacobian_of(to_pattern, _mask_centre(mask, w)) for w in windows]
+    factor = raster_factor(s, max(band_reach(j) for j in jacobians))
+    cells = target.cells(noise, factor).astype(np.float32)
     out = []
-    for window in psf_mod.split_grid(bounds, grid):
+    for window, jacobian in zip(windows, jacobians):
+        raster = u_tilde(noise, s, jacobian, factor, raster=cells)
         result = estimate_window(v, mask, window, raster, factor, to_pattern, s, support, solver)
         result["window"] = window
         out.append(result)
     return out
 
 
-def pixels_per_cell_of(to_pattern: Map, at: tuple[float, float]) -> float:
-    """Channel pixels per target cell (1/t) from the Jacobian of D at channel point ``at``."""
-    x0, y0 = at
-    X, Y = to_pattern(np.array([x0, x0 + 1.0, x0]), np.array([y0, y0, y0 + 1.0]))
-    jac = np.array([[X[1] - X[0], X[2] - X[0]], [Y[1] - Y[0], Y[2] - Y[0]]])
-    return float(1.0 / np.sqrt(abs(np.linalg.det(jac))))
+def _mask_centre(mask: np.ndarray, window: tuple[int, int, int, int]) -> tuple[float, float]:
+    """(x, y) centroid of the usable pixels of a window (its centre when it has none)."""
+    x0, y0, x1, y1 = window
+    rows, cols = np.nonzero(mask[y0:y1, x0:x1])
+    if rows.size == 0:
+        return ((x0 + x1 - 1) / 2, (y0 + y1 - 1) / 2)
+    return (x0 + float(cols.mean()), y0 + float(rows.mean()))
 
 
 # --------------------------------------------------------------------------- whole pipeline
@@ -346,6 +428,7 @@ def estimate_target(
     support: int | None = None,
     solver: str = "ls-threshold",
     grid: tuple[int, int] = (1, 1),
+    recentre: bool = True,
 ) -> list[PSF]:
     """Sub-pixel PSFs from one photograph of the Bernoulli target (IJCV 2012, sec. 4, Fig. 7).
 
@@ -364,6 +447,12 @@ def estimate_target(
         ``ls``, ``ls-threshold`` (default) or ``nnls``; see `solve`.
     grid : (int, int)
         Split the noise region into nx x ny local windows, one PSF each.
+    recentre : bool
+        Move each PSF by a sub-sample shift so that its core is centred (see
+        `recentre`); the shift removed is kept in ``params["kernel_shift"]``.
+        The X-corners place the kernel only to within their bias (up to
+        ~0.1 pixel, 0.4 s-grid samples at s = 4; detect.find_target), so the
+        raw position is not a measurement at that level.
 
     Returns
     -------
@@ -399,11 +488,12 @@ def estimate_target(
               "scale": scale}
     out = []
     for r in results:
+        kernel, shift = _recentred(r["psf"], solver) if recentre else (r["psf"], (0.0, 0.0))
         wx0, wy0, wx1, wy1 = r["window"]
         window = (wx0 + x0, wy0 + y0, wx1 + x0, wy1 + y0)
         out.append(
             PSF(
-                psf=r["psf"],
+                psf=kernel,
                 s=s,
                 method="bernoulli",
                 channel=frame.channel,
@@ -412,11 +502,50 @@ def estimate_target(
                 window=window,
                 noise_floor=r["noise_floor"],
                 residual=r["residual"],
-                params={**params, "mass": r["mass"], "samples": r["count"]},
+                params={**params, "mass": r["mass"], "samples": r["count"],
+                        "kernel_shift": [round(shift[0], 4), round(shift[1], 4)]},
                 warnings=_warnings(scale, alpha, r["mass"]),
             )
         )
     return out
+
+
+def recentre(kernel: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
+    """The kernel translated by -``shift`` (x, y) s-grid samples, by a Fourier phase ramp.
+
+    h is band-limited to the s-grid band (IJCV 2012 sec. 3.1, Lemma 1), so
+    its samples determine it and a sub-sample translation is exact in the
+    Fourier domain; zero padding to twice the support stops the shifted
+    tails from wrapping around.
+    """
+    rows, cols = kernel.shape
+    padded = np.zeros((2 * rows, 2 * cols))
+    padded[:rows, :cols] = kernel
+    fy = fft.fftfreq(2 * rows)[:, None]
+    fx = fft.fftfreq(2 * cols)[None, :]
+    ramp = np.exp(2j * np.pi * (fx * shift[0] + fy * shift[1]))
+    return np.real(fft.ifft2(fft.fft2(padded) * ramp))[:rows, :cols]
+
+
+def core_centre(kernel: np.ndarray, level: float = 0.05) -> tuple[float, float]:
+    """Centroid (x, y), in s-grid samples from the centre, of the values above ``level`` x the peak.
+
+    The estimation noise in the tails would move a plain centroid; the core
+    carries the position (the convention of the two-scale estimator).
+    """
+    return psf_mod.centroid(np.where(kernel > level * kernel.max(), kernel, 0.0))
+
+
+def _recentred(kernel: np.ndarray, solver: str) -> tuple[np.ndarray, tuple[float, float]]:
+    """The kernel with its core centred, and the shift removed (x, y samples)."""
+    total = np.zeros(2)
+    out = kernel
+    for _ in range(3):  # the core moves with the shift: a few passes converge
+        total += core_centre(out)
+        out = recentre(kernel, (float(total[0]), float(total[1])))
+    # the interpolation rings slightly below 0: project back as the solver did
+    out = psf_mod.normalise(out) if solver == "ls" else psf_mod.clip_negatives(out)
+    return out, (float(total[0]), float(total[1]))
 
 
 def _corrected(

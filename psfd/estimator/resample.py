@@ -13,7 +13,11 @@ from scipy import fft, ndimage
 
 
 def dct_lowpass(
-    image: np.ndarray, keep: tuple[int, int], size: tuple[int, int] | None = None
+    image: np.ndarray,
+    keep: tuple[int, int],
+    size: tuple[int, int] | None = None,
+    mask: np.ndarray | None = None,
+    cross_mask: np.ndarray | None = None,
 ) -> np.ndarray:
     """Low-pass an image by zeroing its DCT-II coefficients from index ``keep`` on.
 
@@ -32,6 +36,17 @@ def dct_lowpass(
         Resynthesise the kept band on a grid of this shape instead of the
         image's own (a band-limited zoom: sample (i + 0.5) rows / size[0] - 0.5
         of the original grid), with the amplitude preserved.
+    mask : ndarray (>= keep[0], >= keep[1]), optional
+        Weights (bool or float) of the kept coefficients: a band that is not
+        a rectangle. Coefficient (i, j) holds the frequencies (+-i, +-j) of
+        the image's half-sample-symmetric extension (the DCT-II's implicit
+        periodisation, 2 rows x 2 cols); ``mask`` weighs the pair (i, j),
+        (-i, -j).
+    cross_mask : ndarray like ``mask``, optional
+        Weights of the other pair (i, -j), (-i, j); ``mask`` by default, which
+        is a plain weighting of the DCT coefficients. A different cross mask
+        filters the symmetric extension with a band that is not symmetric
+        under x -> -x (e.g. a rotated square), still without border ringing.
 
     Returns
     -------
@@ -43,14 +58,32 @@ def dct_lowpass(
     rows, cols = image.shape
     out_r, out_c = (rows, cols) if size is None else (int(size[0]), int(size[1]))
     keep_r, keep_c = min(int(keep[0]), rows, out_r), min(int(keep[1]), cols, out_c)
-    if keep_r >= rows and keep_c >= cols and (out_r, out_c) == (rows, cols):
+    if mask is None and keep_r >= rows and keep_c >= cols and (out_r, out_c) == (rows, cols):
         return image.copy()
     # Axis by axis, dropping the zeroed coefficients at once: the inverse
     # transforms zero-pad them back, so the second pass works on fewer lines.
     coeffs = fft.dct(image, type=2, norm="ortho", axis=1, workers=-1)[:, :keep_c]
     coeffs = fft.dct(coeffs, type=2, norm="ortho", axis=0, workers=-1)[:keep_r]
+    anti = None
+    if mask is not None:
+        same = np.asarray(mask, dtype=coeffs.dtype)[:keep_r, :keep_c]
+        cross = same if cross_mask is None else np.asarray(cross_mask, dtype=coeffs.dtype)[:keep_r, :keep_c]
+        if same.shape != coeffs.shape or cross.shape != coeffs.shape:
+            raise ValueError(f"mask and cross_mask need at least {coeffs.shape} coefficients")
+        # With theta = pi i (row + 1/2) / rows, phi = pi j (col + 1/2) / cols,
+        # a = mask and b = cross_mask, the pairs of coefficient (i, j) resynthesise
+        # (a cos(theta + phi) + b cos(theta - phi)) / 2
+        #     = (a + b) / 2 cos(theta) cos(phi) + (b - a) / 2 sin(theta) sin(phi):
+        # the cosine part is an inverse DCT-II, the sine part an inverse DST-II
+        # (whose index k is frequency k + 1, with the same orthonormal factor).
+        if cross is not same and np.any(cross != same):
+            anti = (coeffs * (cross - same) / 2)[1:, 1:]
+        coeffs = coeffs * (same + cross) / 2
     lowpassed = fft.idct(coeffs, type=2, norm="ortho", axis=0, n=out_r, workers=-1)
     lowpassed = fft.idct(lowpassed, type=2, norm="ortho", axis=1, n=out_c, workers=-1)
+    if anti is not None and anti.size:
+        sine = fft.idst(anti, type=2, norm="ortho", axis=0, n=out_r, workers=-1)
+        lowpassed += fft.idst(sine, type=2, norm="ortho", axis=1, n=out_c, workers=-1)
     if (out_r, out_c) != (rows, cols):
         # orthonormal DCTs of different lengths: sqrt(new / old) keeps the amplitude
         lowpassed *= np.sqrt(out_r * out_c / (rows * cols)).astype(lowpassed.dtype)
