@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from psfd.errors import BadInputError, SaturatedError, TargetNotFoundError
-from psfd.estimator import bernoulli, detect, mtf, psf as psf_mod, raw, register, simulate
+from psfd.errors import BadInputError, EstimationError, SaturatedError, TargetNotFoundError
+from psfd.estimator import bernoulli, detect, mtf, psf as psf_mod, raw, register, simulate, target
 
 S = 4
 MODEL_L2 = 0.01  # rendering mismatch, see the module docstring
@@ -348,3 +348,10 @@ def test_real_photograph(data_dir):
         )
         estimates.append(bernoulli.estimate_target(noisy)[0].psf)
     assert _mtf_error(estimates[0], estimates[1]) < 0.03
+
+
+def test_a_noise_pattern_that_is_not_the_photographed_one_is_refused(data_dir):
+    """The real photo shows the published noise: another realisation must not yield a "PSF"."""
+    frame = raw.load_frame(data_dir / "img_example.pgm", "g1")
+    with pytest.raises(EstimationError, match=r"img_example.pgm \(g1\): the photographed noise does not follow"):
+        bernoulli.estimate_target(frame, noise=target.seeded_noise(7))

@@ -83,6 +83,14 @@ def test_truncated_dng_is_bad_input(tmp_path):
         raw.load_frames(cut)
 
 
+def test_folders_and_foreign_files_are_named_as_such(tmp_path):
+    with pytest.raises(BadInputError, match="is a folder"):
+        raw.load_frames(tmp_path)
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(BadInputError, match="not an image psfd reads"):
+        raw.load_frames(tmp_path / "notes.txt")
+
+
 def test_missing_file_and_unknown_channel(tmp_path, data_dir):
     with pytest.raises(BadInputError, match="no such file"):
         raw.load_frames(tmp_path / "nope.dng")
@@ -272,3 +280,13 @@ def test_dct_lowpass_with_masks_filters_the_symmetric_extension():
     )
     with pytest.raises(ValueError, match="coefficients"):
         resample.dct_lowpass(image, (30, 40), mask=np.ones((10, 10)))
+
+
+def test_cli_turns_an_unforeseen_file_system_refusal_into_one_line(tmp_path, capfd):
+    from psfd.cli import main
+
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("a file where a folder should be")
+    code = main(["target", "--out", str(blocker / "sub" / "t.png")])
+    err = capfd.readouterr().err
+    assert code != 0 and err.startswith("psfd: error:") and err.count("\n") == 1, err

@@ -17,9 +17,12 @@ import sys
 # second. Must be set before numpy loads OpenBLAS; a user's own setting wins.
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
+# OpenCV logs its own warnings on stderr (e.g. for an unreadable image) before psfd
+# reports the error in one line; must be set before cv2 is imported.
+os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
 
 from psfd import __version__
-from psfd.errors import PsfdError
+from psfd.errors import BadInputError, PsfdError
 
 # Modules that add commands. A module listed here but not present yet is skipped.
 COMMAND_MODULES = (
@@ -56,6 +59,12 @@ def main(argv: list[str] | None = None) -> int:
     except PsfdError as exc:
         print(f"psfd: error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except OSError as exc:
+        # A file-system refusal the commands did not foresee (read-only disk, a file where a
+        # folder should be, disk full): still the user's environment, still one line.
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"psfd: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return BadInputError.exit_code
     except KeyboardInterrupt:
         print("psfd: interrupted", file=sys.stderr)
         return 130

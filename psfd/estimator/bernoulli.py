@@ -339,6 +339,8 @@ def estimate_window(
         return max(vtv - 2.0 * float(x @ atv) + float(x @ ata @ x), 0.0)
 
     sigma = np.sqrt(rss(h_ls) / (count - h_ls.size))
+    observed = v[y0:y1, x0:x1][mask[y0:y1, x0:x1]]
+    _check_pattern_fits(sigma**2, float(np.var(observed)))
     # trace((A^T A)^-1) = ||L^-1||_F^2
     inverse_factor = linalg.solve_triangular(lower, np.eye(ata.shape[0]), lower=True, check_finite=False)
     mass = float(h.sum())
@@ -353,6 +355,22 @@ def estimate_window(
         "residual": float(np.sqrt(rss(h) / count)),
         "count": count,
     }
+
+
+def _check_pattern_fits(residual_variance: float, signal_variance: float) -> None:
+    """Refuse an estimate whose model explains little of the photographed noise.
+
+    With the right pattern the LS residual is sensor noise, orders of magnitude
+    below the variance of the blurred noise image even at f/32; with the wrong
+    noise realisation the kernel's few hundred unknowns explain only a few per
+    cent of it, and the "PSF" would be noise.
+    """
+    explained = 1.0 - residual_variance / max(signal_variance, 1e-30)
+    if explained < 0.5:
+        raise EstimationError(
+            f"the photographed noise does not follow the target's pattern (the model explains "
+            f"{max(explained, 0.0):.0%} of it): give the printed target's noise with --pattern"
+        )
 
 
 def estimate_plane(
@@ -472,17 +490,20 @@ def estimate_target(
     support = _check_arguments(s, support, solver, grid)
     noise = _check_noise(noise)
     image = np.asarray(frame.data, dtype=np.float64)
-    # X-corners and thin-plate spline D (IJCV 2012 sec. 4; Delbracio PhD thesis 2013, App. A.1)
-    detection = detect.find_target(image, frame.saturated)
-    to_image, to_pattern = register.target_maps(detection)
-    box = _target_box(to_image, image.shape, margin=(support - 1) // (2 * s) + 2)
-    v, alpha = _corrected(frame, image, box, to_image, to_pattern)
-    x0, y0 = box[0], box[1]
+    try:
+        # X-corners and thin-plate spline D (IJCV 2012 sec. 4; Delbracio PhD thesis 2013, App. A.1)
+        detection = detect.find_target(image, frame.saturated)
+        to_image, to_pattern = register.target_maps(detection)
+        box = _target_box(to_image, image.shape, margin=(support - 1) // (2 * s) + 2)
+        v, alpha = _corrected(frame, image, box, to_image, to_pattern)
+        x0, y0 = box[0], box[1]
 
-    def local_to_pattern(x, y):
-        return to_pattern(np.asarray(x) + x0, np.asarray(y) + y0)
+        def local_to_pattern(x, y):
+            return to_pattern(np.asarray(x) + x0, np.asarray(y) + y0)
 
-    results = estimate_plane(v, local_to_pattern, noise=noise, s=s, support=support, solver=solver, grid=grid)
+        results = estimate_plane(v, local_to_pattern, noise=noise, s=s, support=support, solver=solver, grid=grid)
+    except EstimationError as exc:  # say which of several frames and planes could not be used
+        raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
     scale = s * float(detection.scale)  # s / t, with 1/t = image pixels per cell
     params = {"solver": solver, "support": support, "grid": [int(grid[0]), int(grid[1])], "crf_alpha": alpha,
               "scale": scale}

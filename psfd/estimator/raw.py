@@ -91,6 +91,8 @@ def load_frames(path: str | os.PathLike, channel: str = "all") -> list[Frame]:
     path = Path(path)
     if channel != "all" and channel not in CHANNELS and channel != MONO:
         raise BadInputError(f"unknown channel {channel!r}: use r, g1, g2, b or all")
+    if path.is_dir():
+        raise BadInputError(f"{path}: is a folder, not a frame")
     if not path.is_file():
         raise BadInputError(f"{path}: no such file")
     if path.suffix.lower() in IMAGE_SUFFIXES:
@@ -137,7 +139,9 @@ def _load_raw(path: Path) -> dict[str, Frame]:
             blacks = list(raw.black_level_per_channel)
             white = float(raw.white_level)
     except (rawpy.LibRawError, OSError, ValueError) as exc:
-        raise BadInputError(f"{path}: not a readable RAW file ({type(exc).__name__})") from None
+        if path.suffix.lower() not in RAW_SUFFIXES:
+            raise BadInputError(f"{path}: not an image psfd reads (a camera RAW file, PGM, PNG or TIFF)") from None
+        raise BadInputError(f"{path}: not a readable RAW file ({_libraw_reason(exc)})") from None
     if mosaic.ndim != 2 or min(mosaic.shape) < 4:
         raise BadInputError(f"{path}: not a Bayer mosaic")
     planes: dict[str, Frame] = {}
@@ -166,6 +170,16 @@ def _load_raw(path: Path) -> dict[str, Frame]:
                 from_mosaic=True,
             )
     return planes
+
+
+def _libraw_reason(exc: Exception) -> str:
+    """LibRaw's error class in words."""
+    name = type(exc).__name__
+    if "Unsupported" in name:
+        return "a format LibRaw does not know"
+    if "IOError" in name or "DataError" in name:
+        return "truncated or damaged"
+    return "LibRaw could not decode it"
 
 
 def _load_single_channel(path: Path) -> Frame:
