@@ -246,11 +246,17 @@ class Catalogue:
         if not self.path.exists():
             if not create:
                 raise CatalogueError(f"no catalogue at {self.path}")
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise CatalogueError(f"cannot create catalogue {self.path}: {exc.strerror or exc}") from None
         elif self.path.is_dir():
             raise CatalogueError(f"{self.path} is a folder, not a catalogue file")
         self._lock = threading.RLock()
-        conn = sqlite3.connect(str(self.path), timeout=timeout, check_same_thread=False)
+        try:
+            conn = sqlite3.connect(str(self.path), timeout=timeout, check_same_thread=False)
+        except sqlite3.Error as exc:  # e.g. "unable to open database file" in a read-only folder
+            raise CatalogueError(f"cannot open catalogue {self.path}: {exc}") from None
         self.db = sqlite_utils.Database(conn)
         try:
             self.db.execute(f"PRAGMA busy_timeout = {int(timeout * 1000)}")
@@ -258,6 +264,9 @@ class Catalogue:
             self._check_is_catalogue(create)
             self.db.enable_wal()
             self._migrate()
+        except sqlite3.OperationalError as exc:  # read-only file or folder, locked, ...
+            self.db.close()
+            raise CatalogueError(f"cannot open catalogue {self.path}: {exc}") from None
         except sqlite3.DatabaseError as exc:
             self.db.close()
             raise CatalogueError(f"{self.path} is not a psfd catalogue ({exc})") from None

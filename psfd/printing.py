@@ -200,7 +200,9 @@ def output_format(out: str | os.PathLike) -> tuple[Path, str]:
     suffix = out.suffix.lower()
     if suffix not in (".pdf", ".png"):
         raise BadInputError(f"{out}: unknown target format {out.suffix or '(none)'!r}; use .pdf or .png")
-    if not out.parent.is_dir() or not os.access(out.parent, os.W_OK):
+    if not out.parent.is_dir():
+        raise BadInputError(f"{out.parent}: {'not a folder' if out.parent.exists() else 'no such folder'}")
+    if not os.access(out.parent, os.W_OK):
         raise BadInputError(f"{out.parent}: not a writable folder")
     return out, suffix
 

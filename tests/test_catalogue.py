@@ -125,6 +125,15 @@ def test_newer_foreign_and_garbage_files_are_refused(tmp_path):
     assert not (tmp_path / "missing.sqlite").exists()
 
 
+def test_unopenable_locations_are_catalogue_errors(tmp_path):
+    # /proc refuses new files even to root (a chmod-000 folder would not); under a file, no folder can be made.
+    (tmp_path / "file.txt").write_text("")
+    for path in ("/proc/psfd.sqlite", tmp_path / "file.txt" / "c.sqlite"):
+        with pytest.raises(CatalogueError, match="cannot (open|create) catalogue "):
+            Catalogue(path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file.txt"]
+
+
 def test_default_path_follows_xdg(monkeypatch, tmp_path):
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path))
     assert default_path() == tmp_path / "psfd" / "catalogue.sqlite"

@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from psfd.cli import main
-from psfd.cli.compare import HIGH, LOW, mtf_errors
+from psfd.cli.compare import HIGH, LOW, Estimate, mtf_errors, print_table
 from psfd.estimator import gamma, mtf, sharpedge, simulate
+from psfd.estimator.psf import PSF
 
 S = 4
 SUPPORT = 17
@@ -186,3 +187,15 @@ def test_compare_cli_bad_inputs(edge_dng, tmp_path, capsys):
     assert main(["compare", str(tmp_path / "flat.png"), "--out", str(out)]) == 3
     assert "no method could estimate a PSF" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_error_footnote_only_with_an_error_column(capsys):
+    kernel = np.zeros((9, 9))
+    kernel[4, 4] = 1.0
+    one = Estimate("bernoulli x.dng", PSF(kernel, 2, "bernoulli", "g1", ["x.dng"], (0.5, 0.5), (0, 0, 8, 8)))
+    skipped = Estimate("sharp-edge x.dng", None, "no edges")
+    print_table([one, skipped], {one.label: {}}, with_truth=False)
+    text = capsys.readouterr().out
+    assert "MTF50" in text and "skipped: no edges" in text and "MTF error" not in text
+    print_table([one], {one.label: {LOW: 0.01, HIGH: 0.02}}, with_truth=True)
+    assert "MTF error: RMS difference" in capsys.readouterr().out

@@ -5,6 +5,8 @@ from __future__ import annotations
 import io
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -187,6 +189,8 @@ def bad_files(tmp_path: Path) -> Path:
     raw.write_dng(folder / "whole.dng", mosaic, black=512, white=16383)
     data = (folder / "whole.dng").read_bytes()
     (folder / "cut.dng").write_bytes(data[: len(data) // 2])
+    pgm = cv2.imencode(".pgm", np.zeros((64, 64), np.uint8))[1].tobytes()
+    (folder / "trunc.pgm").write_bytes(pgm[: len(pgm) // 2])  # OpenCV would log its own error line
     return folder
 
 
@@ -204,7 +208,10 @@ BAD = [
     (["target", "{in}/whole.dng", "--channel", "green"], "unknown channel"),
     (["target", "{in}/whole.dng", "--solver", "cg"], "--solver"),
     (["target", "{in}/whole.dng", "--pattern", "{in}/notes.pgm"], "noise pattern"),
-    (["target", "{in}/whole.dng", "--out", "{in}/missing/out"], "not a writable folder"),
+    (["target", "{in}/whole.dng", "--pattern", "{in}/missing.pgm"], "missing.pgm: no such file"),
+    (["target", "{in}/whole.dng", "--out", "{in}"], "exists and is not an empty folder"),
+    (["target", "{in}/whole.dng", "--out", "{in}/whole.dng/out"], "whole.dng: not a folder"),
+    (["target", "{in}/whole.dng", "--out", "{in}/missing/out"], "missing: no such folder"),
     (["pair", "{in}/whole.dng", "{in}/cut.dng"], "not a readable RAW file"),
     (["pair", "{in}/whole.dng", "{in}/missing.pgm"], "no such file"),
     (["edges", "{in}/notes.pgm", "--weight", "x"], "--weight"),
@@ -225,6 +232,28 @@ def test_bad_input_one_line_nothing_written(bad_files, capfd, argv, message):
     assert stderr.startswith("psfd: error: ") and stderr.count("\n") == 1 and message in stderr
     assert stdout == ""
     assert sorted(p.name for p in bad_files.parent.rglob("*")) == before  # no results folder, no temporary
+
+
+def test_no_opencv_log_lines(bad_files):
+    # In a fresh process, as a user runs it: OpenCV reads its log level when first imported.
+    proc = subprocess.run([sys.executable, "-m", "psfd", "estimate", "target", str(bad_files / "trunc.pgm")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr == f"psfd: error: {bad_files / 'trunc.pgm'}: not a readable image\n"
+
+
+def test_unwritable_out_is_one_line_error():
+    # /proc refuses new folders even to root, where a chmod-000 folder would not
+    with pytest.raises(BadInputError) as info:
+        output.write_estimates([synthetic(0)], "/proc/psfd-nope")
+    assert "\n" not in str(info.value) and "/proc" in str(info.value)
+
+
+def test_pair_help_cites_both_papers(capsys):
+    with pytest.raises(SystemExit):
+        main(["estimate", "pair", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "SIAM J. Imaging Sciences 2012" in text and "IPOL 2013" in text
 
 
 def test_pair_channels_must_match(bad_files, capsys, data_dir):
@@ -357,10 +386,10 @@ def test_rendered_target_round_trip(tmp_path, capsys):
     floor = record["noise_floor"] / np.linalg.norm(truth)
     assert floor < 0.15  # the photo is informative enough for the comparison to mean something
     assert relative_error(np.array(record["psf"]), truth) < ROUND_TRIP_FLOORS * floor
-    # without --pattern the published noise is assumed: the model does not fit (residual 0.65 against
-    # 0.007 measured), so the saved noise is what made the estimate work
-    code, stdout, _ = run(capsys, "estimate", "target", tmp_path / "photo.png", "--json")
-    assert code == 0 and json.loads(stdout)["residual"] > 10 * record["residual"]
+    # without --pattern the published noise is assumed: the model does not fit, which is refused,
+    # so the saved noise is what made the estimate work
+    code, stdout, stderr = run(capsys, "estimate", "target", tmp_path / "photo.png", "--json")
+    assert code == 3 and stdout == "" and "does not follow the target's pattern" in stderr
 
 
 def test_edges_end_to_end_passes_its_options(tmp_path, capsys):

@@ -6,6 +6,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from fake_grbl import FakeGrbl
 from psfd.cli import main
 from psfd.drivers import open_rig
@@ -97,6 +99,27 @@ def test_record_failures_leave_nothing(capsys, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["busy"]
     code, _, err = run(capsys, "record", "--simulate", "--out", str(tmp_path / "new"), "--at", "X=abc")
     assert code == 2 and "expected a number" in err
+
+
+def test_non_positive_fnumbers_are_bad_input(capsys, tmp_path):
+    for argv in (["camera", "set", "aperture", "-2", "--simulate"], ["camera", "set", "aperture", "f/0", "--simulate"],
+                 ["record", "--simulate", "--out", str(tmp_path / "r"), "--at", "X=1300", "--aperture", "-3"]):
+        code, out, err = run(capsys, *argv)
+        assert code == 2 and out == "" and err.count("\n") == 1 and "positive f-number" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_record_into_unwritable_place_is_one_line(capsys):
+    # /proc refuses new folders even to root, where a chmod-000 folder would not
+    code, _, err = run(capsys, "record", "--simulate", "--out", "/proc/psfd-rec", "--at", "X=1300")
+    assert code == 2 and err.startswith("psfd: error:") and err.count("\n") == 1
+
+
+def test_rail_limits_help_names_both_defaults(capsys):
+    with pytest.raises(SystemExit):
+        main(["rail", "home", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "X=0:500 on a real rail" in text and "--simulate" in text
 
 
 def test_console_entry_point(tmp_path):

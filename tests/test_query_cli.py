@@ -119,8 +119,8 @@ def test_export_failure_leaves_nothing(capsys, catalogue, tmp_path, monkeypatch)
         return real(*args)
 
     monkeypatch.setattr(query_cli, "_write_psf", fail_third)
-    with pytest.raises(OSError):
-        main(["export", "--catalogue", catalogue, "--out", str(tmp_path / "export")])
+    code, _, err = run_cli(capsys, "export", "--catalogue", catalogue, "--out", str(tmp_path / "export"))
+    assert_one_line_error(code, err, 2, "disk full")
     assert len(calls) == 3
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cat.sqlite"]
 
@@ -156,8 +156,9 @@ def test_bad_inputs_give_one_line_errors(capsys, catalogue, tmp_path):
         (["query", "--channel", "green"], 2, "channel"),
         (["query", "--limit", "0"], 2, "--limit"),
         (["export", "--format", "bmp", "--out", str(tmp_path / "x")], 2, "format"),
-        (["export", "--method", "none", "--out", str(tmp_path / "empty")], 5, "no PSF matches"),
-        (["report", "--method", "none", "--out", str(tmp_path / "r.png")], 5, "no PSF matches"),
+        (["query", "--method", "foo"], 2, "unknown method 'foo'"),
+        (["export", "--method", "two-photo", "--out", str(tmp_path / "empty")], 5, "no PSF matches"),
+        (["report", "--method", "two-photo", "--out", str(tmp_path / "r.png")], 5, "no PSF matches"),
         (["report", "--out", str(tmp_path / "r.xyz")], 2, "cannot write"),
     ]
     for argv, expected, text in cases:
@@ -183,6 +184,24 @@ def test_bad_inputs_give_one_line_errors(capsys, catalogue, tmp_path):
     code, _, err = run_cli(capsys, "query", "--catalogue", str(tmp_path / "missing.sqlite"))
     assert_one_line_error(code, err, 5, "no catalogue")
     assert not (tmp_path / "missing.sqlite").exists()
+
+
+def test_unwritable_outputs_are_one_line_errors(capsys, catalogue, tmp_path):
+    # /proc refuses new files and folders even to root, where a chmod-000 folder would not.
+    code, _, err = run_cli(capsys, "export", "--catalogue", catalogue, "--out", "/proc/psfd-export")
+    assert_one_line_error(code, err, 2, "cannot write in /proc")
+    code, _, err = run_cli(capsys, "report", "--catalogue", catalogue, "--out", "/proc/psfd-report.png")
+    assert_one_line_error(code, err, 2, "could not write /proc/psfd-report.png")
+    (tmp_path / "file.txt").write_text("")
+    code, _, err = run_cli(capsys, "report", "--catalogue", catalogue, "--out", str(tmp_path / "file.txt" / "r.png"))
+    assert_one_line_error(code, err, 2, "cannot create")
+    code, _, err = run_cli(capsys, "query", "--catalogue", "/proc/psfd.sqlite")
+    assert_one_line_error(code, err, 5, "no catalogue")
+
+
+def test_json_query_without_match_says_so_on_stderr(capsys, catalogue):
+    code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--camera", "EOS 5D", "--json")
+    assert (code, out, err) == (0, "", "psfd: no PSF matches the query\n")
 
 
 def test_query_subprocess_uses_the_default_catalogue(catalogue, tmp_path):

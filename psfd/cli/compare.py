@@ -211,6 +211,7 @@ def _fmt(v: float) -> str:
 def print_table(estimates: list[Estimate], table: dict, with_truth: bool, stream=None) -> None:
     stream = sys.stdout if stream is None else stream
     width = max(len(e.label) for e in estimates) + 2
+    shown = False  # whether any MTF error was printed, to explain it
     if with_truth:
         head = f"{'MTF err <=Nyq':>14} {'MTF err >Nyq':>13} {'MTF50 x':>8} {'MTF50 y':>8}"
         print(f"{'method':<{width}} {head}", file=stream)
@@ -223,13 +224,17 @@ def print_table(estimates: list[Estimate], table: dict, with_truth: bool, stream
             err = table[e.label]
             print(f"{e.label:<{width}} {_fmt(err[LOW]):>14} {_fmt(err[HIGH]):>13} "
                   f"{_fmt(m['mtf50_x']):>8} {_fmt(m['mtf50_y']):>8}", file=stream)
+            shown = True
         else:
             print(f"{e.label}: MTF50 x {_fmt(m['mtf50_x'])} y {_fmt(m['mtf50_y'])}", file=stream)
             for other, err in table[e.label].items():
                 print(f"    vs {other:<{width}} MTF err <=Nyq {_fmt(err[LOW])}  >Nyq {_fmt(err[HIGH])}", file=stream)
+                shown = True
         for w in e.psf.warnings:
             print(f"    warning: {w}", file=stream)
-    print("MTF error: RMS difference of the x and y MTF profiles, cycles per channel pixel (Nyquist 0.5).", file=stream)
+    if shown:
+        print("MTF error: RMS difference of the x and y MTF profiles, cycles per channel pixel (Nyquist 0.5).",
+              file=stream)
 
 
 # ---------------------------------------------------------------- figure and files

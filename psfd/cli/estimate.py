@@ -39,7 +39,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = methods.add_parser(
         "pair",
         help="blind: two photographs of a textured plane at different distances",
-        description="Sub-pixel PSF from a near/far pair (Delbracio et al., IPOL 2013). Which is near is detected.",
+        description=(
+            "Sub-pixel PSF from a near/far pair (Delbracio et al., SIAM J. Imaging Sciences 2012; "
+            "IPOL 2013). Which is near is detected."
+        ),
     )
     p.add_argument("photo_a", metavar="PHOTO_A")
     p.add_argument("photo_b", metavar="PHOTO_B")

@@ -6,10 +6,10 @@ import argparse
 import json
 import os
 import shutil
-import tempfile
 from pathlib import Path
 
-from psfd.cli.output import parse_float, parse_int
+from psfd.catalogue import parse_fnumber
+from psfd.cli.output import parse_float, parse_int, staging_dir
 from psfd.drivers import open_camera, open_rail
 from psfd.drivers.base import Position
 from psfd.errors import BadInputError, PsfdError
@@ -65,7 +65,9 @@ def _rig_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--simulate", action="store_true", help="use the simulated rig")
     p.add_argument("--camera-port", help="gphoto2 port, e.g. usb:001,004 (default: the only camera)")
     p.add_argument("--rail-port", help="serial port of the rail, e.g. /dev/ttyUSB0")
-    p.add_argument("--rail-limits", metavar="X=MIN:MAX[,Y=MIN:MAX]", help="soft limits in mm (default X=0:500)")
+    p.add_argument("--rail-limits", metavar="X=MIN:MAX[,Y=MIN:MAX]",
+                   help="soft limits in mm (default: X=0:500 on a real rail, the simulated rig's own travel "
+                        "with --simulate)")
 
 
 # ---------------------------------------------------------------- argument values
@@ -119,11 +121,17 @@ def parse_limits(text: str) -> dict[str, list[float]]:
     return limits
 
 
+def check_fnumber(text: str, option: str) -> str:
+    """``text`` unchanged if it is a positive f-number (``5.6``, ``f/5.6``); else bad input, not a camera fault."""
+    try:
+        parse_fnumber(text)
+    except BadInputError:
+        raise BadInputError(f"{option}: expected a positive f-number such as 5.6, got {text!r}") from None
+    return text
+
+
 def _apertures(values: list[str] | None) -> list[str]:
-    out = [v.strip() for item in values or [] for v in item.split(",") if v.strip()]
-    for v in out:
-        parse_float(v.removeprefix("f/"), "--aperture")
-    return out
+    return [check_fnumber(v.strip(), "--aperture") for item in values or [] for v in item.split(",") if v.strip()]
 
 
 def _position_text(pos: Position) -> str:
@@ -162,6 +170,9 @@ def camera_info(args: argparse.Namespace) -> int:
 
 
 def camera_set(args: argparse.Namespace) -> int:
+    # A number must be a positive f-number; named choices ("implicit auto") are the camera's to judge.
+    if args.name == "aperture" and any(c.isdigit() for c in args.value):
+        check_fnumber(args.value, "aperture")
     camera = open_camera(rig_config(args))
     try:
         camera.set(args.name, args.value)
@@ -206,7 +217,7 @@ def record(args: argparse.Namespace) -> int:
     if not out.parent.is_dir() or not os.access(out.parent, os.W_OK):
         raise BadInputError(f"{out.parent}: not a writable folder")
     config = rig_config(args)
-    work = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent))
+    work = staging_dir(out)
     frames = 0
     try:
         camera, rail = open_rig(config)

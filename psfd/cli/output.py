@@ -221,14 +221,28 @@ def array_image(array: np.ndarray, min_side: int = 256) -> np.ndarray:
 
 
 def check_out_dir(out_dir: str | os.PathLike) -> Path:
-    """Fail early (before any estimation) if ``out_dir`` cannot be created or filled."""
+    """Fail early (before any estimation) if ``out_dir`` cannot be created or filled.
+
+    Like ``psfd export``, an existing folder must be empty, so earlier results are
+    never overwritten or mixed with new ones.
+    """
     out_dir = Path(out_dir).absolute()
-    if out_dir.exists() and not out_dir.is_dir():
-        raise BadInputError(f"{out_dir}: exists and is not a folder")
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        raise BadInputError(f"{out_dir}: exists and is not an empty folder")
     parent = out_dir.parent
-    if not parent.is_dir() or not os.access(parent, os.W_OK):
+    if not parent.is_dir():
+        raise BadInputError(f"{parent}: {'not a folder' if parent.exists() else 'no such folder'}")
+    if not os.access(parent, os.W_OK):
         raise BadInputError(f"{parent}: not a writable folder")
     return out_dir
+
+
+def staging_dir(out: Path) -> Path:
+    """A new hidden temporary folder beside ``out``; an unwritable place is a one-line BadInputError."""
+    try:
+        return Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent))
+    except OSError as exc:
+        raise BadInputError(f"cannot write in {out.parent}: {exc.strerror or exc}") from None
 
 
 def _imwrite(path: Path, img: np.ndarray) -> None:
@@ -265,8 +279,9 @@ def write_estimates(estimates: list[PSF], out_dir: str | os.PathLike) -> list[Pa
     `print_json` record), and for each entry
     ``key`` of ``PSF.figures``: ``NAME.key.npy`` and, when 2-D, ``NAME.key.png``.
 
-    Everything is written into a temporary folder beside ``out_dir`` and moved
-    in at the end, so a failure leaves nothing half-written in ``out_dir``.
+    ``out_dir`` must not exist or be empty (`check_out_dir`). Everything is written
+    into a temporary folder beside it and renamed to ``out_dir`` at the end, so a
+    failure leaves nothing half-written.
 
     Returns
     -------
@@ -274,14 +289,12 @@ def write_estimates(estimates: list[PSF], out_dir: str | os.PathLike) -> list[Pa
         The files written, in ``out_dir``.
     """
     out_dir = check_out_dir(out_dir)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".part", dir=out_dir.parent))
+    tmp = staging_dir(out_dir)
     try:
         files = [f for name, est in zip(base_names(estimates), estimates) for f in _write_one(tmp, name, est)]
-        if out_dir.exists():
-            for f in files:
-                os.replace(tmp / f, out_dir / f)
-        else:
-            os.rename(tmp, out_dir)  # one atomic step: the folder appears complete
+        if out_dir.exists():  # the empty folder check_out_dir accepted
+            out_dir.rmdir()
+        os.rename(tmp, out_dir)  # one atomic step: the folder appears complete
     except OSError as exc:
         raise BadInputError(f"{out_dir}: cannot write results ({exc.strerror or exc})") from None
     finally:

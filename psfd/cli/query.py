@@ -8,7 +8,6 @@ import math
 import os
 import shutil
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -17,10 +16,13 @@ import numpy as np
 import tifffile
 
 from psfd.catalogue import Catalogue, QueryResult, default_path, parse_fnumber
+from psfd.cli.output import staging_dir
 from psfd.errors import BadInputError, CatalogueError
 from psfd.estimator.raw import CHANNELS
 
 EXPORT_FORMATS = ("npy", "tiff", "json")
+# The `PSF.method` names the estimators store.
+METHODS = ("bernoulli", "two-photo", "sharp-edge")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -33,7 +35,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     filters.add_argument("--lens", help="lens name (case-insensitive substring)")
     filters.add_argument("--aperture", metavar="F", help="f-number, e.g. 5.6; the nearest measured one if not measured")
     filters.add_argument("--channel", help=f"Bayer channel ({', '.join(CHANNELS)}, mono)")
-    filters.add_argument("--method", help="bernoulli, two-photo or sharp-edge")
+    filters.add_argument("--method", help=", ".join(METHODS[:-1]) + " or " + METHODS[-1])
     near = argparse.ArgumentParser(add_help=False)
     near.add_argument("--near", metavar="X,Y", help="normalised field location: the nearest PSF per aperture")
     near.add_argument("--limit", metavar="N", help="at most this many PSFs")
@@ -89,6 +91,8 @@ def query_options(args: argparse.Namespace) -> dict[str, Any]:
     """Validated keyword arguments of Catalogue.query from the filter options (before any file is opened)."""
     if args.channel is not None and args.channel not in (*CHANNELS, "mono"):
         raise BadInputError(f"unknown channel {args.channel!r} (one of {', '.join(CHANNELS)}, mono)")
+    if args.method is not None and args.method not in METHODS:
+        raise BadInputError(f"unknown method {args.method!r} (one of {', '.join(METHODS)})")
     return {
         "camera": args.camera,
         "lens": args.lens,
@@ -144,14 +148,15 @@ def run_query(args: argparse.Namespace) -> int:
     options = query_options(args)
     with open_catalogue(args) as cat:
         result = run_filters(cat, options)
-        if args.json:
+        if not result.rows:
+            # on stderr, so that --json output stays empty (zero JSON lines) and parseable
+            print("psfd: no PSF matches the query", file=sys.stderr)
+        elif args.json:
             for row in result:
                 array, _ = cat.psf(row["id"])
                 print(json.dumps({**row, "psf": array.tolist()}))
-        elif result.rows:
-            print(format_table(result.rows))
         else:
-            print("psfd: no PSF matches the query", file=sys.stderr)
+            print(format_table(result.rows))
     return 0
 
 
@@ -199,7 +204,8 @@ def run_export(args: argparse.Namespace) -> int:
             raise CatalogueError("no PSF matches the query; nothing exported")
         # Everything is written into a hidden sibling folder and renamed at the end, so an
         # error leaves no half-exported folder behind.
-        staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=_parent_folder(out)))
+        _parent_folder(out)
+        staging = staging_dir(out)
         try:
             index = []
             for row in result:
@@ -339,7 +345,10 @@ def run_report(args: argparse.Namespace) -> int:
         if not cv2.imwrite(str(staging), image):
             raise BadInputError(f"could not write {out}")
         os.replace(staging, out)
+    except OSError as exc:
+        raise BadInputError(f"could not write {out}: {exc.strerror or exc}") from None
     finally:
-        staging.unlink(missing_ok=True)
+        if staging.exists():  # imwrite may fail before creating it (read-only folder)
+            staging.unlink()
     print(f"report written to {out}")
     return 0

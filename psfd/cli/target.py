@@ -30,12 +30,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
+def parse_size(text: str) -> float:
+    """``--size-mm``: checked for every format, as it sets the cell size printed in the caption and message."""
+    size_mm = parse_float(text, "--size-mm")
+    if size_mm <= 0:
+        raise BadInputError(f"--size-mm: must be a positive number of millimetres, got {text!r}")
+    return size_mm
+
+
 def run(args: argparse.Namespace) -> int:
     if args.kind not in ("bernoulli", "edges"):
         raise BadInputError(f"--kind: use bernoulli or edges, got {args.kind!r}")
     if args.kind == "edges":
         return run_edges(args)
-    size_mm = parse_float(args.size_mm, "--size-mm")
+    size_mm = parse_size(args.size_mm)
     px_per_cell = parse_int(args.px_per_cell, "--px-per-cell", minimum=1)
     if args.noise is not None and args.seed is not None:
         raise BadInputError("give --seed or --noise, not both")
@@ -62,7 +70,7 @@ def run_edges(args: argparse.Namespace) -> int:
     """Write the sharp-edge target (psfd.estimator.sharpedge.edge_target) as a vector PDF or a PNG."""
     if args.seed is not None or args.noise is not None:
         raise BadInputError("--seed and --noise apply to the Bernoulli target only")
-    size_mm = parse_float(args.size_mm, "--size-mm")
+    size_mm = parse_size(args.size_mm)
     px_per_cell = parse_int(args.px_per_cell, "--px-per-cell", minimum=1)
     square_mm = size_mm / sharpedge.SQUARES[0]
     caption = f"psfd sharp-edge target - square {square_mm:.4g} mm - print at 100 % (no scaling)"

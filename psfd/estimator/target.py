@@ -52,6 +52,8 @@ def default_noise() -> np.ndarray:
 
 def load_noise(path: str | os.PathLike) -> np.ndarray:
     """Read a 256 x 256 noise realisation from an image (dark = 0, light = 1)."""
+    if not Path(path).is_file():  # otherwise imread's None reads as a bad image
+        raise BadInputError(f"{path}: no such file")
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None or image.ndim != 2:
         raise BadInputError(f"{path}: not a single-channel noise pattern image")
