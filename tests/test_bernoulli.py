@@ -288,6 +288,33 @@ def test_estimate_target_recentres_the_kernel(tmp_path):
     assert _mtf_error(est.psf, h) < 4 * est.noise_floor + MODEL_MTF + reg_mtf
 
 
+def test_estimate_target_rotated_view(tmp_path):
+    """Detection, geometry and estimate at 30 degrees with off-centre lens distortion.
+
+    The misregistration left once the kernel is re-centred is what the 12
+    corners' noise leaves in the fitted map (about 0.03 px, test_register:
+    allow 0.04); the estimate stays within the tolerance of test_rotated_target, which has
+    the true map, plus the terms that misregistration explains.
+    """
+    h = PSFS["f/5.6"]()
+    path = tmp_path / "t.dng"
+    truth = simulate.simulate_target(path, psf=h, s=S, pixels_per_cell=0.33, rotation_deg=30.0, distortion=0.05,
+                                     centre=(0.35, 0.45), sensor=(400, 560), seed=9)
+    frame = raw.load_frame(path, "g1")
+    (est,) = bernoulli.estimate_target(frame)
+    delta, reg_l2, reg_mtf = _registration_terms(frame, est, truth, 0.33)
+    assert delta < 0.04
+    norm = np.linalg.norm(h)
+    rel = np.linalg.norm(est.psf - h) / norm
+    err = _mtf_error(est.psf, h)
+    assert rel < 1.5 * est.noise_floor / norm + MODEL_L2_ROTATED + reg_l2
+    assert err < 4 * est.noise_floor + MODEL_MTF + reg_mtf
+    # and within the absolute bounds of test_rotated_target (true map): this
+    # frame measured 0.018 / 0.007 (the thesis's lambda = 10 spline: 0.042 /
+    # 0.035, a homography alone: 0.12 / 0.094).
+    assert rel < 0.05 and err < 0.02
+
+
 def test_estimate_target_grid_gives_field_locations(photo):
     path, truth = photo
     frame = raw.load_frame(path, "g1")
