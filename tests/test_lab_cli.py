@@ -22,7 +22,7 @@ def test_capture_locally_adds_the_psfs_to_the_catalogue(tmp_path, capsys):
                  "--catalogue", str(db), "--socket", str(tmp_path / "none.sock"), "--workers", "1"])
     assert code == 0
     printed = capsys.readouterr().out
-    assert "done: 1 steps, 1 frames, 2 PSFs" in printed and "bernoulli" in printed
+    assert "done: 1 step, 1 frame, 2 PSFs" in printed and "bernoulli" in printed
     with Catalogue(db) as cat:
         rows = cat.query().rows
         assert sorted(r["channel"] for r in rows) == ["b", "g1"]
@@ -35,7 +35,7 @@ def test_capture_near_far_pair(tmp_path, capsys):
     db = tmp_path / "cat.sqlite"
     assert main(["capture", "--aperture", "8", "--target", "pair", "--simulate", "--channels", "g1",
                  "--catalogue", str(db), "--socket", str(tmp_path / "none.sock"), "--workers", "1"]) == 0
-    assert "1 steps, 2 frames, 1 PSFs" in capsys.readouterr().out
+    assert "1 step, 2 frames, 1 PSF in" in capsys.readouterr().out
     with Catalogue(db) as cat:
         (row,) = cat.query().rows
         assert row["method"] == "two-photo" and row["step"].startswith("a8/x587.5-2200")
@@ -49,7 +49,7 @@ def test_capture_goes_through_the_service_when_it_is_up(served, tmp_path):  # no
                           "--catalogue", str(tmp_path / "ignored.sqlite")],
                          capture_output=True, text=True, timeout=300)
     assert cli.returncode == 0, cli.stderr
-    assert "done: 1 steps" in cli.stdout
+    assert "done: 1 step," in cli.stdout
     with Catalogue(db) as cat:  # stored in the service's catalogue, not the one on the command line
         assert [r["aperture"] for r in cat.query().rows] == [8.0]
     assert not (tmp_path / "ignored.sqlite").exists()
@@ -63,6 +63,9 @@ def test_capture_goes_through_the_service_when_it_is_up(served, tmp_path):  # no
     (["capture", "--aperture", "5.6", "--target", "pair", "--rail", "X=900", "--simulate"], "give --near MM"),
     (["capture", "--aperture", "5.6", "--target", "pair", "--near", "close", "--simulate"], "--near: expected a number"),
     (["capture", "--aperture", "5.6", "--simulate", "--workers", "0"], "--workers: must be at least 1"),
+    (["capture", "--aperture", "-2", "--simulate"], "--aperture: expected a positive f-number"),
+    (["capture", "--aperture", "5.6", "--channels", "g3", "--simulate"], "--channels: expected all, or a comma"),
+    (["capture", "--aperture", "5.6", "--near", "800", "--simulate"], "--near and --far apply to --target pair"),
 ])
 def test_bad_capture_arguments(argv, message, tmp_path, capsys):
     db = tmp_path / "cat.sqlite"
@@ -70,6 +73,87 @@ def test_bad_capture_arguments(argv, message, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
     assert not db.exists()  # nothing half-written
+
+
+def test_capture_out_must_be_a_writable_folder(tmp_path, capsys):
+    notes = tmp_path / "notes.txt"
+    notes.write_text("mine")
+    for out, message in ((notes, "exists and is not a folder"), (notes / "sub", "cannot create the folder")):
+        code = main(["capture", "--aperture", "5.6", "--simulate", "--out", str(out), "--catalogue",
+                     str(tmp_path / "cat.sqlite"), "--socket", str(tmp_path / "none.sock")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and err[0].startswith(f"psfd: error: --out {out}: {message}")
+    assert notes.read_text() == "mine"
+
+
+def test_failed_capture_is_an_error_and_not_resumable(tmp_path, capsys):
+    db, none = tmp_path / "cat.sqlite", str(tmp_path / "none.sock")
+    code = main(["capture", "--simulate", "--aperture", "3.3", "--rail", "X=1200", "--catalogue", str(db),
+                 "--socket", none, "--workers", "1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 4 and err[-1].startswith("psfd: error: step a3.3/x1200/r0: aperture f/3.3 is not offered")
+    assert not any("paused" in line for line in err)
+    with Catalogue(db) as cat:
+        assert [r["state"] for r in cat.runs()] == ["failed"]  # closed: `psfd status` shows nothing to resume
+    # a position off the rail is refused before the rig moves, named as the option that gave it
+    assert main(["capture", "--simulate", "--aperture", "5.6", "--rail", "X=-5", "--catalogue", str(db),
+                 "--socket", none]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["psfd: error: --rail: x = -5 outside the simulated rail's limits.x [200, 3000]"]
+    assert main(["capture", "--simulate", "--aperture", "5.6", "--target", "pair", "--near", "800", "--far", "900",
+                 "--catalogue", str(db), "--socket", none]) == 2
+    assert "--near/--far: far / near = 1.12 must exceed s = 3" in capsys.readouterr().err
+
+
+def test_paused_run_hint_repeats_the_options_and_restart_is_refused(tmp_path, capsys):
+    """A step the rig refuses pauses the run; the hint is a command that works as printed."""
+    plan = tmp_path / "small.toml"
+    plan.write_text("[rig]\nsimulate = true\n[target]\nkind = 'bernoulli'\n[capture]\napertures = [3.3]\n"
+                    "x = [1300]\nchannels = ['g1']\n")
+    db, sock = tmp_path / "my run.sqlite", tmp_path / "none.sock"
+    common = ["--catalogue", str(db), "--socket", str(sock), "--workers", "1"]
+    assert main(["run", str(plan), *common]) == 4
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.endswith(f"continue with: psfd run {plan} --resume --catalogue '{db}' --socket {sock}")
+    # a plain restart would measure the same positions again: refused, naming the run
+    assert main(["run", str(plan), *common]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "run 1 of plan" in err[0] and "is paused (0/1 steps done)" in err[0]
+    assert "add --resume" in err[0] and "--new" in err[0]
+    assert main(["run", str(plan), "--new", *common]) == 4  # deliberately a second run
+    capsys.readouterr()
+    with Catalogue(db) as cat:
+        assert len(cat.runs()) == 2
+    # --resume where nothing is unfinished is an error, and creates no catalogue
+    other = tmp_path / "other.sqlite"
+    assert main(["run", str(plan), "--resume", "--catalogue", str(other), "--socket", str(sock)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no unfinished run of plan" in err[0] and not other.exists()
+
+
+def test_capture_help_states_defaults(capsys):
+    with pytest.raises(SystemExit):
+        main(["capture", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "Shoot one frame" in out and "noise target (default)" in out
+    assert "(default with --simulate: 587.5)" in out and "(default with --simulate: 2200)" in out
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--workdir", "notes.txt"], "--workdir notes.txt: exists and is not a folder"),
+    (["--workdir", "notes.txt/demo"], "--workdir notes.txt/demo: cannot create the folder"),
+    (["--workers", "0"], "--workers: must be at least 1"),
+    (["--catalogue", "afolder"], "--catalogue afolder: is a folder"),
+])
+def test_bad_demo_arguments_write_and_print_nothing(argv, message, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "notes.txt").write_text("mine")
+    (tmp_path / "afolder").mkdir()
+    assert main(["demo", *argv]) == 2
+    out, err = capsys.readouterr()
+    lines = err.strip().splitlines()
+    assert out == "" and len(lines) == 1 and lines[0].startswith(f"psfd: error: {message}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afolder", "notes.txt"]
 
 
 def test_bad_plan_run_leaves_no_catalogue(tmp_path, capsys):
@@ -115,6 +199,12 @@ def test_demo(tmp_path):
     assert {r["channel"] for r in rows} == {"r", "g1", "g2", "b"}
     assert "done: 27 steps" in cli.stdout
     assert "$ psfd query" in cli.stdout and (workdir / "report.png").stat().st_size > 0
+    # a second demo in the same folder measures nothing again: it says so and shows the results
+    again = subprocess.run([sys.executable, "-m", "psfd", "demo", "--workdir", str(workdir)],
+                           capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert "demo: already measured" in again.stdout and "(run 1, 108 PSFs)" in again.stdout
+    assert "steps" not in again.stdout.splitlines()[0] and "$ psfd query" in again.stdout
     # physical sanity of what was stored: at every field point f/16 (diffraction) is softer than f/4
     mtf = {(r["aperture"], r["channel"], r["step"].split("/", 1)[1]): r["mtf50_x"] for r in rows}
     softer = [mtf[(16.0, c, where)] < mtf[(4.0, c, where)] for (a, c, where) in mtf if a == 4.0]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import textwrap
+
 import pytest
 
 from psfd.cli import main
@@ -37,7 +39,7 @@ simulate = true
 scene = "texture"
 [target]
 kind = "pair"
-near = 800
+near = 500
 far = 1600
 [capture]
 apertures = [8]
@@ -91,8 +93,8 @@ def test_step_payload_round_trip():
 
 def test_pair_plan_keys_carry_both_distances():
     steps = parse_plan(PAIR).steps()
-    assert [s.key for s in steps] == ["a8/x800-1600/r0"]
-    assert steps[0].payload()["near"] == 800 and steps[0].payload()["far"] == 1600
+    assert [s.key for s in steps] == ["a8/x500-1600/r0"]
+    assert steps[0].payload()["near"] == 500 and steps[0].payload()["far"] == 1600
 
 
 def test_every_problem_is_reported():
@@ -115,6 +117,11 @@ def test_every_problem_is_reported():
     (PAIR.replace('scene = "texture"', ""), 'simulated pair needs scene = "texture"'),
     (GOOD.replace("x = [1200]", ""), "needs x"),
     (GOOD.replace("y = [-40, 40]", "y = [1, 1]"), "lists a value twice"),
+    # the simulated rig's default travel (200..3000 mm) applies when the plan gives no rail_limits
+    ("[rig]\nsimulate = true\n[target]\nkind = 'bernoulli'\n[capture]\napertures = [8]\nx = [1200, 9999]\n",
+     "x = 9999 outside the simulated rail's limits.x [200, 3000]"),
+    # lambda = far / near must exceed s (SIAM 2012, Remark 2): 900 / 800 = 1.12 < 3
+    (PAIR.replace("near = 500", "near = 800").replace("far = 1600", "far = 900"), "far / near = 1.12 must exceed s = 3"),
 ])
 def test_single_problems(text, needle):
     assert any(needle in p for p in check_text(text)), check_text(text)
@@ -140,3 +147,28 @@ def test_plan_check_command_lists_all_problems(tmp_path, capsys):
     assert err[-1].startswith("psfd: error:")
     assert main(["plan", "check", str(good)]) == 0
     assert "ok, 16 steps, 16 frames, 64 PSFs" in capsys.readouterr().out  # 2 channels x 2x1 grid
+
+
+def test_docstring_example_frames_the_target_on_the_simulated_rig():
+    """The module's example plan is valid and uses the simulated rig's own geometry, so every step
+    sees the whole target (x at its working distance, y/z the 3x3 field walk of `SimRig.field_offsets`)."""
+    import psfd.daemon.plan as plan_module
+    from psfd.drivers.sim import SimRig
+
+    example = textwrap.dedent(plan_module.__doc__.split("::\n\n", 1)[1].split("\n\nRail positions", 1)[0])
+    assert check_text(example) == []
+    plan = parse_plan(example)
+    rig = SimRig()
+    y, z = rig.field_offsets(3)
+    assert plan.x == [rig.distance_for_scale()]
+    assert plan.y == pytest.approx([float(v) for v in y], abs=0.01)
+    assert plan.z == pytest.approx([float(v) for v in z], abs=0.01)
+    assert len(plan.steps()) == 27
+
+
+def test_plan_check_takes_no_runner_options(tmp_path, capsys):
+    good = tmp_path / "good.toml"
+    good.write_text(GOOD)
+    with pytest.raises(SystemExit):
+        main(["plan", "check", str(good), "--workers", "2"])
+    assert "unrecognized arguments: --workers" in capsys.readouterr().err

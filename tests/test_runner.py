@@ -10,12 +10,14 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 
 from psfd.catalogue import Catalogue
 from psfd.daemon.plan import parse_plan
-from psfd.daemon.runner import Control, Runner, frames_dir_for, store_frame, sweep_frames
+from psfd.daemon.runner import (Control, Runner, frames_dir_for, shown_state, store_busy, store_frame, store_lock,
+                                sweep_frames)
 from psfd.drivers import open_rig
-from psfd.errors import CameraError, EstimationError, RailAlarm
+from psfd.errors import BadInputError, CameraError, EstimationError, RailAlarm
 
 # 2 apertures x 2 field positions x 1 channel: small enough for the default suite.
 PLAN = """
@@ -182,6 +184,13 @@ def _done_steps(db: Path) -> int:
         return cat.run_summary(runs[0]["id"])["done"] if runs else 0
 
 
+def _has_run(db: Path) -> bool:
+    if not db.exists():
+        return False
+    with Catalogue(db) as cat:
+        return bool(cat.runs())
+
+
 def test_sigkill_at_random_steps_then_resume(tmp_path):
     """Kill the whole process group (like a power cut) at random points several times, then resume."""
     plan_path = tmp_path / "plan.toml"
@@ -192,11 +201,11 @@ def test_sigkill_at_random_steps_then_resume(tmp_path):
     frames = frames_dir_for(db)
     env = {**os.environ, "PSFD_SOCKET": str(tmp_path / "none.sock")}
     # backlog 1: commits follow captures closely, so kills land between commits
-    args = ["run", str(plan_path), "--resume", "--catalogue", str(db), "--workers", "1", "--backlog", "1"]
+    args = ["run", str(plan_path), "--catalogue", str(db), "--workers", "1", "--backlog", "1"]
     rng = random.Random(7)
     done_at_kill = []
     for _ in range(3):
-        proc = _run_cli(args, env)
+        proc = _run_cli(args + ["--resume"] * _has_run(db), env)
         # wait for a random number of committed steps (not the last ones), then a random part of
         # a step more: the kill lands during a capture, a frame store, an estimate or a commit
         done = _done_steps(db)
@@ -210,10 +219,65 @@ def test_sigkill_at_random_steps_then_resume(tmp_path):
         proc.wait()
         done_at_kill.append(_done_steps(db))
     assert any(0 < n < total for n in done_at_kill), done_at_kill  # at least one kill fell mid-run
-    proc = _run_cli(args, env)
+    # the killed run is shown as interrupted (nobody holds its frame store), not "running" forever
+    status = subprocess.run([sys.executable, "-m", "psfd", "status", "--catalogue", str(db)], env=env,
+                            capture_output=True, text=True, timeout=60)
+    assert " interrupted " in status.stdout and " running " not in status.stdout, status.stdout
+    # starting the plan again without --resume is refused: no position is measured twice
+    again = subprocess.run([sys.executable, "-m", "psfd", *args], env=env, capture_output=True, text=True,
+                           timeout=60)
+    assert again.returncode == 2 and again.stderr.count("\n") == 1, again.stderr
+    assert "is interrupted" in again.stderr and "add --resume" in again.stderr and "--new" in again.stderr
+    proc = _run_cli(args + ["--resume"], env)
     out, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err
     assert "done" in out
     with Catalogue(db) as cat:
         assert len(cat.runs()) == 1  # every attempt resumed the same run
     check_complete(db, frames, plan)
+
+
+def test_resume_refusals_and_new(tmp_path):
+    """--resume needs an unfinished run; an unfinished run blocks a plain start; new=True starts anyway."""
+    plan = parse_plan(small_plan(), "small.toml")
+    frames = tmp_path / "frames"
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        camera, rail = open_rig(plan.rig_config())
+        with pytest.raises(BadInputError, match="no unfinished run of plan small.toml to resume"):
+            Runner(cat, frames, workers=1, progress=None).run(plan, camera, rail, resume=True)
+        assert cat.runs() == []
+        control = Control()
+        control.request("pause")  # pauses before the first step: an unfinished run
+        camera, rail = open_rig(plan.rig_config())
+        first = Runner(cat, frames, workers=1, control=control, progress=None).run(plan, camera, rail)
+        assert first.state == "paused"
+        camera, rail = open_rig(plan.rig_config())
+        with pytest.raises(BadInputError, match=r"run 1 of plan small.toml is paused \(0/4 steps done\): add --resume"):
+            Runner(cat, frames, workers=1, progress=None).run(plan, camera, rail)
+        camera, rail = open_rig(plan.rig_config())
+        control = Control()
+        control.request("pause")
+        second = Runner(cat, frames, workers=1, control=control, progress=None).run(plan, camera, rail, new=True)
+        assert second.run_id == 2 and [r["id"] for r in cat.runs()] == [2, 1]
+
+
+def test_oneshot_run_that_fails_is_closed_not_resumable(tmp_path):
+    plan = parse_plan(small_plan(), "capture")
+    camera, rail = open_rig(plan.rig_config())
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        result = Runner(cat, tmp_path / "frames", workers=1, progress=None).run(
+            plan, FailingCamera(camera, 0), rail, oneshot=True)
+        assert result.state == "failed" and "unplugged" in result.reason
+        assert cat.runs()[0]["state"] == "failed"
+        camera, rail = open_rig(plan.rig_config())
+        with pytest.raises(BadInputError, match="no unfinished run"):
+            Runner(cat, tmp_path / "frames", workers=1, progress=None).run(plan, camera, rail, resume=True)
+
+
+def test_store_busy_only_while_a_run_holds_the_store(tmp_path):
+    frames = tmp_path / "frames"
+    assert not store_busy(frames)
+    with store_lock(frames):
+        assert store_busy(frames) and shown_state("running", frames) == "running"
+    assert not store_busy(frames) and shown_state("running", frames) == "interrupted"
+    assert shown_state("paused", frames) == "paused"

@@ -132,6 +132,13 @@ def test_pause_resume_then_sigterm_mid_run_and_resume_from_the_cli(served, tmp_p
     assert service.request(sock, {"cmd": "pause"})["requested"] == "pause"
     status = wait_status(sock, lambda s: s["state"] == "paused")
     assert status["last"]["state"] == "paused" and status["last"]["steps_done"] < 4
+    # submitting the paused plan afresh is refused at once (no PSF stored twice) ...
+    with pytest.raises(ServiceError, match=r"is paused .*add --resume to continue it, or --new"):
+        service.request(sock, {"cmd": "submit", "plan": plan.text, "path": str(plan_path)})
+    # ... and so is resuming a plan that has no unfinished run
+    with pytest.raises(ServiceError, match="no unfinished run of plan other.toml to resume"):
+        service.request(sock, {"cmd": "submit", "plan": plan.text + "\n# other\n", "path": "other.toml",
+                               "resume": True})
     assert service.request(sock, {"cmd": "resume"})["queued"] == 1
     notes.messages.clear()
     notes.wait_for("STATUS=running", timeout=60)
@@ -143,7 +150,10 @@ def test_pause_resume_then_sigterm_mid_run_and_resume_from_the_cli(served, tmp_p
         assert run["state"] in ("paused", "done") and summary["running"] == 0  # nothing left half-done
     cli = subprocess.run([sys.executable, "-m", "psfd", "run", str(plan_path), "--resume", "--catalogue", str(db),
                           "--socket", str(sock), "--workers", "1"], capture_output=True, text=True, timeout=300)
-    assert cli.returncode == 0, cli.stderr
+    if run["state"] == "done":  # SIGTERM came after the last frame: nothing is left to resume
+        assert cli.returncode == 2 and "no unfinished run" in cli.stderr, cli.stderr
+    else:
+        assert cli.returncode == 0, cli.stderr
     check_complete(db, db.with_name("cat-frames"), plan)
 
 
@@ -154,6 +164,7 @@ def test_cancel_closes_the_run(served, tmp_path):
     cli = subprocess.run([sys.executable, "-m", "psfd", "run", str(plan_path), "--socket", str(sock)],
                          capture_output=True, text=True, timeout=60)
     assert cli.returncode == 0 and "submitted" in cli.stdout  # `psfd run` hands the plan to the service
+    assert f"follow it with: psfd status --socket {sock}" in cli.stdout
     wait_status(sock, lambda s: s["current"] is not None)
     service.request(sock, {"cmd": "cancel"})
     status = wait_status(sock, lambda s: s["last"] is not None)

@@ -13,11 +13,11 @@ A plan has four tables::
     [target]
     kind = "bernoulli"          # or "pair", with near = ... and far = ... in mm
 
-    [capture]
+    [capture]                   # positions that frame the target on the simulated rig
     apertures = [5.6, 8, 11]
-    x = [1200]                  # rail distances in mm (bernoulli only)
-    y = [-40, 0, 40]            # lateral positions (mm) walking the target over the field
-    z = [-30, 0, 30]
+    x = [1300]                  # rail distances in mm (bernoulli only)
+    y = [-44.16, 0, 44.16]      # lateral positions (mm) walking the target over the field
+    z = [-29.12, 0, 29.12]
     channels = ["r", "g1", "g2", "b"]
     repeats = 1
 
@@ -27,6 +27,8 @@ A plan has four tables::
     solver = "ls-threshold"     # bernoulli only: "ls", "ls-threshold", "nnls"
     grid = [1, 1]
 
+Rail positions are checked against ``rail_limits`` (on the simulated rig, its
+default travel when none are given), and a pair's far/near ratio against ``s``.
 `check_text` returns every problem found, one sentence each, so that
 ``psfd plan check`` can list them all at once; `load_plan` raises one
 BadInputError naming the first and counting the rest.
@@ -222,6 +224,7 @@ def check_text(text: str) -> list[str]:
     problems += _check_capture(tables["capture"], kind, "capture" in data)
     problems += _check_limits(tables["rig"], tables["target"], tables["capture"], kind)
     problems += _check_estimator(tables["estimator"], kind)
+    problems += _check_ratio(tables["target"], tables["estimator"], kind)
     return problems
 
 
@@ -321,8 +324,18 @@ def _check_capture(capture: dict, kind: Any, present: bool) -> list[str]:
     return problems
 
 
+def _rail_limits(rig: dict) -> Any:
+    """The travel limits a run will meet: the plan's own, else the simulated rig's defaults."""
+    limits = rig.get("rail_limits", rig.get("limits"))
+    if limits is None and rig.get("simulate") is True:
+        from psfd.drivers.sim import SimRig
+
+        return {axis: list(pair) for axis, pair in SimRig.__dataclass_fields__["limits"].default_factory().items()}
+    return limits
+
+
 def _check_limits(rig: dict, target: dict, capture: dict, kind: Any) -> list[str]:
-    limits = rig.get("rail_limits")
+    limits = _rail_limits(rig)
     if not isinstance(limits, dict):
         return []
     values: dict[str, list] = {axis: capture.get(axis) for axis in AXES}
@@ -334,9 +347,21 @@ def _check_limits(rig: dict, target: dict, capture: dict, kind: Any) -> list[str
             continue
         outside = [v for v in values.get(axis) or [] if _is_number(v) and not pair[0] <= v <= pair[1]]
         if outside:
-            problems.append(f"{axis} = {', '.join(fmt(v) for v in outside)} outside rail_limits.{axis} "
+            where = "rail_limits" if "rail_limits" in rig or "limits" in rig else "the simulated rail's limits"
+            problems.append(f"{axis} = {', '.join(fmt(v) for v in outside)} outside {where}.{axis} "
                             f"[{fmt(pair[0])}, {fmt(pair[1])}]")
     return problems
+
+
+def _check_ratio(target: dict, est: dict, kind: Any) -> list[str]:
+    """A pair's distance ratio lambda ~ far / near must exceed s (SIAM J. Imaging Sci. 2012, Remark 2;
+    the estimator measures lambda from the photos and refuses lambda <= s, so say it before the rig moves)."""
+    near, far, s = target.get("near"), target.get("far"), est.get("s", 3)
+    if kind != "pair" or not all(map(_is_number, (near, far, s))) or near <= 0 or near >= far:
+        return []
+    if far / near <= s:
+        return [f"[target] far / near = {far / near:.3g} must exceed s = {fmt(s)} (move near closer or far away)"]
+    return []
 
 
 def _check_estimator(est: dict, kind: Any) -> list[str]:

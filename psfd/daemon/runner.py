@@ -17,6 +17,12 @@ those at the start of every run, so no file is orphaned and none is counted twic
 A failed step (camera gone, rail alarm, no target in the frame) is marked
 ``failed`` with its reason, the estimates already under way are committed,
 the rig is released, and the run is ``paused``: ``--resume`` retries it.
+
+A run's journal says ``running`` only while its process holds the frame-store
+lock (`store_busy`): a ``running`` run whose store is free was killed, and is
+resumable like a paused one (`interrupted`). Starting a plan that has an
+unfinished run is refused unless the caller resumes it or asks for a new run,
+so that no position is measured twice by accident.
 """
 
 from __future__ import annotations
@@ -42,7 +48,7 @@ from psfd.catalogue import FrameRecord
 from psfd.daemon import work
 from psfd.daemon.plan import Plan, Step
 from psfd.drivers.base import Camera, Rail
-from psfd.errors import CameraError, EstimationError, HardwareError, PsfdError, ServiceError
+from psfd.errors import BadInputError, CameraError, EstimationError, HardwareError, PsfdError, ServiceError
 from psfd.estimator.raw import RAW_SUFFIXES
 
 FRAME_NAME = re.compile(r"^[0-9a-f]{64}\.[A-Za-z0-9]+$")
@@ -76,7 +82,7 @@ class RunResult:
     """How a run ended and what it took."""
 
     run_id: int
-    state: str  # done, paused, cancelled
+    state: str  # done, paused, cancelled, failed (a one-shot run that did not finish)
     reason: str | None = None
     error: PsfdError | None = None
     steps_done: int = 0
@@ -172,8 +178,12 @@ def store_lock(frames_dir: Path) -> Iterator[None]:
     Another run's sweep would take this run's stored-but-not-yet-committed
     frames for orphans. The lock is an flock, so a killed run never leaves it behind.
     """
-    frames_dir.mkdir(parents=True, exist_ok=True)
-    with open(frames_dir / ".lock", "a") as fh:
+    try:
+        frames_dir.mkdir(parents=True, exist_ok=True)
+        fh = open(frames_dir / ".lock", "a")
+    except OSError as exc:
+        raise BadInputError(f"cannot use {frames_dir} as the frame store: {exc.strerror or exc}") from None
+    with fh:
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -182,6 +192,27 @@ def store_lock(frames_dir: Path) -> Iterator[None]:
             yield
         finally:
             fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def store_busy(frames_dir: str | os.PathLike) -> bool:
+    """True while some process holds the frame store's lock, i.e. runs a plan on it."""
+    lock = Path(frames_dir) / ".lock"
+    try:
+        fh = open(lock, "rb")
+    except OSError:
+        return False  # no lock file (or unreadable): no run has ever held it
+    with fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(fh, fcntl.LOCK_UN)
+        return False
+
+
+def shown_state(state: str, frames_dir: str | os.PathLike) -> str:
+    """A run's state as a user should read it: ``running`` with nobody holding the store is ``interrupted``."""
+    return "interrupted" if state == "running" and not store_busy(frames_dir) else state
 
 
 def sweep_frames(frames_dir: Path, known: set[str]) -> list[Path]:
@@ -252,39 +283,53 @@ class Runner:
 
     # -- public -------------------------------------------------------------------------------
 
-    def run(self, plan: Plan, camera: Camera, rail: Rail, resume: bool = False) -> RunResult:
+    def run(self, plan: Plan, camera: Camera, rail: Rail, resume: bool = False, new: bool = False,
+            oneshot: bool = False) -> RunResult:
         """Run (or resume) a plan on an open rig; the rig is released when the run ends.
 
-        With ``resume`` the latest unfinished run of this exact plan text goes on
-        (its pending, failed and interrupted steps); a plan whose runs all finished
-        is not measured again; a plan never run starts a new run.
+        With ``resume`` the latest unfinished (paused or interrupted) run of this
+        exact plan text goes on (its pending, failed and interrupted steps). Without
+        it a new run starts, unless the plan has an unfinished run and ``new`` is
+        false: that is refused, so that no PSF is stored twice by accident.
+        A ``oneshot`` run (`psfd capture`) is never left resumable: where it
+        would pause it is closed as ``failed``.
 
         Returns
         -------
         RunResult
-            ``done``, ``paused`` (a step failed or a pause/stop was asked: resumable)
-            or ``cancelled``. Work committed before a failure stays committed.
+            ``done``, ``paused`` (a step failed or a pause/stop was asked: resumable),
+            ``cancelled``, or ``failed`` (oneshot). Work committed before a failure stays committed.
+
+        Raises
+        ------
+        BadInputError
+            ``resume`` with no unfinished run, or an unfinished run and neither ``resume`` nor ``new``.
         """
         try:
             with store_lock(self.frames_dir):
-                run_id = self._open_run(plan, camera, resume)
-                return self._execute(plan, run_id, camera, rail)
+                run_id = self._open_run(plan, camera, resume, new)
+                try:
+                    result = self._execute(plan, run_id, camera, rail)
+                except BaseException:  # second Ctrl-C, or a bug: leave the run resumable, not "running"
+                    with contextlib.suppress(Exception):
+                        self.catalogue.finish_run(run_id, "failed" if oneshot else "paused")
+                    raise
+                if oneshot and result.state == "paused":
+                    result.state = "failed"
+                    self.catalogue.finish_run(run_id, "failed")
+                return result
         finally:
             release_rig(camera, rail)
 
     # -- steps --------------------------------------------------------------------------------
 
-    def _open_run(self, plan: Plan, camera: Camera, resume: bool) -> int:
+    def _open_run(self, plan: Plan, camera: Camera, resume: bool, new: bool) -> int:
         sweep_frames(self.frames_dir, self.catalogue.frame_hashes())
-        if resume:
-            run_id = self.catalogue.unfinished_run(plan.text)
-            if run_id is not None:
-                self.catalogue.finish_run(run_id, "running")
-                return run_id
-            plan_hash = hashlib.sha256(plan.text.encode()).hexdigest()
-            finished = [r["id"] for r in self.catalogue.runs() if r["plan_hash"] == plan_hash]
-            if finished:  # nothing left to resume: do not measure it all again
-                return finished[0]
+        # we hold the store lock, so a run journalled "running" here was killed: it is interrupted
+        unfinished = start_check(self.catalogue, plan, resume, new)
+        if unfinished is not None:
+            self.catalogue.finish_run(unfinished, "running")
+            return unfinished
         rig_id = self.catalogue.add_rig(camera.info())
         steps = [(step.key, step.payload()) for step in plan.steps()]
         return self.catalogue.start_run(plan.path, plan.text, rig_id, steps)
@@ -432,6 +477,36 @@ class Runner:
         result.psfs += len(ids)
         result.psf_ids += list(ids)
         bar.step(step.key)
+
+
+def start_check(catalogue: Any, plan: Plan, resume: bool, new: bool,
+                frames_dir: str | os.PathLike | None = None) -> int | None:
+    """The run to resume (None: start a new one), or why this plan may not start.
+
+    ``frames_dir``: the frame store, to tell a live run from an interrupted one
+    (None: the caller holds the store, so a ``running`` run is interrupted).
+
+    Raises
+    ------
+    BadInputError
+        ``resume`` and the plan has no paused or interrupted run; or it has one
+        and neither ``resume`` nor ``new`` was asked (cancelled and failed runs are closed).
+    """
+    plan_hash = hashlib.sha256(plan.text.encode()).hexdigest()
+    unfinished = next((r for r in catalogue.runs()
+                       if r["plan_hash"] == plan_hash and r["state"] in ("paused", "running")), None)
+    if resume:
+        if unfinished is None:
+            raise BadInputError(f"no unfinished run of plan {plan.path} to resume")
+        return int(unfinished["id"])
+    if unfinished is not None and not new:
+        summary = catalogue.run_summary(unfinished["id"])
+        state = unfinished["state"]
+        state = shown_state(state, frames_dir) if frames_dir is not None else state.replace("running", "interrupted")
+        raise BadInputError(
+            f"run {unfinished['id']} of plan {plan.path} is {state} ({summary['done']}/{summary['total']} "
+            "steps done): add --resume to continue it, or --new to start a fresh run")
+    return None
 
 
 def _aperture_choice(camera: Camera, aperture: float) -> str:

@@ -4,12 +4,17 @@ Control socket: a Unix stream socket (mode 0660, no network listener) that
 speaks JSON lines. Each request is one JSON object on one line and gets one
 JSON object back::
 
-    {"cmd": "submit", "plan": "<TOML text>", "path": "plan.toml", "resume": false}
+    {"cmd": "submit", "plan": "<TOML text>", "path": "plan.toml", "resume": false, "new": false}
     {"cmd": "status"}
     {"cmd": "pause"}            # stop after the current frame; the run stays resumable
     {"cmd": "resume"}           # resume the last paused run
     {"cmd": "cancel"}           # stop after the current frame and close the run as cancelled
     {"cmd": "submit", ..., "wait": true}   # answer only when the job has ended (used by `psfd capture`)
+    {"cmd": "submit", ..., "oneshot": true}  # never left resumable: closed as failed where it would pause
+
+``resume`` and ``new`` mean what they mean to `Runner.run`; a submit that the
+catalogue refuses (nothing to resume, or an unfinished run without ``new``)
+is answered with the error at once instead of queued.
 
 Answers carry ``"ok": true`` or ``"ok": false`` with ``"error"`` (and
 ``"problems"`` for a bad plan). A bad request never stops the service.
@@ -34,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from psfd.daemon.plan import Plan, check_text, parse_plan
-from psfd.daemon.runner import Control, Runner, RunResult
+from psfd.daemon.runner import Control, Runner, RunResult, start_check
 from psfd.errors import BadInputError, PsfdError, ServiceError
 
 MAX_REQUEST = 1 << 20  # a plan is a few kB; refuse anything absurd instead of buffering it
@@ -124,6 +129,8 @@ class Job:
     plan: Plan
     resume: bool = False
     wait: bool = False  # somebody waits for the answer: add the PSF rows to it
+    new: bool = False
+    oneshot: bool = False
     done: threading.Event = field(default_factory=threading.Event)
     result: dict | None = None
 
@@ -242,7 +249,8 @@ class Service:
                     camera, rail = open_rig(job.plan.rig_config())
                     runner = Runner(catalogue, self.frames_dir, control=self.control, **self.runner_options,
                                     progress=None, on_step=self._on_step)
-                    result = runner.run(job.plan, camera, rail, resume=job.resume)
+                    result = runner.run(job.plan, camera, rail, resume=job.resume, new=job.new,
+                                        oneshot=job.oneshot)
                     job.result = result_dict(result)
                     if job.wait:
                         job.result["rows"] = [catalogue.psf(i)[1] for i in result.psf_ids]
@@ -309,10 +317,17 @@ class Service:
                 out["problems"] = exc.problems
             return out
 
-    def _enqueue(self, plan: Plan, resume: bool, wait: bool) -> dict:
+    def _enqueue(self, plan: Plan, resume: bool, wait: bool, new: bool = False, oneshot: bool = False) -> dict:
         if self.stopping.is_set():
             raise ServiceError("the service is stopping")
-        job = Job(plan, resume, wait)
+        if self.catalogue_path.is_file():  # refuse now what the runner would refuse later
+            from psfd.catalogue import Catalogue
+
+            with Catalogue(self.catalogue_path, create=False) as catalogue:
+                start_check(catalogue, plan, resume, new, self.frames_dir)
+        elif resume:
+            raise BadInputError(f"no unfinished run of plan {plan.path} to resume")
+        job = Job(plan, resume, wait, new=new, oneshot=oneshot)
         with self.lock:
             self.queued += 1
         self.jobs.put(job)
@@ -331,7 +346,8 @@ class Service:
             error = BadInputError(f"plan {path}: " + "; ".join(problems))
             error.problems = problems  # type: ignore[attr-defined]
             raise error
-        return self._enqueue(parse_plan(text, str(path)), bool(req.get("resume")), bool(req.get("wait")))
+        return self._enqueue(parse_plan(text, str(path)), bool(req.get("resume")), bool(req.get("wait")),
+                             new=bool(req.get("new")), oneshot=bool(req.get("oneshot")))
 
     def _cmd_status(self, req: dict) -> dict:
         with self.lock:
