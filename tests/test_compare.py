@@ -199,3 +199,20 @@ def test_error_footnote_only_with_an_error_column(capsys):
     assert "MTF50" in text and "skipped: no edges" in text and "MTF error" not in text
     print_table([one], {one.label: {LOW: 0.01, HIGH: 0.02}}, with_truth=True)
     assert "MTF error: RMS difference" in capsys.readouterr().out
+
+
+def test_a_failed_comparison_figure_leaves_no_output_folder(tmp_path, monkeypatch):
+    """compare.png is written inside the same staging folder as the estimates: all or nothing."""
+    from psfd.cli import compare
+    from psfd.errors import BadInputError
+
+    kernel = simulate.gaussian_psf(0.5, s=4, support=17)
+    estimates = [Estimate("bernoulli", PSF(kernel, 4, "bernoulli", "g1", ["a.dng"]))]
+    def disk_full(curves):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(compare, "mtf_figure", disk_full)  # the last files fail, after the estimates
+    out = tmp_path / "cmp"
+    with pytest.raises(BadInputError, match="No space left on device"):
+        compare.write_outputs(out, estimates, {}, None, 4)
+    assert list(tmp_path.iterdir()) == []

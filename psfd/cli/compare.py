@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -294,8 +293,7 @@ def _plain(value):
 
 
 def write_outputs(out: Path, estimates: list[Estimate], table: dict, truth: np.ndarray | None, s: int) -> None:
-    """The estimates (output.write_estimates), then compare.png and compare.json, each under a temporary name first."""
-    output.write_estimates([e.psf for e in estimates], out)
+    """The estimates (output.write_estimates) with compare.png and compare.json, all in one atomic folder."""
     curves = [(e.label, e.psf.psf, e.psf.s) for e in estimates]
     if truth is not None:
         curves.insert(0, ("truth", truth, s))
@@ -305,14 +303,14 @@ def write_outputs(out: Path, estimates: list[Estimate], table: dict, truth: np.n
         "methods": {e.label: {"method": e.psf.method, "params": e.psf.params, "warnings": e.psf.warnings,
                               **e.psf.metrics()} for e in estimates},
     }
-    for name, write in (("compare.png", lambda p: cv2.imwrite(str(p), mtf_figure(curves))),
-                        ("compare.json", lambda p: p.write_text(json.dumps(_plain(summary), indent=1)))):
-        tmp = out / f".part.{name}"  # keeps the suffix: OpenCV picks the encoder from it
-        try:
-            if write(tmp) is False:
-                raise OSError(f"cannot encode {name}")
-            os.replace(tmp, out / name)
-        except OSError as exc:
-            raise BadInputError(f"{out}: cannot write {name} ({exc})") from None
-        finally:
-            tmp.unlink(missing_ok=True)
+
+    def figure(path: Path) -> None:
+        if not cv2.imwrite(str(path), mtf_figure(curves)):
+            raise OSError(f"cannot encode {path.name}")
+
+    output.write_estimates(
+        [e.psf for e in estimates],
+        out,
+        extra={"compare.png": figure,
+               "compare.json": lambda path: path.write_text(json.dumps(_plain(summary), indent=1))},
+    )

@@ -14,6 +14,7 @@ import shutil
 import sys
 import tempfile
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any, TextIO
 
 import cv2
@@ -271,13 +272,20 @@ def _write_one(folder: Path, name: str, est: PSF) -> list[str]:
     return files
 
 
-def write_estimates(estimates: list[PSF], out_dir: str | os.PathLike) -> list[Path]:
+def write_estimates(
+    estimates: list[PSF],
+    out_dir: str | os.PathLike,
+    extra: dict[str, Callable[[Path], None]] | None = None,
+) -> list[Path]:
     """Write every estimate as .npy, 32-bit float .tif and a .png figure, plus its extra figures.
 
     Per estimate ``NAME`` (see `base_names`): ``NAME.npy`` (float64 kernel),
     ``NAME.tif`` (float32), ``NAME.png`` (`psf_figure`), ``NAME.json`` (the
     `print_json` record), and for each entry
     ``key`` of ``PSF.figures``: ``NAME.key.npy`` and, when 2-D, ``NAME.key.png``.
+
+    ``extra`` maps further file names to functions that write them at the path
+    given (e.g. a comparison figure), so they join the same atomic folder.
 
     ``out_dir`` must not exist or be empty (`check_out_dir`). Everything is written
     into a temporary folder beside it and renamed to ``out_dir`` at the end, so a
@@ -292,6 +300,9 @@ def write_estimates(estimates: list[PSF], out_dir: str | os.PathLike) -> list[Pa
     tmp = staging_dir(out_dir)
     try:
         files = [f for name, est in zip(base_names(estimates), estimates) for f in _write_one(tmp, name, est)]
+        for name, write in (extra or {}).items():
+            write(tmp / name)
+            files.append(name)
         if out_dir.exists():  # the empty folder check_out_dir accepted
             out_dir.rmdir()
         os.rename(tmp, out_dir)  # one atomic step: the folder appears complete
