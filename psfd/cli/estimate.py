@@ -34,6 +34,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pattern", metavar="PGM", help="noise of the printed target (default: the published one)")
     p.add_argument("--solver", default="ls-threshold",
                    help="ls (least squares), ls-threshold (then clip negatives, default) or nnls (non-negative)")
+    p.add_argument("--tps", metavar="LAMBDA",
+                   help="map the target with a thin-plate spline of this smoothing (the thesis uses 10) "
+                        "instead of the default homography plus radial distortion")
     p.set_defaults(func=run_target)
 
     p = methods.add_parser(
@@ -112,6 +115,9 @@ def run_target(args: argparse.Namespace) -> int:
     settings = _settings(args)
     if args.solver not in SOLVERS:
         raise BadInputError(f"--solver: use one of {', '.join(SOLVERS)}, got {args.solver!r}")
+    tps = None if args.tps is None else output.parse_float(args.tps, "--tps")
+    if tps is not None and tps < 0:
+        raise BadInputError(f"--tps: the smoothing must be 0 or more, got {args.tps}")
     noise = target.load_noise(args.pattern) if args.pattern else None
     frames = _load_all(args.frames, args.channel)
     from psfd.estimator import bernoulli
@@ -119,7 +125,7 @@ def run_target(args: argparse.Namespace) -> int:
     estimates = [
         psf
         for frame in frames
-        for psf in bernoulli.estimate_target(frame, noise=noise, solver=args.solver, **settings)
+        for psf in bernoulli.estimate_target(frame, noise=noise, solver=args.solver, tps=tps, **settings)
     ]
     return _report(args, estimates)
 

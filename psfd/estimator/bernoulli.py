@@ -447,6 +447,7 @@ def estimate_target(
     solver: str = "ls-threshold",
     grid: tuple[int, int] = (1, 1),
     recentre: bool = True,
+    tps: float | None = None,
 ) -> list[PSF]:
     """Sub-pixel PSFs from one photograph of the Bernoulli target (IJCV 2012, sec. 4, Fig. 7).
 
@@ -471,6 +472,11 @@ def estimate_target(
         The X-corners place the kernel only to within their bias (up to
         ~0.1 pixel, 0.4 s-grid samples at s = 4; detect.find_target), so the
         raw position is not a measurement at that level.
+    tps : float, optional
+        Map the target with the thesis's thin-plate spline of this smoothing
+        (10 in Delbracio PhD thesis 2013, App. A.2) on top of a homography,
+        instead of the default homography plus radial distortion
+        (`register.target_maps` says why the default differs).
 
     Returns
     -------
@@ -493,7 +499,7 @@ def estimate_target(
     try:
         # X-corners and thin-plate spline D (IJCV 2012 sec. 4; Delbracio PhD thesis 2013, App. A.1)
         detection = detect.find_target(image, frame.saturated)
-        to_image, to_pattern = register.target_maps(detection)
+        to_image, to_pattern = register.target_maps(detection, "auto" if tps is None else float(tps))
         box = _target_box(to_image, image.shape, margin=(support - 1) // (2 * s) + 2)
         v, alpha = _corrected(frame, image, box, to_image, to_pattern)
         x0, y0 = box[0], box[1]
@@ -506,7 +512,7 @@ def estimate_target(
         raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
     scale = s * float(detection.scale)  # s / t, with 1/t = image pixels per cell
     params = {"solver": solver, "support": support, "grid": [int(grid[0]), int(grid[1])], "crf_alpha": alpha,
-              "scale": scale}
+              "scale": scale, "geometry": "homography+radial" if tps is None else f"homography+tps({float(tps):g})"}
     out = []
     for r in results:
         kernel, shift = _recentred(r["psf"], solver) if recentre else (r["psf"], (0.0, 0.0))
