@@ -188,6 +188,10 @@ def test_psf_helpers():
     assert psf.centroid(clipped) == pytest.approx((1.0, 0.0))
     with pytest.raises(ValueError):
         psf.normalise(np.zeros((3, 3)))
+    # the core centroid ignores faint tails that would drag a plain centroid
+    tailed = clipped.copy()
+    tailed[0, 0] = 0.01
+    assert psf.centroid(tailed)[0] < 0.98 and psf.core_centroid(tailed) == pytest.approx((1.0, 0.0))
     windows = psf.split_grid((0, 0, 100, 60), (2, 3))
     assert windows[0] == (0, 0, 50, 20) and windows[-1] == (50, 40, 100, 60) and len(windows) == 6
     assert psf.field_of_window((50, 40, 100, 60), (60, 100)) == pytest.approx((0.75, 50 / 60))

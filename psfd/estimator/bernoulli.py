@@ -554,21 +554,12 @@ def recentre(kernel: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
     return np.real(fft.ifft2(fft.fft2(padded) * ramp))[:rows, :cols]
 
 
-def core_centre(kernel: np.ndarray, level: float = 0.05) -> tuple[float, float]:
-    """Centroid (x, y), in s-grid samples from the centre, of the values above ``level`` x the peak.
-
-    The estimation noise in the tails would move a plain centroid; the core
-    carries the position (the convention of the two-scale estimator).
-    """
-    return psf_mod.centroid(np.where(kernel > level * kernel.max(), kernel, 0.0))
-
-
 def _recentred(kernel: np.ndarray, solver: str) -> tuple[np.ndarray, tuple[float, float]]:
     """The kernel with its core centred, and the shift removed (x, y samples)."""
     total = np.zeros(2)
     out = kernel
     for _ in range(3):  # the core moves with the shift: a few passes converge
-        total += core_centre(out)
+        total += psf_mod.core_centroid(out)
         out = recentre(kernel, (float(total[0]), float(total[1])))
     # the interpolation rings slightly below 0: project back as the solver did
     out = psf_mod.normalise(out) if solver == "ls" else psf_mod.clip_negatives(out)

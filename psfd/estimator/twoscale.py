@@ -27,7 +27,7 @@ from scipy import signal
 
 from psfd.errors import BadInputError, PairError
 from psfd.estimator import homography, resample
-from psfd.estimator.psf import PSF, centroid, clip_negatives, field_of_window, normalise, split_grid
+from psfd.estimator.psf import PSF, clip_negatives, core_centroid, field_of_window, normalise, split_grid
 from psfd.estimator.raw import Frame
 from psfd.estimator.resample import keys_bicubic
 
@@ -393,16 +393,6 @@ def solve_kernel(upsampled: np.ndarray, v2: np.ndarray, rows: np.ndarray, s: int
 
 
 # --------------------------------------------------------------------------- k -> h
-
-
-def core_centroid(kernel: np.ndarray, level: float = 0.05) -> tuple[float, float]:
-    """Centre of mass (x, y), in samples from the centre, of the kernel's values above ``level`` x its peak.
-
-    The noise in the tails (a few per mille per sample, at up to (p - 1)/2
-    samples from the centre) would move a plain centroid by a sizeable
-    fraction of a sample; the core carries the position.
-    """
-    return centroid(np.where(kernel > level * kernel.max(), kernel, 0.0))
 
 
 def _sample(kernel: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
