@@ -2,13 +2,15 @@
 
 Each command group lives in its own module with a ``register(subparsers)``
 function; this module only assembles them and turns typed errors into a
-one-line message and an exit code.
+one-line message and an exit code. Building the parser imports the command
+modules and `psfd.cli.options` only, which load nothing heavier than the
+standard library: every handler imports the numerics, drivers, catalogue or
+daemon it needs when it runs.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 import sys
 
@@ -21,18 +23,11 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 # reports the error in one line; must be set before cv2 is imported.
 os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
 
-from psfd import __version__
-from psfd.errors import BadInputError, PsfdError
+from psfd import __version__  # noqa: E402 - after the environment above
+from psfd.cli import compare, estimate, hardware, lab, query, target  # noqa: E402
+from psfd.errors import BadInputError, PsfdError  # noqa: E402
 
-# Modules that add commands. A module listed here but not present yet is skipped.
-COMMAND_MODULES = (
-    "psfd.cli.target",
-    "psfd.cli.estimate",
-    "psfd.cli.compare",
-    "psfd.cli.hardware",
-    "psfd.cli.query",
-    "psfd.cli.lab",
-)
+COMMAND_MODULES = (target, estimate, compare, hardware, query, lab)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,13 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"psfd {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     subparsers.required = True
-    for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name == name:
-                continue
-            raise
+    for module in COMMAND_MODULES:
         module.register(subparsers)
     return parser
 

@@ -20,9 +20,10 @@ import cv2
 import numpy as np
 
 from psfd.errors import BadInputError
+from psfd.vocabulary import CHANNELS, MONO
 
-CHANNELS = ("r", "g1", "g2", "b")
-MONO = "mono"
+__all__ = ["CHANNELS", "MONO", "RAW_SUFFIXES", "Frame", "load_frame", "load_frames", "write_dng"]
+
 RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw", ".raw"}
 IMAGE_SUFFIXES = {".pgm", ".pnm", ".png", ".tif", ".tiff"}
 

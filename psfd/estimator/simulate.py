@@ -27,6 +27,11 @@ from scipy import fft, signal
 
 from psfd.estimator import raw, target
 
+__all__ = [
+    "bandlimit_scene", "diffraction_psf", "expose", "gaussian_psf", "noise_sigma", "render_plane",
+    "simulate_pair", "simulate_scene", "simulate_target", "target_homography", "texture_scene"
+]
+
 Map = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 # RGGB: (row, col) offset of each channel plane on the sensor.
