@@ -54,6 +54,7 @@ class FrameMetadata:
     f_number: float | None = None
     exposure_s: float | None = None
     iso: float | None = None
+    focus_distance_m: float | None = None
     width: int | None = None
     height: int | None = None
     pixel_pitch_um: float | None = None
@@ -108,6 +109,7 @@ def _metadata(tags: dict) -> FrameMetadata:
         exposure = 2.0 ** (-tv) if tv is not None else None
     iso = _number(tags, "ISOSpeedRatings") or _number(tags, "PhotographicSensitivity")
     focal = _number(tags, "FocalLength")
+    distance = _number(tags, "SubjectDistance")  # metres; 0 unknown, 0xFFFFFFFF infinity: both left out
     return FrameMetadata(
         make=_text(tags, "Make"),
         model=_text(tags, "Model"),
@@ -118,6 +120,7 @@ def _metadata(tags: dict) -> FrameMetadata:
         f_number=f_number if f_number else None,
         exposure_s=exposure if exposure else None,
         iso=iso if iso else None,
+        focus_distance_m=distance if distance and distance < 4e9 else None,
         width=_int(tags, "ImageWidth", ("Image",)) or _int(tags, "ExifImageWidth"),
         height=_int(tags, "ImageLength", ("Image",)) or _int(tags, "ExifImageLength"),
         pixel_pitch_um=_pitch(tags),

@@ -20,7 +20,8 @@ from psfd.estimator import raw
 
 MOSAIC = np.full((64, 96), 1000, dtype=np.uint16)
 CAMERA = dict(make="psfd", model="psfd simulated camera", serial="SIM-3", lens="simulated 50 mm",
-              focal_length_mm=50.0, f_number=5.6, exposure_s=1 / 125, iso=200, pixel_pitch_um=4.3)
+              focal_length_mm=50.0, f_number=5.6, exposure_s=1 / 125, iso=200, pixel_pitch_um=4.3,
+              focus_distance_m=1.25)
 
 
 def _dng(path, **tags):
@@ -32,7 +33,7 @@ def test_psfd_dng_carries_its_exposure_metadata(tmp_path):
     meta = exif.read_metadata(_dng(tmp_path / "a.dng", **CAMERA))
     assert meta == exif.FrameMetadata(
         make="psfd", model="psfd simulated camera", serial="SIM-3", lens="simulated 50 mm", focal_length_mm=50.0,
-        f_number=5.6, exposure_s=pytest.approx(1 / 125), iso=200.0, width=96, height=64,
+        f_number=5.6, exposure_s=pytest.approx(1 / 125), iso=200.0, focus_distance_m=1.25, width=96, height=64,
         pixel_pitch_um=pytest.approx(4.3, rel=1e-6))
     assert raw.load_frame(tmp_path / "a.dng").data.shape == (32, 48)  # still a DNG LibRaw decodes
     assert exif.check_settings(meta, aperture="f/5.6", shutterspeed="1/125", iso="200", focal_length_mm=50) == []
@@ -47,6 +48,7 @@ def test_the_simulated_camera_writes_what_it_was_set_to(tmp_path):
     meta = exif.read_metadata(rig.camera.capture(tmp_path)[0])
     assert (meta.f_number, meta.exposure_s, meta.iso, meta.serial) == (11.0, 1 / 250, 100.0, "SIM-7")
     assert meta.pixel_pitch_um == pytest.approx(rig.pitch_um) and meta.focal_length_mm == rig.focal_mm
+    assert meta.focus_distance_m == pytest.approx(rig.pos.x / 1000.0)
     assert exif.check_settings(meta, aperture=11, shutterspeed="1/250", iso=100, focal_length_mm=50) == []
     with pytest.raises(SettingsMismatch, match=r"the camera used f/11 instead of f/5.6"):
         exif.check_settings(meta, aperture=5.6)
@@ -92,7 +94,7 @@ def test_missing_tags_are_reported_unverified_not_invented(tmp_path):
     meta = exif.read_metadata(_dng(tmp_path / "bare.dng"))
     assert (meta.width, meta.height) == (96, 64)
     assert all(getattr(meta, f) is None for f in ("make", "serial", "lens", "f_number", "exposure_s", "iso",
-                                                  "focal_length_mm", "pixel_pitch_um"))
+                                                  "focal_length_mm", "focus_distance_m", "pixel_pitch_um"))
     assert exif.check_settings(meta, aperture=5.6, shutterspeed="1/125", iso=100, focal_length_mm=50) == \
         ["aperture", "shutterspeed", "iso", "focal_length_mm"]
 

@@ -236,6 +236,7 @@ class SimRig:
             "f_number": float(self.settings["aperture"]),
             "exposure_s": exposure_seconds(self.settings["shutterspeed"]),
             "iso": float(self.settings["iso"]), "pixel_pitch_um": self.pitch_um,
+            "focus_distance_m": self.pos.x / 1000.0,  # the simulated lens is focused on the target
         }
 
     def _sensor_to_texture(self):

@@ -252,8 +252,8 @@ def write_dng(
     exif : dict, optional
         Exposure metadata written as TIFF/EP tags in IFD0 (where DNG allows them),
         keys as `psfd.exif.FrameMetadata`: ``make``, ``model``, ``serial``, ``lens``,
-        ``focal_length_mm``, ``f_number``, ``exposure_s``, ``iso``, ``pixel_pitch_um``;
-        None values and absent keys are left out.
+        ``focal_length_mm``, ``f_number``, ``exposure_s``, ``iso``, ``focus_distance_m``,
+        ``pixel_pitch_um``; None values and absent keys are left out.
     """
     import tifffile
 
@@ -293,8 +293,9 @@ def _exif_tags(exif: dict) -> list[tuple]:
             tags.append((code, "s", 0, str(exif[key]), True))
     if exif.get("serial"):
         tags.append((50735, "s", 0, str(exif["serial"]), True))  # DNG CameraSerialNumber
-    for key, code in {"exposure_s": 33434, "f_number": 33437, "focal_length_mm": 37386}.items():
-        if exif.get(key):  # ExposureTime, FNumber, FocalLength
+    rationals = {"exposure_s": 33434, "f_number": 33437, "focus_distance_m": 37382, "focal_length_mm": 37386}
+    for key, code in rationals.items():
+        if exif.get(key):  # ExposureTime, FNumber, SubjectDistance, FocalLength
             tags.append((code, "2I", 1, rational(exif[key]), True))
     if exif.get("iso"):
         tags.append((34855, "H", 1, int(round(float(exif["iso"]))), True))  # ISOSpeedRatings
