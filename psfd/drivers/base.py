@@ -83,7 +83,8 @@ class CameraSetup:
         fields = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(table) - fields)
         if unknown:
-            raise BadInputError(f"unknown camera setup key(s) {', '.join(unknown)} (known: {', '.join(sorted(fields))})")
+            known = ", ".join(sorted(fields))
+            raise BadInputError(f"unknown camera setup key(s) {', '.join(unknown)} (known: {known})")
         try:
             return cls(**table)
         except (TypeError, ValueError) as exc:
