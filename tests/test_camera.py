@@ -390,8 +390,9 @@ def test_raw_choice_and_files_per_exposure():
     assert raw_choice("JPEG", ["RAW+JPEG", "JPEG"]) == "RAW+JPEG"  # no RAW alone: RAW with a JPEG
     assert raw_choice("C-RAW", ["cRAW", "RAW"]) == "RAW"  # lossy compressed RAW only when nothing better
     assert raw_choice("Standard", ["Standard", "Fine", "cRAW"]) == "cRAW"
-    assert [_files_of(f) for f in ("NEF (Raw)", "NEF+Fine", "RAW + Large Fine JPEG", "RAW", "JPEG Fine")] == \
-        [1, 2, 2, 1, 1]
+    assert raw_choice("C-RAW", ["JPEG", "C-RAW", "C-RAW+JPEG"]) == "C-RAW"
+    formats = ("NEF (Raw)", "NEF+Fine", "RAW + Large Fine JPEG", "RAW", "JPEG Fine", "C-RAW", "RAW & JPEG")
+    assert [_files_of(f) for f in formats] == [1, 2, 2, 1, 1, 1, 2]
 
 
 def test_busy_then_ready_is_retried_with_backoff(fake, bodies, tmp_path):

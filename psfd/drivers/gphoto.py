@@ -309,6 +309,9 @@ class GPhotoCamera:
             raise CameraError(f"camera {self._model} cannot shoot full-resolution RAW ({name} offers: "
                               f"{', '.join(offered) or 'nothing'}); refusing before any motion")
         if best != current:
+            if widget.get_readonly():
+                raise CameraError(f"camera {self._model} is set to {current} and {name} is read-only (an automatic "
+                                  "mode on the dial?): set it to RAW on the body; refusing before any motion")
             self._apply(name, best)
         return best, _files_of(best)
 
@@ -662,7 +665,7 @@ def reset_usb_device(port: str) -> bool:
 # ---------------------------------------------------------------------- choosing values
 
 # A RAW format's own names; ``nef (raw)`` and ``raw + large fine jpeg`` both contain one.
-_RAW_WORD = re.compile(r"\b(c?raw|nef|cr2|cr3|arw|raf|orf|rw2|pef|dng|srw|3fr|iiq)\b", re.I)
+_RAW_WORD = re.compile(r"\b(c-?raw|raw|nef|cr2|cr3|arw|raf|orf|rw2|pef|dng|srw|3fr|iiq)\b", re.I)
 # Reduced RAW (Canon sRAW/mRAW, Sony/Nikon RAW M and S): demosaiced or binned, not the sensor mosaic.
 _REDUCED_RAW = re.compile(r"\b[ms]-?raw\b|\braw\s*\(?\s*[ms]\s*\)?(?![a-z])|\b(small|medium)\s+raw\b", re.I)
 
@@ -677,7 +680,7 @@ def raw_choice(current: str, offered: list[str]) -> str | None:
     def rank(choice: str) -> int | None:
         if not _RAW_WORD.search(choice) or _REDUCED_RAW.search(choice):
             return None
-        lossy = bool(re.search(r"\bcraw\b", choice, re.I))
+        lossy = bool(re.search(r"\bc-?raw\b", choice, re.I))
         return (0 if _files_of(choice) == 1 else 2) + (1 if lossy else 0)
 
     ranked = [(r, c) for c in offered if (r := rank(c)) is not None]
