@@ -8,6 +8,8 @@ The modules, from the bottom up (each imports only those above it in this list):
   ``two-photo``, ``sharp-edge``) and their older aliases, solvers and the default
   solver, channels, rail axes, f-numbers, the default ``s`` per method, and the one
   check of ``s``, ``support`` and ``grid`` with their bounds.
+- ``exif``: a frame's metadata read from the RAW file itself (focal length, f-number,
+  exposure, ISO, lens, serial, pixel pitch) and the check of requested against actual settings.
 - ``estimator/``: pure numerics, arrays in and arrays out, one module per step of the papers:
   ``raw`` (frames and Bayer planes), ``target`` (the printed pattern's layout), ``detect``
   (finding the target), ``geometry`` (the target's maps: homography, radial distortion,
