@@ -42,6 +42,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = rail_sub.add_parser("position", help="print the current position")
     _rig_options(p)
     p.set_defaults(func=rail_position)
+    p = rail_sub.add_parser("unlock", help="clear an alarm lock without homing ($X on GRBL)",
+                            description="Clears the controller's alarm lock without homing, e.g. on a rail without "
+                                        "homing switches or after a soft-limit alarm; positions are then what the "
+                                        "controller believes. Prefer `psfd rail home` when it has switches.")
+    _rig_options(p)
+    p.set_defaults(func=rail_unlock)
 
     p = subparsers.add_parser(
         "record",
@@ -66,8 +72,8 @@ def _rig_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--camera-port", help="gphoto2 port, e.g. usb:001,004 (default: the only camera)")
     p.add_argument("--rail-port", help="serial port of the rail, e.g. /dev/ttyUSB0")
     p.add_argument("--rail-limits", metavar="X=MIN:MAX[,Y=MIN:MAX]",
-                   help="soft limits in mm (default: X=0:500 on a real rail, the simulated rig's own travel "
-                        "with --simulate)")
+                   help="soft limits in mm (default: the controller's own travel, X only, on a real rail; "
+                        "the simulated rig's own travel with --simulate)")
 
 
 # ---------------------------------------------------------------- argument values
@@ -202,6 +208,10 @@ def rail_move(args: argparse.Namespace) -> int:
 
 def rail_position(args: argparse.Namespace) -> int:
     return _with_rail(args, lambda rail: rail.position())
+
+
+def rail_unlock(args: argparse.Namespace) -> int:
+    return _with_rail(args, lambda rail: rail.unlock())
 
 
 def record(args: argparse.Namespace) -> int:
