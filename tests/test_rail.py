@@ -7,10 +7,12 @@ Every scenario ends in a completed move or a typed error, and never with the car
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 import serial
@@ -195,6 +197,16 @@ def test_second_opener_is_refused_with_the_holder_pid(make_fake, connect):
     rail.close()
     assert not lock.exists()
     connect(fake).close()  # free again
+
+
+def test_without_a_lock_directory_the_device_lock_still_refuses(make_fake, connect, monkeypatch, tmp_path):
+    monkeypatch.setenv("PSFD_LOCK_DIR", str(tmp_path / "absent"))  # e.g. a sandbox without /run/lock
+    fake = make_fake()
+    rail = connect(fake)
+    with pytest.raises(RailError, match=rf"rail {fake.port} in use by pid {os.getpid()} "):
+        GrblRail(fake.port, timeout=0.5)  # pyserial's exclusive flock, holder read from /proc/locks
+    rail.close()
+    connect(fake).close()
 
 
 def test_grblhal_banner_and_boot_alarm(make_fake, connect):
@@ -442,3 +454,19 @@ def test_unanswering_port_is_an_error(make_fake):
     with pytest.raises(RailError, match="no banner from the controller .* after a reset"):
         GrblRail(fake.port, timeout=0.3, boot_wait=0.5)
     assert time.monotonic() - start < 3.0
+
+
+def test_udev_rule_and_readme_cover_the_usual_controller_chips():
+    root = Path(__file__).resolve().parents[1]
+    rules = [ln for ln in (root / "systemd" / "99-psfd.rules").read_text().splitlines() if ln.startswith('SUBSYSTEM=="tty"')]
+    ids = set()
+    for rule in rules:
+        assert 'GROUP="psfd"' in rule and 'ENV{ID_MM_DEVICE_IGNORE}="1"' in rule and 'SYMLINK+="psfd-rail"' in rule
+        vendors = re.search(r'ATTRS\{idVendor\}=="([^"]+)"', rule).group(1).split("|")
+        products = re.search(r'ATTRS\{idProduct\}=="([^"]+)"', rule).group(1).split("|")
+        ids |= {f"{v}:{p}" for v in vendors for p in products}
+    readme = (root / "README.md").read_text()
+    # CH340, FTDI FT232R, CP210x, STM32 CDC (grblHAL), Arduino Uno: in the rule and in the README's table
+    for pair in ("1a86:7523", "0403:6001", "10c4:ea60", "0483:5740", "2341:0043"):
+        assert pair in ids and pair in readme
+

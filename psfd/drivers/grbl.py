@@ -43,7 +43,6 @@ import math
 import os
 import re
 import signal
-import tempfile
 import termios
 import time
 from dataclasses import dataclass
@@ -139,6 +138,10 @@ ALARMS_BY_FIRMWARE = {
 # Alarms after which the position is kept (the documentation says so); every other one needs homing.
 POSITION_KEPT = {2, 4, 5}
 CRITICAL = {1, 2}  # the firmware answers nothing but Ctrl-X after these
+
+
+class PortGone(RailError):
+    """The serial port vanished (cable pulled): nothing more can be sent."""
 
 
 # ---------------------------------------------------------------------------------------------- parsing
@@ -274,15 +277,17 @@ def homing_time(settings: dict[int, float], cycles: tuple[tuple[int, ...], ...] 
 # ---------------------------------------------------------------------------------------------- locking
 
 
-def lock_dir() -> Path:
-    """Where port lock files live: ``$PSFD_LOCK_DIR``, else /run/lock (FHS, shared with minicom and cu)."""
+def lock_dir() -> Path | None:
+    """Where port lock files live: ``$PSFD_LOCK_DIR``, else /run/lock (FHS; minicom and cu look there too).
+
+    None when it cannot be written (a sandboxed service without ``ReadWritePaths=/run/lock``, a distribution
+    keeping it for group lock): the device's own flock still keeps a second psfd process out.
+    """
     configured = os.environ.get("PSFD_LOCK_DIR")
-    if configured:
-        return Path(configured)
-    for candidate in ("/run/lock", "/var/lock"):
+    for candidate in ([configured] if configured else ["/run/lock", "/var/lock"]):
         if os.path.isdir(candidate) and os.access(candidate, os.W_OK):
             return Path(candidate)
-    return Path(tempfile.gettempdir())
+    return None
 
 
 class PortLock:
@@ -296,20 +301,21 @@ class PortLock:
         self.port = port
         self.device = os.path.realpath(port)
         name = self.device[len("/dev/"):] if self.device.startswith("/dev/") else self.device.lstrip("/")
-        self.path = lock_dir() / ("LCK.." + name.replace("/", "_"))
+        folder = lock_dir()
+        self.path = folder / ("LCK.." + name.replace("/", "_")) if folder else None
         self._fd: int | None = None
+        self._owned = False
 
     def acquire(self) -> None:
         for _ in range(5):
-            try:
-                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-            except OSError as exc:
-                raise RailError(f"cannot create the lock file {self.path} for rail port {self.port}: "
-                                f"{exc.strerror}") from None
+            fd, writable = self._open()
+            if fd is None:
+                log.debug("no lock file for %s: relying on the device's own lock", self.port)
+                return
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                pid = _read_pid(fd)
+                pid = _read_pid(fd) or _flock_holder(str(self.path))
                 os.close(fd)
                 raise RailError(f"rail {self.port} in use by {_describe_pid(pid)}") from None
             try:
@@ -321,11 +327,12 @@ class PortLock:
                 continue
             other = _read_pid(fd)
             if other and other != os.getpid() and _holds_device(other, self.device):
-                os.close(fd)
+                os.close(fd)  # a UUCP lock of a program that does not flock (minicom, cu)
                 raise RailError(f"rail {self.port} in use by {_describe_pid(other)}")
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid():10d}\n".encode(), 0)
-            self._fd = fd
+            if writable:
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f"{os.getpid():10d}\n".encode(), 0)
+            self._fd, self._owned = fd, writable
             return
         raise RailError(f"cannot lock rail port {self.port} ({self.path} keeps changing)")
 
@@ -334,12 +341,25 @@ class PortLock:
         if fd is None:
             return
         try:
-            if os.fstat(fd).st_ino == os.stat(self.path).st_ino:
+            if self._owned and os.fstat(fd).st_ino == os.stat(self.path).st_ino:
                 os.unlink(self.path)
         except OSError:
             pass
         finally:
             os.close(fd)
+
+    def _open(self) -> tuple[int | None, bool]:
+        """The lock file, created if need be; read-only when another user's file is in the way."""
+        if self.path is None:
+            return None, False
+        try:
+            return os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644), True
+        except OSError:
+            pass
+        try:
+            return os.open(self.path, os.O_RDONLY), False
+        except OSError:
+            return None, False
 
 
 def _read_pid(fd: int) -> int | None:
@@ -457,6 +477,7 @@ class GrblRail:
         self._wco: tuple[float, ...] | None = None
         self._buffer = b""
         self._moving = False
+        self._alarmed = False
         self._serial: serial.Serial | None = None
         self._lock = PortLock(port)
         self._lock.acquire()
@@ -748,7 +769,7 @@ class GrblRail:
         with _signals_deferred():
             try:
                 self._write(FEED_HOLD)
-            except RailError as exc:
+            except PortGone as exc:
                 return f"the carriage may still be moving ({exc})"
             started = time.monotonic()
             stop = self._stop_time()
@@ -758,9 +779,10 @@ class GrblRail:
                 try:
                     status = self._status(min(self.timeout, 0.5))
                     heard = True
-                except RailAlarm:
-                    status = self._status()
-                    return f"rail stopped in ALARM at {self._where(status)}"
+                except PortGone as exc:
+                    return f"the carriage may still be moving ({exc})"
+                except RailAlarm as alarm:
+                    return f"the controller stopped it: {alarm}"
                 except RailError:
                     status = None
                 if status is not None and (status.state in ("Idle", "Alarm") or status.name in ("Hold:0", "Door:0",
@@ -797,6 +819,8 @@ class GrblRail:
 
     def _stop_time(self) -> float:
         """Worst case to decelerate from the fastest rate at the lowest acceleration of the rail's axes."""
+        if not self.settings:
+            return 30.0  # not read yet (a move left running by another process): wait while it decelerates
         indices = [AXES.index(a) for a in self.travel] or [0]
         rate = max(self._settings_full[110 + i] for i in indices) / 60.0
         if self.feed:
@@ -807,6 +831,19 @@ class GrblRail:
 
     def _on_alarm(self, code: int | None, during: str) -> NoReturn:
         """The controller threw an alarm: bring it back to talking (a reset if it went deaf), then raise."""
+        self._alarmed = True  # alarm lines that follow (a firmware's own boot alarm) are part of this one
+        try:
+            status = self._recover(code)
+        finally:
+            self._alarmed = False
+        meaning = self._alarm_meaning(code) if code is not None else "locked"
+        text = f"ALARM:{code} ({meaning})" if code is not None else "ALARM"
+        advice = "homing needed: `psfd rail home`"
+        if code in POSITION_KEPT:
+            advice += " (the position was kept: `psfd rail unlock` is enough)"
+        raise RailAlarm(f"rail {text} {during} at {self._where(status)}; {advice}")
+
+    def _recover(self, code: int | None) -> GrblStatus:
         if code in CRITICAL:
             # The firmware prints [MSG:Reset to continue] 500 ms after the alarm and forgets a reset sent
             # before it; only then does Ctrl-X bring it back.
@@ -817,13 +854,7 @@ class GrblRail:
             self._drain(0.2, watch=False)
         else:
             self._drain(0.2, watch=False)
-        status = self._status()
-        meaning = self._alarm_meaning(code) if code is not None else "locked"
-        text = f"ALARM:{code} ({meaning})" if code is not None else "ALARM"
-        advice = "homing needed: `psfd rail home`"
-        if code in POSITION_KEPT:
-            advice += " (the position was kept: `psfd rail unlock` is enough)"
-        raise RailAlarm(f"rail {text} {during} at {self._where(status)}; {advice}")
+        return self._status()
 
     def _alarm_meaning(self, code: int) -> str:
         name = f"{self.banner} {self.firmware}"
@@ -873,7 +904,7 @@ class GrblRail:
             if reply.startswith("<"):
                 status, self._wco = parse_status(reply, self._wco, self._scale)
                 return status
-            if reply.startswith("ALARM:"):
+            if reply.startswith("ALARM:") and not self._alarmed:
                 self._moving = False
                 self._on_alarm(_code(reply), "")
 
@@ -921,7 +952,7 @@ class GrblRail:
         except serial.SerialTimeoutException:
             raise RailError(f"rail port {self.port}: write timed out (controller not reading)") from None
         except (serial.SerialException, OSError) as exc:
-            raise RailError(f"rail port {self.port} is gone ({_reason(exc)})") from None
+            raise PortGone(f"rail port {self.port} is gone ({_reason(exc)})") from None
 
     def _read_line(self, deadline: float) -> str | None:
         """Next non-empty line, or None at the deadline; RailError if the port is gone."""
@@ -935,7 +966,7 @@ class GrblRail:
                         return None
                     chunk = self._serial.read(max(1, waiting))  # at most READ_SLICE s when nothing comes
                 except (serial.SerialException, OSError) as exc:
-                    raise RailError(f"rail port {self.port} is gone ({_reason(exc)})") from None
+                    raise PortGone(f"rail port {self.port} is gone ({_reason(exc)})") from None
                 self._buffer += chunk
             raw, self._buffer = self._buffer.split(b"\n", 1)
             # Line noise decodes to replacement characters and is then skipped as an unknown line.
