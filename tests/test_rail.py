@@ -394,7 +394,7 @@ def test_hard_limit_mid_move_is_reset_and_homing_needed(make_fake, connect):
     fake = make_fake({21: 1, 22: 1}, start=(-60.0, 0.0, 0.0))
     rail = connect(fake)
     rail.unlock()  # unlocked where it stands: the controller believes X=0, the carriage is 60 mm from the + switch
-    with pytest.raises(RailAlarm, match=r"ALARM:1 \(hard limit triggered\) .*homing needed"):
+    with pytest.raises(RailAlarm, match=r"ALARM:1 \(hard limit triggered\) .*homing needed.*limit switch X still pressed"):
         rail.move(x=-150)
     assert fake.resets()[-1] == "Alarm"  # reset after [MSG:Reset to continue]: no longer deaf
     assert rail.info().state == "Alarm"

@@ -19,7 +19,7 @@ commands.md and the firmware source it describes):
   acceleration (mm/s^2), ``$130..`` max travel, ``$10`` (bit 0: MPos or WPos in reports), ``$13`` (reports in
   inches), ``$20/$21/$22`` soft limits, hard limits, homing, ``$24..$27`` homing feed, seek, debounce, pull-off.
 
-From that the driver derives, per controller, what the first version hard-coded: units, travel,
+From those the driver derives, per controller: units, travel,
 move deadlines (a trapezoidal profile at the axis-limited rate and acceleration, plus a margin), the
 arrival tolerance (half a step plus the report resolution) and the homing deadline (a 1.5 x travel search
 at ``$25`` plus the locate phases at ``$24``). psfd positions are GRBL work coordinates (``WPos = MPos - WCO``);
@@ -841,6 +841,9 @@ class GrblRail:
         advice = "homing needed: `psfd rail home`"
         if code in POSITION_KEPT:
             advice += " (the position was kept: `psfd rail unlock` is enough)"
+        switches = "".join(c for c in status.pins if c in "XYZABC")
+        if switches:
+            advice += f"; limit switch {switches} still pressed: free the carriage first"
         raise RailAlarm(f"rail {text} {during} at {self._where(status)}; {advice}")
 
     def _recover(self, code: int | None) -> GrblStatus:
