@@ -121,7 +121,7 @@ def test_rail_limits_help_names_both_defaults(capsys):
     with pytest.raises(SystemExit):
         main(["rail", "home", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    assert "the controller's own travel, X only, on a real rail" in text and "--simulate" in text
+    assert "X=0:500 on a real rail" in text and "--simulate" in text
 
 
 def test_console_entry_point(tmp_path):

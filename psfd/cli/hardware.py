@@ -72,8 +72,8 @@ def _rig_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--camera-port", help="gphoto2 port, e.g. usb:001,004 (default: the only camera)")
     p.add_argument("--rail-port", help="serial port of the rail, e.g. /dev/ttyUSB0")
     p.add_argument("--rail-limits", metavar="X=MIN:MAX[,Y=MIN:MAX]",
-                   help="soft limits in mm (default: the controller's own travel, X only, on a real rail; "
-                        "the simulated rig's own travel with --simulate)")
+                   help="soft limits in mm (default: X=0:500 on a real rail, the simulated rig's own travel "
+                        "with --simulate)")
 
 
 # ---------------------------------------------------------------- argument values
