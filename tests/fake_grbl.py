@@ -37,11 +37,12 @@ A physical rail stands behind it: per axis, a switch at each end of a span a lit
 (the + switch at physical 0) and a mechanical stop 5 mm beyond each switch where the motor stalls and loses
 steps (counted in ``crashes``).
 
-Configurable: ``settings`` (e.g. ``{22: 1}`` homing, ``{13: 1}`` inches, ``{100: 25}``, ``{110: 60, 120: 1}`` a slow
-rail), ``flavour`` ("grbl", "grblhal", "fluidnc": their banners, boot alarms and ``$$``/``$I`` answers),
+Configurable: ``settings`` (e.g. ``{22: 1}`` homing, ``{13: 1}`` inches, ``{100: 25}``, ``{110: 60, 120: 1}`` a
+slow rail), ``flavour`` ("grbl", "grblhal", "fluidnc": their banners, boot alarms and ``$$``/``$I`` answers),
 ``auto_reset`` (an Arduino whose DTR line resets it when the port is opened, unless HUPCL was cleared so DTR
-stayed up; a close and reopen within one millisecond tick go unnoticed), ``boot_time`` (its bootloader delay), ``wake_on_line`` (a board that says nothing, not even to
-``?``, until it has received a whole line), ``time_scale`` (simulated seconds per wall second).
+stayed up; a close and reopen within one millisecond tick go unnoticed), ``boot_time`` (its bootloader
+delay), ``wake_on_line`` (a board that says nothing, not even to ``?``, until it has received a whole line),
+``time_scale`` (simulated seconds per wall second).
 
 Simplifications: each planner block starts and ends at rest (no junction speeds: slower than the
 firmware, never faster); arcs, probing, G28/G30, inverse time, parking and spindle/coolant outputs are not

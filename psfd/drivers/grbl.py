@@ -517,7 +517,8 @@ class GrblRail:
         seconds = self._homing_timeout or homing_time(self._settings_full) * DEADLINE_FACTOR + self.timeout + 1.0
         self._moving = True
         try:
-            self._command("$H", seconds, what=f"'ok' to '$H' (homing cycle, {seconds:.0f} s allowed from $25, $24, $27, $130)")
+            self._command("$H", seconds, what=f"'ok' to '$H' (the homing cycle; {seconds:.0f} s allowed from "
+                                              f"$25, $24, $27 and $130)")
         except BaseException as exc:
             if self._moving:
                 self._moving = False
@@ -711,7 +712,8 @@ class GrblRail:
             raise RailError("move needs at least one axis position")
         for axis, value in target.items():
             if axis not in self.travel:
-                raise RailError(f"rail has no {axis.upper()} axis (its axes: {', '.join(a.upper() for a in self.axes)})")
+                axes = ", ".join(a.upper() for a in self.axes)
+                raise RailError(f"rail has no {axis.upper()} axis (its axes: {axes})")
             lo, hi = self.travel[axis]
             if not math.isfinite(value) or not lo <= value <= hi:
                 raise RailError(f"{axis.upper()}={value:g} mm is outside the rail's travel [{lo:g}, {hi:g}] mm")
@@ -749,8 +751,8 @@ class GrblRail:
                     self._moving = False
                     raise RailError(f"rail stopped at {self._where(status)} short of {want} mm")
             elif status.state == "Hold":
-                raise RailError(f"rail feed hold ({status.name}) at {self._where(status)} during the move to {want} mm: "
-                                f"the move is cancelled")
+                raise RailError(f"rail feed hold ({status.name}) at {self._where(status)} during the move to "
+                                f"{want} mm: the move is cancelled")
             elif status.state == "Door":
                 raise RailError(f"safety door opened during the move to {want} mm ({status.name})")
             elif status.state == "Alarm":
@@ -759,8 +761,9 @@ class GrblRail:
             elif status.state not in ("Run", "Jog"):
                 raise RailError(f"rail in unexpected state {status.name} during the move to {want} mm")
             if time.monotonic() > deadline:
-                raise RailError(f"rail did not reach {want} mm within {allowed:.1f} s (the move takes {expected:.1f} s at "
-                                f"the controller's $110/$120): {status.name} at {self._where(status)}")
+                raise RailError(f"rail did not reach {want} mm within {allowed:.1f} s (the move takes "
+                                f"{expected:.1f} s at the controller's $110/$120): {status.name} at "
+                                f"{self._where(status)}")
             time.sleep(self.poll)
 
     def _halt(self) -> str:
@@ -875,7 +878,8 @@ class GrblRail:
         while True:
             reply = self._read_line(deadline)
             if reply is None:
-                raise RailError(f"no {what or repr('ok') + ' to ' + repr(line)} from rail on {self.port} within {seconds:g} s")
+                what = what or f"'ok' to {line!r}"
+                raise RailError(f"no {what} from rail on {self.port} within {seconds:g} s")
             if reply == "ok":
                 return received
             if reply.startswith("error:"):
@@ -987,9 +991,9 @@ class GrblRail:
     def _axis_settings(self, base: int) -> list[float]:
         return [self._settings_full[base + i] for i in range(len(AXES))]
 
-    def _tolerance(self, axis: int | str) -> float:
+    def _tolerance(self, axis: str) -> float:
         """Half a step (GRBL rounds targets to whole steps) plus the report's last digit, mm."""
-        index = AXES.index(axis) if isinstance(axis, str) else axis
+        index = AXES.index(axis)
         resolution = 0.0001 * MM_PER_INCH if self._scale != 1.0 else 0.001
         return 0.5 / self._settings_full[100 + index] + resolution + 1e-6
 
