@@ -36,19 +36,39 @@ from psfd.estimator import target
 # the hourglass is an exact saddle out to 16 cells while the noise averages out.
 _SIGMA = 1.0
 _MAX_LEVEL = 3
-_MAX_CANDIDATES = 250
-_MAX_SEEDS = 120  # strongest candidates tried as seed pairs
-_MAX_HYPOTHESES = 40  # seed hypotheses grown per level, most promising first
 _MIN_SEED_HITS = 7  # marks a seed similarity must already explain to be grown
 _STRENGTH_RATIO = 0.4  # weakest mark / strongest mark accepted in one target
 _REFINE_CELLS = 8.0  # half-size of the sub-pixel refinement window, in cells
 _AXIS_TOL = np.deg2rad(20.0)  # dark axis of a mark vs the pattern's y axis (perspective, noise)
 # Saddle strength (see _saddles) below which a point is not a candidate, as a
-# fraction of the strength of an ideal contrast-1 X-corner.
-_MIN_STRENGTH = 0.12
-# Spacing of adjacent ring marks (3 blocks) in level pixels: 96 cells at
-# 2**L / 8 .. 2**L / 3 px/cell is 12 .. 32 px; the bounds leave room for perspective.
-_SPACING = (8.0, 60.0)
+# fraction of the strength of an ideal contrast-1 X-corner: low, so that a
+# dim target is not lost; the shape test below does the selection.
+_MIN_STRENGTH = 0.03
+# The X-corner test (_x_shape): 16 samples on circles of 1.25 and 2 level
+# pixels, 4-10 and 6-16 cells at the level's 1/8 to 1/3 px/cell, inside the
+# 16 cells where a mark is a perfect X-corner and clear of its blurred apex.
+_RING_RADII = (1.25, 2.0)
+_RING_SAMPLES = 16
+_MIN_SHAPE = 0.8  # centred marks measure 0.91-0.98 (blur, perspective, noise); half the texture's X-like points are below
+_MIN_CONTRAST = 0.02  # of the image's range: the marks' black on white is 10 times more
+# Local choice: the best candidates of every 8 x 8 tile, well under the
+# spacing of adjacent marks (12-32 level px), so no mark shares its tile with another.
+_TILE = 8.0
+_PER_TILE = 2
+# Seed pairs: the two flat squares between neighbouring marks must lie
+# beyond this fraction of the marks' contrast from their mean level, one
+# dark, one light (measured 0.5-1.3) ...
+_SQUARE_TOL = 0.35
+# ... and be flat: values within a quarter block of their centres within
+# this fraction of the contrast (measured up to 0.37 at a level's smallest scale).
+_FLAT_TOL = 0.5
+# Least contrast between the flat black and white squares, of the image's range.
+_MIN_SQUARE_CONTRAST = 0.1
+# Spacing of adjacent ring marks (3 blocks) in level pixels: 96 cells at the
+# 1/6 .. 1/3 px/cell where a level sees the marks best is 16 .. 32 px (below
+# that, the finer level takes over; level 0 reaches 1/8, 12 px); the bounds
+# leave room for perspective.
+_SPACING = (9.0, 40.0)
 # Adjacent ring marks used to seed hypotheses: the three edges of the top row.
 _SEED_EDGES = ((6, 5), (5, 4), (4, 3))  # indices into target.XCORNER_BLOCKS
 _RING_CORNERS = ((0, 0), (9, 0), (9, 9), (0, 9))
@@ -144,68 +164,202 @@ def _normalise(image: np.ndarray, saturated: np.ndarray | None) -> np.ndarray:
 
 
 def _search(norm: np.ndarray) -> list[np.ndarray]:
-    """Homographies (pattern cells -> image px, correct orientation) of every target found."""
-    found: list[np.ndarray] = []
-    level_img = norm
+    """Homographies (pattern cells -> image px, correct orientation) of every target found.
+
+    Every pyramid level proposes hypotheses; each one that passes the layout
+    check (`_layout_fit`) is kept, and one target found at several levels
+    keeps its best-fitting homography.
+    """
+    found: list[tuple[float, np.ndarray]] = []
+    lv, finer = _Level.of(norm), None
     for level in range(_MAX_LEVEL + 1):
-        if min(level_img.shape) < 24:
+        if min(lv.image.shape) < 24:
             break
         to_full = np.diag([2.0**level, 2.0**level, 1.0])  # pyrDown keeps pixel i at 2i
-        for h in _find_at_level(level_img):
-            h_full = _orient(norm, to_full @ h)
-            if h_full is not None and not any(_same_target(h_full, g) for g in found):
-                found.append(h_full)
-        level_img = cv2.pyrDown(level_img)
-    return found
+        for fit, h_full in _find_at_level(lv, finer, lambda h: _orient(norm, to_full @ h)):
+            same = [k for k, (_, g) in enumerate(found) if _same_target(h_full, g)]
+            if not same:
+                found.append((fit, h_full))
+            elif fit > found[same[0]][0]:
+                found[same[0]] = (fit, h_full)
+        finer, lv = lv, _Level.of(cv2.pyrDown(lv.image))
+    return [h for _, h in found]
+
+
+@dataclass
+class _Level:
+    """One pyramid level: the image, smoothed by _SIGMA, and its second derivatives."""
+
+    image: np.ndarray
+    smooth: np.ndarray
+    ixx: np.ndarray
+    iyy: np.ndarray
+    ixy: np.ndarray
+
+    @classmethod
+    def of(cls, image: np.ndarray) -> "_Level":
+        smooth = cv2.GaussianBlur(image, (0, 0), _SIGMA)
+        return cls(image, smooth, *_hessian(smooth))
 
 
 @dataclass
 class _Saddles:
-    """Saddle points of one pyramid level, strongest first."""
+    """X-corner candidates of one pyramid level."""
 
-    points: np.ndarray  # (n, 2) level pixels
-    strength: np.ndarray  # (n,) scale-normalised, proportional to contrast
-    axis: np.ndarray  # (n,) angle of the dark axis (negative curvature), radians mod pi
+    points: np.ndarray  # (n, 2) level pixels, sub-pixel
+    strength: np.ndarray  # (n,) contrast between the light and the dark sectors
+    level: np.ndarray  # (n,) mean of the surroundings, halfway between dark and light
+    axis: np.ndarray  # (n,) angle of the dark axis (the bisector of the dark sectors), radians mod pi
+    shape: np.ndarray  # (n,) how X-like the surroundings are, in [0, 1] (see _x_shape)
+    smooth: np.ndarray  # the smoothed level image
 
     def __post_init__(self) -> None:
         self.tree = cKDTree(self.points)
 
 
-def _saddles(img: np.ndarray) -> _Saddles:
-    """Saddle points of the smoothed image.
+def _saddles(lv: _Level, finer: _Level | None) -> _Saddles:
+    """X-corner candidates of one pyramid level, chosen locally.
 
-    The strength sigma^2 sqrt(-det Hess) is scale-normalised and proportional
-    to contrast (an ideal contrast-1 hourglass scores _IDEAL); smooth edges and
-    blobs do not score (det Hess >= 0). The dark axis of an hourglass mark is
-    the pattern's y axis, which later tells marks from look-alike junctions.
+    Saddle points of the smoothed image (sigma^2 sqrt(-det Hess), scale
+    normalised; smooth edges and blobs do not score, det Hess >= 0) are
+    centred to sub-pixel precision and then judged by their own surroundings
+    (`_x_shape`, on the finer level where there is one): an hourglass mark is
+    an X-corner out to half its block, two opposite dark sectors and two
+    opposite light ones, point-symmetric; foliage, letters and edges are not.
+    Of the candidates that pass, only the best few of every small tile are
+    kept: a busy region elsewhere in the frame never pushes a mark out.
     """
-    smooth = cv2.GaussianBlur(img, (0, 0), _SIGMA)
-    ixx, iyy, ixy = _hessian(smooth)
+    ixx, iyy, ixy = lv.ixx, lv.iyy, lv.ixy
     neg_det = cv2.subtract(cv2.multiply(ixy, ixy), cv2.multiply(ixx, iyy))
-    border = int(3 * _SIGMA)
+    border = int(np.ceil(max(3 * _SIGMA, _RING_RADII[-1] + 2)))
     neg_det[:border] = neg_det[-border:] = 0.0
     neg_det[:, :border] = neg_det[:, -border:] = 0.0
     floor = (_MIN_STRENGTH * _IDEAL / _SIGMA**2) ** 2
-    peaks = (neg_det >= cv2.dilate(neg_det, np.ones((5, 5), np.uint8))) & (neg_det > floor)
+    peaks = cv2.compare(neg_det, cv2.dilate(neg_det, np.ones((3, 3), np.uint8)), cv2.CMP_GE)
+    peaks &= cv2.compare(neg_det, floor, cv2.CMP_GT)
     ys, xs = np.nonzero(peaks)
     xx, yy, xy = ixx[ys, xs], iyy[ys, xs], ixy[ys, xs]
-    strength = _SIGMA**2 * np.sqrt(neg_det[ys, xs])
     # A saddle of an X-corner has opposite curvatures of similar size; an edge
     # crossing texture does not. Perspective skews the sectors, hence the slack.
-    keep = np.abs(xx + yy) * _SIGMA**2 <= strength
-    order = np.nonzero(keep)[0][np.argsort(strength[keep])[::-1][:_MAX_CANDIDATES]]
-    # Direction of positive curvature (the bright sectors), plus a quarter turn.
-    axis = 0.5 * np.arctan2(2 * xy[order], xx[order] - yy[order]) + np.pi / 2
-    points = np.column_stack([xs[order], ys[order]]).astype(np.float64)
-    return _Saddles(points, strength[order], np.mod(axis, np.pi))
+    keep = np.abs(xx + yy) <= 2.0 * np.sqrt(neg_det[ys, xs])
+    points = np.column_stack([xs[keep], ys[keep]]).astype(np.float32)
+    # Centre on the saddle (gradient zero) of the finer level, where the
+    # smoothing is half as wide and the neighbouring blocks do not pull it;
+    # where the finer level shows no saddle at the peak, start from this
+    # level's saddle instead.
+    if finer is None:
+        points, _ = _to_saddle(lv, points)
+        shape, contrast, level, axis = _x_shape(lv.image, points, _RING_RADII)
+    else:
+        fine, found = _to_saddle(finer, 2.0 * points)
+        fine[~found], _ = _to_saddle(finer, 2.0 * _to_saddle(lv, points[~found])[0])
+        points = 0.5 * fine
+        shape, contrast, level, axis = _x_shape(finer.image, fine, 2.0 * np.asarray(_RING_RADII))
+    keep = np.flatnonzero((shape >= _MIN_SHAPE) & (contrast >= _MIN_CONTRAST))
+    best = keep[_best_per_tile(points[keep], (shape * contrast)[keep], _TILE, _PER_TILE)]
+    return _Saddles(points[best].astype(np.float64), contrast[best], level[best], axis[best], shape[best], lv.smooth)
+
+
+def _to_saddle(lv: _Level, points: np.ndarray, steps: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Newton steps from ``points`` toward the saddle of the smoothed image (at most a pixel each).
+
+    Returns the points and whether the first step found a saddle (det Hess < 0) to move to.
+    """
+    found = np.ones(len(points), dtype=bool)
+    for k in range(steps):
+        if k == 0 and np.all(points == np.rint(points)):  # on the pixel grid: no interpolation
+            xs, ys = points[:, 0].astype(np.intp), points[:, 1].astype(np.intp)
+            inside = (xs >= 1) & (ys >= 1) & (xs < lv.smooth.shape[1] - 1) & (ys < lv.smooth.shape[0] - 1)
+            xs, ys = np.where(inside, xs, 1), np.where(inside, ys, 1)
+            gx = 0.5 * (lv.smooth[ys, xs + 1] - lv.smooth[ys, xs - 1])
+            gy = 0.5 * (lv.smooth[ys + 1, xs] - lv.smooth[ys - 1, xs])
+            xx, yy, xy = lv.ixx[ys, xs], lv.iyy[ys, xs], lv.ixy[ys, xs]
+        else:
+            xs, ys = points[:, 0], points[:, 1]
+            gx = 0.5 * (_remap(lv.smooth, xs + 1, ys) - _remap(lv.smooth, xs - 1, ys))
+            gy = 0.5 * (_remap(lv.smooth, xs, ys + 1) - _remap(lv.smooth, xs, ys - 1))
+            xx, yy, xy = (_remap(d, xs, ys) for d in (lv.ixx, lv.iyy, lv.ixy))
+        det = xx * yy - xy * xy
+        if k == 0:
+            found = det < 0
+        det = np.where(det < 0, det, -np.inf)  # not a saddle there: stay
+        step = np.column_stack([(xy * gy - yy * gx) / det, (xy * gx - xx * gy) / det])
+        points = points + np.clip(step, -1.0, 1.0).astype(np.float32)
+    return points, found
+
+
+def _x_shape(img: np.ndarray, points: np.ndarray, radii) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """How much the surroundings of each point look like an X-corner.
+
+    The image is read on circles of the given radii around each point. The
+    angular profile of an X-corner is a square wave of period pi (light,
+    dark, light, dark sectors, opposite sectors alike): 81 % of its variance
+    lies in the second angular harmonic, and more once blurred (a sinusoid
+    has all of it). An edge puts its variance in the first harmonic, a line
+    crossing in the fourth, a T-junction or texture spreads it. Reading two
+    radii at once also asks the corner to be the same at both, as a corner
+    is and a curved structure is not.
+
+    Returns
+    -------
+    shape : (n,) fraction of the variance in the second harmonic, in [0, 1]
+    contrast : (n,) light minus dark of the square wave with that harmonic
+    level : (n,) mean of the circles, halfway between dark and light
+    axis : (n,) angle of the dark axis, radians mod pi
+    """
+    angles = 2 * np.pi * np.arange(_RING_SAMPLES) / _RING_SAMPLES
+    theta = np.tile(angles, len(radii))
+    radius = np.repeat(np.asarray(radii, dtype=np.float64), _RING_SAMPLES)
+    dx, dy = (radius * np.cos(theta)).astype(np.float32), (radius * np.sin(theta)).astype(np.float32)
+    ring = _remap(img, points[:, :1] + dx, points[:, 1:] + dy)
+    level = ring.mean(axis=1)
+    ring -= level[:, None]
+    re = ring @ np.cos(2 * theta).astype(np.float32)
+    im = ring @ np.sin(2 * theta).astype(np.float32)
+    power = re * re + im * im
+    shape = 2.0 * power / (len(theta) * np.einsum("ij,ij->i", ring, ring) + 1e-30)
+    # Profile ~ a cos(2 (theta - light)): a = 2 |harmonic| / n, and a square
+    # wave of contrast c has a = 2 c / pi.
+    contrast = np.pi / len(theta) * np.sqrt(power)
+    light = 0.5 * np.arctan2(im, re)  # direction of the light sectors
+    return shape, contrast, level, np.mod(light + np.pi / 2, np.pi)
+
+
+def _remap(img: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img`` at points (``xs``, ``ys``) of any shape (edge pixels repeated outside)."""
+    shape = np.shape(xs)
+    count = int(np.prod(shape))
+    # cv2.remap takes maps of under 32767 rows and columns: lay them out in
+    # rows of 4096 (padded), which also keeps each point's samples together.
+    width = 4096
+    rows = max(1, -(-count // width))
+    maps = np.zeros((2, rows * width), dtype=np.float32)
+    maps[0, :count] = np.ravel(xs)
+    maps[1, :count] = np.ravel(ys)
+    out = cv2.remap(img, maps[0].reshape(rows, width), maps[1].reshape(rows, width), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1)[:count].reshape(shape)
+
+
+def _best_per_tile(points: np.ndarray, score: np.ndarray, tile: float, count: int) -> np.ndarray:
+    """Indices of the ``count`` best-scoring points of every ``tile`` x ``tile`` square."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    cells = np.floor(points / tile).astype(np.int64)
+    key = cells[:, 1] * (cells[:, 0].max() + 1) + cells[:, 0]
+    order = np.lexsort((-score, key))
+    ranked = key[order]
+    first = np.concatenate([[0], np.flatnonzero(np.diff(ranked)) + 1])
+    rank = np.arange(len(order)) - np.repeat(first, np.diff(np.concatenate([first, [len(order)]])))
+    return np.sort(order[rank < count])
 
 
 def _hessian(smooth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Second derivatives (xx, yy, xy) by 3 x 3 Sobel kernels (each has weight 4)."""
     return (
-        cv2.Sobel(smooth, cv2.CV_32F, 2, 0, ksize=3) / 4.0,
-        cv2.Sobel(smooth, cv2.CV_32F, 0, 2, ksize=3) / 4.0,
-        cv2.Sobel(smooth, cv2.CV_32F, 1, 1, ksize=3) / 4.0,
+        cv2.Sobel(smooth, cv2.CV_32F, 2, 0, ksize=3, scale=0.25),
+        cv2.Sobel(smooth, cv2.CV_32F, 0, 2, ksize=3, scale=0.25),
+        cv2.Sobel(smooth, cv2.CV_32F, 1, 1, ksize=3, scale=0.25),
     )
 
 
@@ -228,30 +382,22 @@ def _angle_gap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.minimum(d, np.pi - d)
 
 
-def _find_at_level(img: np.ndarray) -> list[np.ndarray]:
-    """Homographies (pattern -> level px, orientation up to a half turn) of ring-shaped sets of marks."""
-    sad = _saddles(img)
+def _find_at_level(lv: _Level, finer: _Level | None, verify) -> list[tuple[float, np.ndarray]]:
+    """(layout fit, homography pattern -> full image) of every target found on one level.
+
+    Every pair of candidates that could be two neighbouring marks of a row of
+    the ring (a similarity) is scored by how many of the other ten marks it
+    predicts; hypotheses are grown and checked in that order, with no cap on
+    their number: ``verify(h)`` (h: pattern -> level px) returns the layout
+    fit and the full-image homography of a genuine target, or None.
+    """
+    sad = _saddles(lv, finer)
     if len(sad.points) < len(target.XCORNER_BLOCKS):
         return []
-    pts = sad.points
-    seeds = cKDTree(pts[:_MAX_SEEDS])
-    pairs = np.array(sorted(seeds.query_pairs(_SPACING[1])), dtype=np.int64).reshape(-1, 2)
-    pairs = np.concatenate([pairs, pairs[:, ::-1]])  # both orders: no mirror images needed
-    step = pts[pairs[:, 1]] - pts[pairs[:, 0]]
-    gaps = np.linalg.norm(step, axis=1)
-    # Seeds are two neighbours on a row of the ring: as strong as each other,
-    # with their dark axes across the row (the hourglasses stand on the rows).
-    across = np.arctan2(step[:, 1], step[:, 0]) + np.pi / 2
-    first, second = sad.strength[pairs[:, 0]], sad.strength[pairs[:, 1]]
-    keep = (
-        (gaps >= _SPACING[0])
-        & (np.minimum(first, second) > _STRENGTH_RATIO * np.maximum(first, second))
-        & (_angle_gap(sad.axis[pairs[:, 0]], across) < _AXIS_TOL)
-        & (_angle_gap(sad.axis[pairs[:, 1]], across) < _AXIS_TOL)
-    )
-    pairs = pairs[keep]
+    pairs = _seed_pairs(sad)
     if len(pairs) == 0:
         return []
+    pts = sad.points
     pattern = target.xcorner_points()
     zpat = pattern[:, 0] + 1j * pattern[:, 1]
     zimg = pts[:, 0] + 1j * pts[:, 1]
@@ -271,19 +417,64 @@ def _find_at_level(img: np.ndarray) -> list[np.ndarray]:
     scores, candidates = np.stack(scores), np.stack(candidates)
     best = np.argmax(scores, axis=0)
     hits = scores[best, np.arange(len(pairs))]
-    order = [k for k in np.argsort(-hits, kind="stable") if hits[k] >= _MIN_SEED_HITS][:_MAX_HYPOTHESES]
-    results: list[np.ndarray] = []
+    quality = hits + sad.shape[pairs].mean(axis=1)  # ties: the more X-like seeds first
+    order = [k for k in np.argsort(-quality, kind="stable") if hits[k] >= _MIN_SEED_HITS]
+    results: list[tuple[float, np.ndarray]] = []
     used: set[int] = set()
     for k in order:
         seed = tuple(pairs[k])
         if used.intersection(seed):
             continue
         grown = _grow(sad, pattern, candidates[best[k], k], weakest[k])
-        if grown is not None:
-            h, members = grown
+        if grown is None:
+            continue
+        h, members = grown
+        verified = verify(h)
+        if verified is not None:
             used.update(members)
-            results.append(h)
+            results.append(verified)
     return results
+
+
+def _seed_pairs(sad: _Saddles) -> np.ndarray:
+    """(m, 2) ordered pairs of candidates that may be neighbouring marks on a row of the ring.
+
+    Two neighbours on a row are about as strong as each other, with their
+    dark axes across the row (the hourglasses stand on the rows), and
+    between them lie a flat black and a flat white square, one third and two
+    thirds of the way (their order depends on the row), each read at its
+    centre and a quarter block to either side, along and across. Every test
+    is symmetric, so each pair that passes is returned in both orders.
+    """
+    pairs = sad.tree.query_pairs(_SPACING[1], output_type="ndarray").reshape(-1, 2)
+    a, b = pairs[:, 0], pairs[:, 1]
+    # The cheapest tests first: most pairs of a busy frame fail them.
+    keep = _angle_gap(sad.axis[a], sad.axis[b]) < 2 * _AXIS_TOL
+    keep &= np.minimum(sad.strength[a], sad.strength[b]) > _STRENGTH_RATIO * np.maximum(sad.strength[a], sad.strength[b])
+    pairs = pairs[keep]
+    a, b = pairs[:, 0], pairs[:, 1]
+    start, step = sad.points[a], sad.points[b] - sad.points[a]
+    across = np.arctan2(step[:, 1], step[:, 0]) + np.pi / 2
+    keep = (
+        (np.hypot(step[:, 0], step[:, 1]) >= _SPACING[0])
+        & (_angle_gap(sad.axis[a], across) < _AXIS_TOL)
+        & (_angle_gap(sad.axis[b], across) < _AXIS_TOL)
+    )
+    pairs, start, step = pairs[keep], start[keep], step[keep]
+    a, b = pairs[:, 0], pairs[:, 1]
+    # Sample points start + along * step + aside * (step turned a quarter).
+    along = np.repeat(np.float32([1 / 3, 2 / 3]), 5) + np.tile(np.float32([0, 1, -1, 0, 0]), 2) / 12
+    aside = np.tile(np.float32([0, 0, 0, 1, -1]), 2) / 12
+    xs = start[:, :1] + step[:, :1] * along - step[:, 1:] * aside
+    ys = start[:, 1:] + step[:, 1:] * along + step[:, :1] * aside
+    squares = _remap(sad.smooth, xs, ys).reshape(-1, 2, 5)
+    mid = 0.5 * (sad.level[a] + sad.level[b])
+    contrast = 0.5 * (sad.strength[a] + sad.strength[b])
+    flat = np.ptp(squares, axis=2).max(axis=1) < _FLAT_TOL * contrast
+    means = squares.mean(axis=2)
+    keep = flat & (means.min(axis=1) < mid - _SQUARE_TOL * contrast) & (means.max(axis=1) > mid + _SQUARE_TOL * contrast)
+    pairs = pairs[keep]
+    return np.concatenate([pairs, pairs[:, ::-1]])  # both orders: no mirror images needed
 
 
 def _match(sad: _Saddles, models: np.ndarray, pattern: np.ndarray, seed_strength, tol: float) -> np.ndarray:
@@ -360,8 +551,8 @@ def _fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return h
 
 
-def _orient(norm: np.ndarray, h: np.ndarray) -> np.ndarray | None:
-    """Turn ``h`` so that the marks are labelled as published, or None if this is not the target.
+def _orient(norm: np.ndarray, h: np.ndarray) -> tuple[float, np.ndarray] | None:
+    """(layout fit, ``h`` turned so that the marks are labelled as published), or None if this is not the target.
 
     The ring of X-corner positions is invariant under quarter turns, so ``h``
     is known up to one. Each hourglass has its black triangles along the
@@ -371,29 +562,39 @@ def _orient(norm: np.ndarray, h: np.ndarray) -> np.ndarray | None:
     every flat square reads as it should, which also rejects look-alike rings
     (junctions between ring blocks, textures).
     """
-    accepted = [h @ _quarter_turn(k) for k in range(4) if _looks_like_target(norm, h @ _quarter_turn(k))]
+    turns = [h @ _quarter_turn(k) for k in range(4)]
+    fits = [_layout_fit(norm, g) for g in turns]
+    accepted = [(f, g) for f, g in zip(fits, turns) if f is not None]
     return accepted[0] if len(accepted) == 1 else None
 
 
-def _looks_like_target(norm: np.ndarray, h: np.ndarray) -> bool:
-    """Check the flat squares and the hourglass sectors under the labelling ``h``."""
+def _layout_fit(norm: np.ndarray, h: np.ndarray) -> float | None:
+    """How well the image follows the target's layout under the labelling ``h`` (None: not at all).
+
+    Every flat square must read dark or light as the layout says, with corner
+    (9, 9) the only ring corner flanked by dark squares, and every hourglass
+    dark above and below, light left and right. The fit is the smallest of
+    those separations relative to the squares' contrast: 1 for a sharp,
+    evenly lit target, lower with blur, uneven light or a wrong hypothesis.
+    """
     flats = target.BLACK_BLOCKS + target.WHITE_BLOCKS
     level = _sample(norm, h, np.array([target.block_centre(b) for b in flats]), 8.0)
     if not np.all(np.isfinite(level)):
-        return False
+        return None
     # 12 dark and 12 light squares, well apart.
     ranked = np.sort(level)
     contrast = np.median(ranked[12:]) - np.median(ranked[:12])
-    if contrast < 0.1 or ranked[12] - ranked[11] < 0.3 * contrast:
-        return False
+    square_gap = (ranked[12] - ranked[11]) / contrast if contrast > 0 else 0.0
+    if contrast < _MIN_SQUARE_CONTRAST or square_gap < 0.3:
+        return None
     dark = {b for b, v in zip(flats, level) if v < 0.5 * (ranked[11] + ranked[12])}
     # Orientation: the only ring corner with dark squares on both sides is (9, 9) ...
     flanked = [c for c in _RING_CORNERS if all(n in dark for n in _neighbours(c))]
     if flanked != [target.ORIENTATION_CORNER]:
-        return False
+        return None
     # ... and every other square must then be where the layout puts it.
     if dark != set(target.BLACK_BLOCKS):
-        return False
+        return None
     # Hourglass sectors, sampled 8 to 12 cells from the saddle (clear of the
     # blurred apex even at 0.2 px/cell): black above and below, white left and right.
     marks = target.xcorner_points()
@@ -401,8 +602,11 @@ def _looks_like_target(norm: np.ndarray, h: np.ndarray) -> bool:
     sides = [[(sx * d, sy * d) for d in along] for sx, sy in ((0, -1), (0, 1), (-1, 0), (1, 0))]
     means = np.stack([np.mean([_sample(norm, h, marks + o, 0.0) for o in side], axis=0) for side in sides])
     if not np.all(np.isfinite(means)):
-        return False
-    return bool(np.all(means[2:].min(axis=0) - means[:2].max(axis=0) > 0.25 * contrast))
+        return None
+    sector_gap = float(np.min(means[2:].min(axis=0) - means[:2].max(axis=0))) / contrast
+    if sector_gap <= 0.25:
+        return None
+    return float(min(square_gap, sector_gap))
 
 
 def _neighbours(corner: tuple[int, int]) -> list[tuple[int, int]]:
