@@ -50,6 +50,7 @@ _MIN_STRENGTH = 0.03
 _RING_RADII = (1.25, 2.0)
 _RING_SAMPLES = 16
 _MIN_SHAPE = 0.8  # centred marks measure 0.91-0.98 (blur, perspective, noise); half the texture's X-like points are below
+_OUTER_SHAPE = 0.6  # the outer circle's share first (marks measure 0.94-0.99)
 _MIN_CONTRAST = 0.02  # of the image's range: the marks' black on white is 10 times more
 # Local choice: the best candidates of every 8 x 8 tile, well under the
 # spacing of adjacent marks (12-32 level px), so no mark shares its tile with another.
@@ -62,8 +63,6 @@ _SQUARE_TOL = 0.35
 # ... and be flat: values within a quarter block of their centres within
 # this fraction of the contrast (measured up to 0.37 at a level's smallest scale).
 _FLAT_TOL = 0.5
-# Least contrast between the flat black and white squares, of the image's range.
-_MIN_SQUARE_CONTRAST = 0.1
 # Spacing of adjacent ring marks (3 blocks) in level pixels: 96 cells at the
 # 1/6 .. 1/3 px/cell where a level sees the marks best is 16 .. 32 px (below
 # that, the finer level takes over; level 0 reaches 1/8, 12 px); the bounds
@@ -135,11 +134,69 @@ def find_target(image: np.ndarray, saturated: np.ndarray | None = None) -> Detec
         raise TargetNotFoundError(f"no calibration target found in the {norm.shape[1]}x{norm.shape[0]} image")
     if len(found) > 1:
         raise MultipleTargetsError(f"{len(found)} calibration targets found in the image; frame exactly one")
-    homography = found[0]
-    corners = _apply(homography, target.xcorner_points())
-    scale = _scale(corners)
-    corners = _refine(norm, corners, scale)
-    return Detection(corners=corners, pattern_points=target.xcorner_points(), scale=scale)
+    corners = _apply(found[0], target.xcorner_points())
+    return refine_target(image, Detection(corners=corners, scale=_scale(corners)), saturated)
+
+
+def refine_target(
+    image: np.ndarray,
+    detection: Detection,
+    saturated: np.ndarray | None = None,
+    shift: tuple[float, float] = (0.0, 0.0),
+) -> Detection:
+    """The X-corners of a detection refined at sub-pixel precision on ``image``.
+
+    Detect once per frame, refine per plane: the planes of one RAW frame see
+    the target at the same place, up to the half-pixel offsets of the Bayer
+    mosaic (`plane_shift`) and the lens's lateral colour (a fraction of a
+    pixel), both well inside the refinement window. Refining costs about a
+    millisecond; `find_target` costs a search of the whole plane.
+
+    Parameters
+    ----------
+    image : ndarray, 2-D
+        The plane to refine on, any numeric type.
+    detection : Detection
+        Found on this plane or on another plane of the same frame.
+    saturated : ndarray of bool, optional
+        Clipped pixels of ``image``, read as white (see `find_target`).
+    shift : (float, float)
+        (dx, dy) in pixels from the plane of ``detection`` to ``image``.
+
+    Returns
+    -------
+    Detection
+
+    Raises
+    ------
+    TargetNotFoundError
+        A mark that cannot be located on this plane (too blurred, too dark,
+        or outside the image).
+
+    Examples
+    --------
+    >>> g1 = raw.load_frame(path, "g1")                                # doctest: +SKIP
+    >>> found = find_target(g1.data, g1.saturated)                     # doctest: +SKIP
+    >>> r = raw.load_frame(path, "r")                                  # doctest: +SKIP
+    >>> refine_target(r.data, found, r.saturated, plane_shift(g1.offset, r.offset))  # doctest: +SKIP
+    """
+    data = np.asarray(image)
+    if data.ndim != 2 or min(data.shape) < 16:
+        raise BadInputError(f"expected a 2-D image of at least 16x16 pixels, got shape {data.shape}")
+    corners = np.asarray(detection.corners, dtype=np.float64) + np.asarray(shift, dtype=np.float64)
+    refined = _refine(data, saturated, corners, detection.scale)
+    return Detection(corners=refined, pattern_points=np.array(detection.pattern_points), scale=_scale(refined))
+
+
+def plane_shift(source_offset: tuple[int, int], dest_offset: tuple[int, int]) -> tuple[float, float]:
+    """(dx, dy) in plane pixels from one Bayer plane to another of the same frame.
+
+    A plane with sensor offset (row, col) (`psfd.estimator.raw.Frame.offset`)
+    holds photosite (2 i + row, 2 j + col) at its pixel (i, j), so one scene
+    point lies half the offset difference apart on two planes. Planes that do
+    not come from a 2 x 2 mosaic have offset (0, 0): no shift.
+    """
+    return (0.5 * (source_offset[1] - dest_offset[1]), 0.5 * (source_offset[0] - dest_offset[0]))
 
 
 def _normalise(image: np.ndarray, saturated: np.ndarray | None) -> np.ndarray:
@@ -152,38 +209,46 @@ def _normalise(image: np.ndarray, saturated: np.ndarray | None) -> np.ndarray:
     data = np.asarray(image)
     if data.ndim != 2 or min(data.shape) < 16:
         raise BadInputError(f"expected a 2-D image of at least 16x16 pixels, got shape {data.shape}")
-    data = np.nan_to_num(data.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    floating = data.dtype.kind == "f"
+    data = data.astype(np.float32)  # a copy, changed in place below
+    if floating:
+        bad = ~np.isfinite(data)
+        if bad.any():
+            data[bad] = 0.0
     if saturated is not None:
-        data[np.asarray(saturated, dtype=bool)] = data.max()
+        np.copyto(data, data.max(), where=np.asarray(saturated, dtype=bool))
     small = cv2.resize(data, (max(1, data.shape[1] // 4), max(1, data.shape[0] // 4)), interpolation=cv2.INTER_AREA)
     lo, hi = np.percentile(small, (0.05, 99.95))
     if hi - lo <= 0:
         return np.zeros_like(data)
-    # No clipping: the sub-pixel refinement needs the linear data.
-    return ((data - lo) / (hi - lo)).astype(np.float32)
+    # No clipping: the saddle positions need the linear data.
+    data -= lo
+    data *= 1.0 / (hi - lo)
+    return data
 
 
 def _search(norm: np.ndarray) -> list[np.ndarray]:
     """Homographies (pattern cells -> image px, correct orientation) of every target found.
 
-    Every pyramid level proposes hypotheses; each one that passes the layout
-    check (`_layout_fit`) is kept, and one target found at several levels
-    keeps its best-fitting homography.
+    The pyramid levels are searched from the finest; a target already found
+    on a finer level is not grown again on a coarser one.
     """
-    found: list[tuple[float, np.ndarray]] = []
+    found: list[np.ndarray] = []
     lv, finer = _Level.of(norm), None
     for level in range(_MAX_LEVEL + 1):
         if min(lv.image.shape) < 24:
             break
         to_full = np.diag([2.0**level, 2.0**level, 1.0])  # pyrDown keeps pixel i at 2i
-        for fit, h_full in _find_at_level(lv, finer, lambda h: _orient(norm, to_full @ h)):
-            same = [k for k, (_, g) in enumerate(found) if _same_target(h_full, g)]
-            if not same:
-                found.append((fit, h_full))
-            elif fit > found[same[0]][0]:
-                found[same[0]] = (fit, h_full)
+
+        def verify(h: np.ndarray, to_full=to_full) -> np.ndarray | None:
+            return _orient(norm, to_full @ h)
+
+        def known(h: np.ndarray, to_full=to_full) -> bool:
+            return any(_same_target(to_full @ h, g) for g in found)
+
+        found.extend(_find_at_level(lv, finer, verify, known))
         finer, lv = lv, _Level.of(cv2.pyrDown(lv.image))
-    return [h for _, h in found]
+    return found
 
 
 @dataclass
@@ -237,7 +302,8 @@ def _saddles(lv: _Level, finer: _Level | None) -> _Saddles:
     floor = (_MIN_STRENGTH * _IDEAL / _SIGMA**2) ** 2
     peaks = cv2.compare(neg_det, cv2.dilate(neg_det, np.ones((3, 3), np.uint8)), cv2.CMP_GE)
     peaks &= cv2.compare(neg_det, floor, cv2.CMP_GT)
-    ys, xs = np.nonzero(peaks)
+    found = cv2.findNonZero(peaks)  # a few times faster than np.nonzero
+    xs, ys = np.reshape(found, (-1, 2)).T if found is not None else (np.zeros(0, np.intp),) * 2
     xx, yy, xy = ixx[ys, xs], iyy[ys, xs], ixy[ys, xs]
     # A saddle of an X-corner has opposite curvatures of similar size; an edge
     # crossing texture does not. Perspective skews the sectors, hence the slack.
@@ -248,13 +314,18 @@ def _saddles(lv: _Level, finer: _Level | None) -> _Saddles:
     # where the finer level shows no saddle at the peak, start from this
     # level's saddle instead.
     if finer is None:
+        source, zoom = lv.image, 1.0
         points, _ = _to_saddle(lv, points)
-        shape, contrast, level, axis = _x_shape(lv.image, points, _RING_RADII)
     else:
+        source, zoom = finer.image, 2.0
         fine, found = _to_saddle(finer, 2.0 * points)
         fine[~found], _ = _to_saddle(finer, 2.0 * _to_saddle(lv, points[~found])[0])
         points = 0.5 * fine
-        shape, contrast, level, axis = _x_shape(finer.image, fine, 2.0 * np.asarray(_RING_RADII))
+    # The outer circle alone first: it keeps every point that passes the full
+    # test (measured) and a third of the others, at half the cost.
+    outer = _x_shape(source, zoom * points, (zoom * _RING_RADII[-1],))[0]
+    points = points[outer >= _OUTER_SHAPE]
+    shape, contrast, level, axis = _x_shape(source, zoom * points, zoom * np.asarray(_RING_RADII))
     keep = np.flatnonzero((shape >= _MIN_SHAPE) & (contrast >= _MIN_CONTRAST))
     best = keep[_best_per_tile(points[keep], (shape * contrast)[keep], _TILE, _PER_TILE)]
     return _Saddles(points[best].astype(np.float64), contrast[best], level[best], axis[best], shape[best], lv.smooth)
@@ -311,7 +382,7 @@ def _x_shape(img: np.ndarray, points: np.ndarray, radii) -> tuple[np.ndarray, np
     theta = np.tile(angles, len(radii))
     radius = np.repeat(np.asarray(radii, dtype=np.float64), _RING_SAMPLES)
     dx, dy = (radius * np.cos(theta)).astype(np.float32), (radius * np.sin(theta)).astype(np.float32)
-    ring = _remap(img, points[:, :1] + dx, points[:, 1:] + dy)
+    ring = _remap(img, points[:, 0], points[:, 1], dx, dy)
     level = ring.mean(axis=1)
     ring -= level[:, None]
     re = ring @ np.cos(2 * theta).astype(np.float32)
@@ -325,17 +396,25 @@ def _x_shape(img: np.ndarray, points: np.ndarray, radii) -> tuple[np.ndarray, np
     return shape, contrast, level, np.mod(light + np.pi / 2, np.pi)
 
 
-def _remap(img: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``img`` at points (``xs``, ``ys``) of any shape (edge pixels repeated outside)."""
-    shape = np.shape(xs)
+def _remap(img: np.ndarray, xs: np.ndarray, ys: np.ndarray, dx: np.ndarray | None = None, dy: np.ndarray | None = None) -> np.ndarray:
+    """Bilinear samples of ``img`` (edge pixels repeated outside).
+
+    At the points (``xs``, ``ys``) of any shape or, given offsets ``dx``,
+    ``dy`` of shape (k,), at each of the (n,) points plus each offset: (n, k).
+    """
+    xs, ys = np.asarray(xs, dtype=np.float32), np.asarray(ys, dtype=np.float32)
+    shape = xs.shape if dx is None else (xs.size, len(dx))
     count = int(np.prod(shape))
     # cv2.remap takes maps of under 32767 rows and columns: lay them out in
     # rows of 4096 (padded), which also keeps each point's samples together.
     width = 4096
     rows = max(1, -(-count // width))
     maps = np.zeros((2, rows * width), dtype=np.float32)
-    maps[0, :count] = np.ravel(xs)
-    maps[1, :count] = np.ravel(ys)
+    if dx is None:
+        maps[0, :count], maps[1, :count] = xs.ravel(), ys.ravel()
+    else:
+        np.add(xs.reshape(-1, 1), dx, out=maps[0, :count].reshape(shape))
+        np.add(ys.reshape(-1, 1), dy, out=maps[1, :count].reshape(shape))
     out = cv2.remap(img, maps[0].reshape(rows, width), maps[1].reshape(rows, width), cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(-1)[:count].reshape(shape)
@@ -382,14 +461,15 @@ def _angle_gap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.minimum(d, np.pi - d)
 
 
-def _find_at_level(lv: _Level, finer: _Level | None, verify) -> list[tuple[float, np.ndarray]]:
-    """(layout fit, homography pattern -> full image) of every target found on one level.
+def _find_at_level(lv: _Level, finer: _Level | None, verify, known) -> list[np.ndarray]:
+    """Homographies (pattern -> full image) of the targets found on one level.
 
     Every pair of candidates that could be two neighbouring marks of a row of
     the ring (a similarity) is scored by how many of the other ten marks it
-    predicts; hypotheses are grown and checked in that order, with no cap on
-    their number: ``verify(h)`` (h: pattern -> level px) returns the layout
-    fit and the full-image homography of a genuine target, or None.
+    predicts where the layout puts them; hypotheses are grown and checked in
+    that order, with no cap on their number. ``verify(h)`` (h: pattern ->
+    level px) returns the full-image homography of a genuine target, or None;
+    ``known(h)`` tells a target already found, which is not grown again.
     """
     sad = _saddles(lv, finer)
     if len(sad.points) < len(target.XCORNER_BLOCKS):
@@ -419,13 +499,14 @@ def _find_at_level(lv: _Level, finer: _Level | None, verify) -> list[tuple[float
     hits = scores[best, np.arange(len(pairs))]
     quality = hits + sad.shape[pairs].mean(axis=1)  # ties: the more X-like seeds first
     order = [k for k in np.argsort(-quality, kind="stable") if hits[k] >= _MIN_SEED_HITS]
-    results: list[tuple[float, np.ndarray]] = []
+    results: list[np.ndarray] = []
     used: set[int] = set()
     for k in order:
         seed = tuple(pairs[k])
-        if used.intersection(seed):
+        model = candidates[best[k], k]
+        if used.intersection(seed) or known(model):
             continue
-        grown = _grow(sad, pattern, candidates[best[k], k], weakest[k])
+        grown = _grow(sad, pattern, model, weakest[k])
         if grown is None:
             continue
         h, members = grown
@@ -448,26 +529,29 @@ def _seed_pairs(sad: _Saddles) -> np.ndarray:
     """
     pairs = sad.tree.query_pairs(_SPACING[1], output_type="ndarray").reshape(-1, 2)
     a, b = pairs[:, 0], pairs[:, 1]
-    # The cheapest tests first: most pairs of a busy frame fail them.
-    keep = _angle_gap(sad.axis[a], sad.axis[b]) < 2 * _AXIS_TOL
+    # The cheapest tests first, most pairs of a busy frame fail them: axes
+    # within twice the tolerance of each other (|cos| of the angle between
+    # them; axes are lines), strengths alike.
+    cos, sin = np.cos(sad.axis).astype(np.float32), np.sin(sad.axis).astype(np.float32)
+    keep = np.abs(cos[a] * cos[b] + sin[a] * sin[b]) > np.cos(2 * _AXIS_TOL)
     keep &= np.minimum(sad.strength[a], sad.strength[b]) > _STRENGTH_RATIO * np.maximum(sad.strength[a], sad.strength[b])
     pairs = pairs[keep]
     a, b = pairs[:, 0], pairs[:, 1]
-    start, step = sad.points[a], sad.points[b] - sad.points[a]
-    across = np.arctan2(step[:, 1], step[:, 0]) + np.pi / 2
-    keep = (
-        (np.hypot(step[:, 0], step[:, 1]) >= _SPACING[0])
-        & (_angle_gap(sad.axis[a], across) < _AXIS_TOL)
-        & (_angle_gap(sad.axis[b], across) < _AXIS_TOL)
-    )
-    pairs, start, step = pairs[keep], start[keep], step[keep]
+    x, y = sad.points[:, 0].astype(np.float32), sad.points[:, 1].astype(np.float32)
+    dx, dy = x[b] - x[a], y[b] - y[a]
+    # Each axis across the step: its component along the step under sin(tol) (squared here).
+    limit = np.float32(np.sin(_AXIS_TOL) ** 2) * (dx * dx + dy * dy)
+    keep = dx * dx + dy * dy >= np.float32(_SPACING[0] ** 2)
+    keep &= np.square(cos[a] * dx + sin[a] * dy) < limit
+    keep &= np.square(cos[b] * dx + sin[b] * dy) < limit
+    pairs = pairs[keep]
     a, b = pairs[:, 0], pairs[:, 1]
+    start, step = sad.points[a], sad.points[b] - sad.points[a]
     # Sample points start + along * step + aside * (step turned a quarter).
     along = np.repeat(np.float32([1 / 3, 2 / 3]), 5) + np.tile(np.float32([0, 1, -1, 0, 0]), 2) / 12
     aside = np.tile(np.float32([0, 0, 0, 1, -1]), 2) / 12
-    xs = start[:, :1] + step[:, :1] * along - step[:, 1:] * aside
-    ys = start[:, 1:] + step[:, 1:] * along + step[:, :1] * aside
-    squares = _remap(sad.smooth, xs, ys).reshape(-1, 2, 5)
+    squares = _remap(sad.smooth, start[:, :1] + step[:, :1] * along - step[:, 1:] * aside,
+                     start[:, 1:] + step[:, 1:] * along + step[:, :1] * aside).reshape(-1, 2, 5)
     mid = 0.5 * (sad.level[a] + sad.level[b])
     contrast = 0.5 * (sad.strength[a] + sad.strength[b])
     flat = np.ptp(squares, axis=2).max(axis=1) < _FLAT_TOL * contrast
@@ -551,8 +635,8 @@ def _fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return h
 
 
-def _orient(norm: np.ndarray, h: np.ndarray) -> tuple[float, np.ndarray] | None:
-    """(layout fit, ``h`` turned so that the marks are labelled as published), or None if this is not the target.
+def _orient(norm: np.ndarray, h: np.ndarray) -> np.ndarray | None:
+    """Turn ``h`` so that the marks are labelled as published, or None if this is not the target.
 
     The ring of X-corner positions is invariant under quarter turns, so ``h``
     is known up to one. Each hourglass has its black triangles along the
@@ -562,39 +646,29 @@ def _orient(norm: np.ndarray, h: np.ndarray) -> tuple[float, np.ndarray] | None:
     every flat square reads as it should, which also rejects look-alike rings
     (junctions between ring blocks, textures).
     """
-    turns = [h @ _quarter_turn(k) for k in range(4)]
-    fits = [_layout_fit(norm, g) for g in turns]
-    accepted = [(f, g) for f, g in zip(fits, turns) if f is not None]
+    accepted = [h @ _quarter_turn(k) for k in range(4) if _looks_like_target(norm, h @ _quarter_turn(k))]
     return accepted[0] if len(accepted) == 1 else None
 
 
-def _layout_fit(norm: np.ndarray, h: np.ndarray) -> float | None:
-    """How well the image follows the target's layout under the labelling ``h`` (None: not at all).
-
-    Every flat square must read dark or light as the layout says, with corner
-    (9, 9) the only ring corner flanked by dark squares, and every hourglass
-    dark above and below, light left and right. The fit is the smallest of
-    those separations relative to the squares' contrast: 1 for a sharp,
-    evenly lit target, lower with blur, uneven light or a wrong hypothesis.
-    """
+def _looks_like_target(norm: np.ndarray, h: np.ndarray) -> bool:
+    """Check the flat squares and the hourglass sectors under the labelling ``h``."""
     flats = target.BLACK_BLOCKS + target.WHITE_BLOCKS
     level = _sample(norm, h, np.array([target.block_centre(b) for b in flats]), 8.0)
     if not np.all(np.isfinite(level)):
-        return None
+        return False
     # 12 dark and 12 light squares, well apart.
     ranked = np.sort(level)
     contrast = np.median(ranked[12:]) - np.median(ranked[:12])
-    square_gap = (ranked[12] - ranked[11]) / contrast if contrast > 0 else 0.0
-    if contrast < _MIN_SQUARE_CONTRAST or square_gap < 0.3:
-        return None
+    if contrast < 0.1 or ranked[12] - ranked[11] < 0.3 * contrast:
+        return False
     dark = {b for b, v in zip(flats, level) if v < 0.5 * (ranked[11] + ranked[12])}
     # Orientation: the only ring corner with dark squares on both sides is (9, 9) ...
     flanked = [c for c in _RING_CORNERS if all(n in dark for n in _neighbours(c))]
     if flanked != [target.ORIENTATION_CORNER]:
-        return None
+        return False
     # ... and every other square must then be where the layout puts it.
     if dark != set(target.BLACK_BLOCKS):
-        return None
+        return False
     # Hourglass sectors, sampled 8 to 12 cells from the saddle (clear of the
     # blurred apex even at 0.2 px/cell): black above and below, white left and right.
     marks = target.xcorner_points()
@@ -602,11 +676,8 @@ def _layout_fit(norm: np.ndarray, h: np.ndarray) -> float | None:
     sides = [[(sx * d, sy * d) for d in along] for sx, sy in ((0, -1), (0, 1), (-1, 0), (1, 0))]
     means = np.stack([np.mean([_sample(norm, h, marks + o, 0.0) for o in side], axis=0) for side in sides])
     if not np.all(np.isfinite(means)):
-        return None
-    sector_gap = float(np.min(means[2:].min(axis=0) - means[:2].max(axis=0))) / contrast
-    if sector_gap <= 0.25:
-        return None
-    return float(min(square_gap, sector_gap))
+        return False
+    return bool(np.all(means[2:].min(axis=0) - means[:2].max(axis=0) > 0.25 * contrast))
 
 
 def _neighbours(corner: tuple[int, int]) -> list[tuple[int, int]]:
@@ -651,7 +722,7 @@ def _same_target(h1: np.ndarray, h2: np.ndarray) -> bool:
     return bool(gap < _scale(_apply(h1, target.xcorner_points())) * target.BLOCK)
 
 
-def _refine(norm: np.ndarray, corners: np.ndarray, scale: float) -> np.ndarray:
+def _refine(data: np.ndarray, saturated: np.ndarray | None, corners: np.ndarray, scale: float) -> np.ndarray:
     """Sub-pixel saddle points by gradient orthogonality (cv2.cornerSubPix).
 
     Thesis App. A.1: window 7 x 7 (R = 3), tol 1e-5, 200 iterations, for a
@@ -661,12 +732,14 @@ def _refine(norm: np.ndarray, corners: np.ndarray, scale: float) -> np.ndarray:
     0.375 px/cell that is under 3 pixels, too few for the gradient
     estimate, so the patch is first resampled (bicubic) on a u-times finer
     grid; the resampling is symmetric about every pixel, so it adds no bias.
+    Only the crops around the marks are read: the solution does not depend
+    on the image's gain or offset, so no normalisation is needed.
     """
     upsample = max(1, int(np.ceil(3.0 / (_REFINE_CELLS * scale))))
     radius = int(round(_REFINE_CELLS * scale * upsample))
     half = (radius + 4) // upsample + 2  # crop half-size in image pixels
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-5)
-    rows, cols = norm.shape
+    rows, cols = data.shape
     refined = corners.copy()
     lost = np.zeros(len(corners), dtype=bool)
     for k, (x, y) in enumerate(corners):
@@ -676,23 +749,47 @@ def _refine(norm: np.ndarray, corners: np.ndarray, scale: float) -> np.ndarray:
         if not (half <= cx < cols - half and half <= cy < rows - half):
             lost[k] = True
             continue
-        crop = norm[cy - half : cy + half + 1, cx - half : cx + half + 1]
+        crop = _crop(data, saturated, cx, cy, half)
         if upsample > 1:
             crop = cv2.resize(crop, None, fx=upsample, fy=upsample, interpolation=cv2.INTER_CUBIC)
         # Patch pixel p sits at crop coordinate (p + 0.5) / u - 0.5.
         start = ((np.array([x - cx + half, y - cy + half]) + 0.5) * upsample - 0.5).astype(np.float32)
-        point = start.reshape(1, 1, 2).copy()
-        cv2.cornerSubPix(crop, point, (radius, radius), (-1, -1), criteria)
-        # cornerSubPix puts a point back where it started when the iteration
-        # leaves the window: such a mark cannot be located.
-        step = np.linalg.norm(point[0, 0] - start)
-        lost[k] = step == 0 or step >= radius
-        refined[k] = (point[0, 0] + 0.5) / upsample - 0.5 + [cx - half, cy - half]
+        point = _subpix(crop, start, radius, criteria)
+        if point is None:  # already the saddle, or put back: try again from a little aside
+            again = _subpix(crop, start + np.float32(0.25 * upsample), radius, criteria)
+            point = again if again is not None and np.linalg.norm(again - start) < 0.05 * upsample else None
+        lost[k] = point is None
+        if point is not None:
+            refined[k] = (point + 0.5) / upsample - 0.5 + [cx - half, cy - half]
     if np.any(lost):
         raise TargetNotFoundError(
             f"calibration target found at {scale:.2f} px/cell but its marks are too blurred to locate precisely"
         )
     return refined
+
+
+def _subpix(crop: np.ndarray, start: np.ndarray, radius: int, criteria) -> np.ndarray | None:
+    """cv2.cornerSubPix from ``start``, or None where it puts the point back where it started.
+
+    It does so when the iteration leaves the window: such a mark cannot be
+    located. A start that already is the saddle also stays put, which the
+    caller tells apart by starting again from a little aside.
+    """
+    point = start.reshape(1, 1, 2).copy()
+    cv2.cornerSubPix(crop, point, (radius, radius), (-1, -1), criteria)
+    step = np.linalg.norm(point[0, 0] - start)
+    return None if step == 0 or step >= radius else point[0, 0].astype(np.float64)
+
+
+def _crop(data: np.ndarray, saturated: np.ndarray | None, cx: int, cy: int, half: int) -> np.ndarray:
+    """float32 square around (cx, cy), NaN read as black and clipped pixels as the brightest there."""
+    window = (slice(cy - half, cy + half + 1), slice(cx - half, cx + half + 1))
+    crop = np.nan_to_num(data[window].astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    if saturated is not None:
+        clipped = np.asarray(saturated[window], dtype=bool)
+        if clipped.any():
+            crop[clipped] = crop.max()
+    return crop
 
 
 def _scale(corners: np.ndarray) -> float:
