@@ -162,7 +162,7 @@ def _dead_leaves(canvas: np.ndarray, rng: np.random.Generator, unit: float) -> N
     rows, cols = canvas.shape
     lo, hi = 2.0 * unit, 150.0 * unit
     mean_area = np.pi * 2 * lo**2 * np.log(hi / lo)
-    count = int(2.5 * rows * cols / mean_area)
+    count = int(2.0 * rows * cols / mean_area)
     u = rng.random(count)
     radii = lo / np.sqrt(1 - u * (1 - (lo / hi) ** 2))  # inverse CDF of r^-3 on [lo, hi]
     xs, ys = rng.uniform(0, cols, count), rng.uniform(0, rows, count)
@@ -254,10 +254,15 @@ def _foliage(canvas: np.ndarray, rng: np.random.Generator, unit: float, horizon:
 
 
 def _lens_blur(canvas: np.ndarray, core: float, halo: float = 0.1) -> np.ndarray:
-    """Lens PSF: a Gaussian core of ``core`` pixels (sigma) and a halo 6 times wider carrying ``halo`` of the energy."""
+    """Lens PSF: a Gaussian core of ``core`` pixels (sigma) and a halo 6 times wider carrying ``halo`` of the energy.
+
+    The halo is smooth, so it is computed on a 4 times smaller copy.
+    """
     sharp = cv2.GaussianBlur(canvas, (0, 0), core)
-    wide = cv2.GaussianBlur(canvas, (0, 0), 6.0 * core)
-    return (1.0 - halo) * sharp + halo * wide
+    rows, cols = canvas.shape
+    small = cv2.resize(canvas, (cols // 4, rows // 4), interpolation=cv2.INTER_AREA)
+    wide = cv2.resize(cv2.GaussianBlur(small, (0, 0), 1.5 * core), (cols, rows), interpolation=cv2.INTER_LINEAR)
+    return cv2.addWeighted(sharp, 1.0 - halo, wide, halo, 0.0)
 
 
 # --------------------------------------------------------------------------- frames
@@ -286,22 +291,23 @@ class Scene:
 
     def corners(self, channel: str | None = None, which: int = 0) -> np.ndarray:
         """True X-corners of target ``which`` in channel-plane pixels (``channel`` of a mosaic)."""
-        pts = xcorners(self.homographies[which])
-        if channel is None:
-            return pts
-        dy, dx = OFFSETS[channel]
-        return (pts - [dx, dy]) / 2.0
+        return _to_plane(xcorners(self.homographies[which]), channel)
 
     def box(self, channel: str | None = None, which: int = 0, margin: int = 20) -> tuple[int, int, int, int]:
         """(x0, y0, x1, y1) of a crop around target ``which`` in plane pixels."""
         rim = np.array([[0, 0], [SIZE, 0], [SIZE, SIZE], [0, SIZE]], dtype=np.float64)
-        pts = _apply(self.homographies[which], rim)
-        if channel is not None:
-            dy, dx = OFFSETS[channel]
-            pts = (pts - [dx, dy]) / 2.0
+        pts = _to_plane(_apply(self.homographies[which], rim), channel)
         x0, y0 = np.floor(pts.min(axis=0)).astype(int) - margin
         x1, y1 = np.ceil(pts.max(axis=0)).astype(int) + margin
-        return max(x0, 0), max(y0, 0), x1, y1
+        return max(int(x0), 0), max(int(y0), 0), int(x1), int(y1)
+
+
+def _to_plane(points: np.ndarray, channel: str | None) -> np.ndarray:
+    """Sensor photosite coordinates to those of a Bayer plane (unchanged for a single plane)."""
+    if channel is None:
+        return points
+    dy, dx = OFFSETS[channel]
+    return (points - [dx, dy]) / 2.0
 
 
 def _place(
@@ -394,9 +400,9 @@ def raw_scene(
     for name, (dy, dx) in OFFSETS.items():
         plane = light[dy::2, dx::2]
         tint = cv2.resize(rng.uniform(0.7, 1.3, (6, 9)).astype(np.float32), (plane.shape[1], plane.shape[0]),
-                          interpolation=cv2.INTER_CUBIC)
-        for h in scene.homographies:  # the grey target keeps the light's colour only
-            x0, y0, x1, y1 = scene_box(h, (dy, dx), plane.shape)
+                          interpolation=cv2.INTER_LINEAR)
+        for k in range(len(scene.homographies)):  # the grey target keeps the light's colour only
+            x0, y0, x1, y1 = scene.box(name, which=k, margin=40)
             tint[y0:y1, x0:x1] = 1.0
         signal = plane * tint * GAINS[name] * (white - black)
         noisy = signal + rng.standard_normal(signal.shape, dtype=np.float32) * np.sqrt(
@@ -406,16 +412,6 @@ def raw_scene(
     scene.path = Path(path)
     scene.params["blur"] = blur
     return scene
-
-
-def scene_box(h: np.ndarray, offset: tuple[int, int], shape: tuple[int, int], margin: int = 40) -> tuple[int, int, int, int]:
-    """(x0, y0, x1, y1) in plane pixels covering the target of sensor homography ``h`` plus ``margin``."""
-    rim = np.array([[0, 0], [SIZE, 0], [SIZE, SIZE], [0, SIZE]], dtype=np.float64)
-    dy, dx = offset
-    pts = (_apply(h, rim) - [dx, dy]) / 2.0
-    x0, y0 = np.maximum(np.floor(pts.min(axis=0)).astype(int) - margin, 0)
-    x1, y1 = np.minimum(np.ceil(pts.max(axis=0)).astype(int) + margin, [shape[1], shape[0]])
-    return int(x0), int(y0), int(x1), int(y1)
 
 
 def plane_frame(scene: Scene, box: tuple[int, int, int, int] | None = None) -> raw.Frame:

@@ -11,12 +11,19 @@ the shape of the marks: here the X-corners are found directly as saddle
 points of the smoothed image, which needs no segment model of the marks and
 works at any rotation and at 0.2 to 2 px/cell alike. At a smoothing of
 several cells the Bernoulli noise averages out while each hourglass mark stays
-a perfect saddle, so the 12 marks are among the strongest saddles of the image
-at the octave of the target's scale. Candidates are grouped by hypothesising
-that two of them are adjacent marks of the ring (a similarity), collecting the
-other ten, and refitting a homography; the flat black and white squares then
-fix the orientation (only corner (9, 9) is flanked by two black squares) and
-reject anything that is not the target.
+a perfect saddle. A real scene has many more saddles than the target (foliage
+against the sky, fences, letters), often stronger ones, so nothing is ranked
+over the whole frame. Each saddle is judged by its own surroundings, an
+X-corner at any contrast or not (`_x_shape`), and only the best few of every
+small tile are kept. Two candidates become a hypothesis when they could be
+neighbouring marks of a row of the ring: similar, their dark axes across the
+row, and a flat black and a flat white square between them. Every such
+hypothesis (a similarity) is ranked by how many of the other ten marks it
+predicts where the layout puts them, grown into a homography, and accepted
+only if the 24 flat squares read as the layout says, with the orientation
+fixed by corner (9, 9), the only one flanked by two black squares.
+Detection and refinement are separate (`refine_target`), so that a frame's
+planes can share one search.
 """
 
 from __future__ import annotations
@@ -44,16 +51,20 @@ _AXIS_TOL = np.deg2rad(20.0)  # dark axis of a mark vs the pattern's y axis (per
 # fraction of the strength of an ideal contrast-1 X-corner: low, so that a
 # dim target is not lost; the shape test below does the selection.
 _MIN_STRENGTH = 0.03
-# The X-corner test (_x_shape): 16 samples on circles of 1.25 and 2 level
-# pixels, 4-10 and 6-16 cells at the level's 1/8 to 1/3 px/cell, inside the
-# 16 cells where a mark is a perfect X-corner and clear of its blurred apex.
+# The X-corner test (_x_shape): 12 samples on circles of 1.25 and 2 level
+# pixels, read on the finer level: 4-10 and 6-16 cells at the level's 1/8 to
+# 1/3 px/cell, inside the 16 cells where a mark is a perfect X-corner and
+# clear of its blurred apex.
 _RING_RADII = (1.25, 2.0)
-_RING_SAMPLES = 16
-_MIN_SHAPE = 0.8  # centred marks measure 0.91-0.98 (blur, perspective, noise); half the texture's X-like points are below
-_OUTER_SHAPE = 0.6  # the outer circle's share first (marks measure 0.94-0.99)
+_RING_SAMPLES = 12
+# Share of the second angular harmonic: centred marks measure 0.91-0.99 on
+# rendered and simulated frames (0.2-2 px/cell, blur, perspective, noise);
+# about half of a cluttered scene's X-like saddles are below 0.8.
+_MIN_SHAPE = 0.8
+_OUTER_SHAPE = 0.6  # the same on the outer circle alone, a cheaper first pass
 _MIN_CONTRAST = 0.02  # of the image's range: the marks' black on white is 10 times more
-# Local choice: the best candidates of every 8 x 8 tile, well under the
-# spacing of adjacent marks (12-32 level px), so no mark shares its tile with another.
+# Local choice: the best two candidates (contrast times shape) of every 8 x 8
+# tile, under the spacing of adjacent marks (12-32 level px).
 _TILE = 8.0
 _PER_TILE = 2
 # Seed pairs: the two flat squares between neighbouring marks must lie
@@ -120,6 +131,11 @@ def find_target(image: np.ndarray, saturated: np.ndarray | None = None) -> Detec
     target) the blurred neighbouring squares reach the refinement window and
     the error grows to 0.15-0.5 px: place the target closer for such apertures.
 
+    Nothing is ranked over the whole frame, so a busy scene around the
+    target (foliage against a clipped sky, fences, signs) does not hide it;
+    its cost grows with the frame's clutter, about 0.1 s per megapixel of a
+    busy plane here.
+
     Raises
     ------
     TargetNotFoundError
@@ -127,6 +143,10 @@ def find_target(image: np.ndarray, saturated: np.ndarray | None = None) -> Detec
         blurred to be located.
     MultipleTargetsError
         More than one target in the image.
+
+    See Also
+    --------
+    refine_target : the corners of this detection on another plane of the frame.
     """
     norm = _normalise(image, saturated)
     found = _search(norm)
@@ -246,7 +266,9 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
         def known(h: np.ndarray, to_full=to_full) -> bool:
             return any(_same_target(to_full @ h, g) for g in found)
 
-        found.extend(_find_at_level(lv, finer, verify, known))
+        for h in _find_at_level(lv, finer, verify, known):
+            if not known(h, np.eye(3)):  # grown from a seed that did not look like it
+                found.append(h)
         finer, lv = lv, _Level.of(cv2.pyrDown(lv.image))
     return found
 
@@ -302,8 +324,8 @@ def _saddles(lv: _Level, finer: _Level | None) -> _Saddles:
     floor = (_MIN_STRENGTH * _IDEAL / _SIGMA**2) ** 2
     peaks = cv2.compare(neg_det, cv2.dilate(neg_det, np.ones((3, 3), np.uint8)), cv2.CMP_GE)
     peaks &= cv2.compare(neg_det, floor, cv2.CMP_GT)
-    found = cv2.findNonZero(peaks)  # a few times faster than np.nonzero
-    xs, ys = np.reshape(found, (-1, 2)).T if found is not None else (np.zeros(0, np.intp),) * 2
+    nonzero = cv2.findNonZero(peaks)  # a few times faster than np.nonzero
+    xs, ys = np.reshape(nonzero, (-1, 2)).T if nonzero is not None else (np.zeros(0, np.intp),) * 2
     xx, yy, xy = ixx[ys, xs], iyy[ys, xs], ixy[ys, xs]
     # A saddle of an X-corner has opposite curvatures of similar size; an edge
     # crossing texture does not. Perspective skews the sectors, hence the slack.
@@ -312,51 +334,43 @@ def _saddles(lv: _Level, finer: _Level | None) -> _Saddles:
     # Centre on the saddle (gradient zero) of the finer level, where the
     # smoothing is half as wide and the neighbouring blocks do not pull it;
     # where the finer level shows no saddle at the peak, start from this
-    # level's saddle instead.
-    if finer is None:
-        source, zoom = lv.image, 1.0
-        points, _ = _to_saddle(lv, points)
-    else:
-        source, zoom = finer.image, 2.0
-        fine, found = _to_saddle(finer, 2.0 * points)
-        fine[~found], _ = _to_saddle(finer, 2.0 * _to_saddle(lv, points[~found])[0])
-        points = 0.5 * fine
-    # The outer circle alone first: it keeps every point that passes the full
-    # test (measured) and a third of the others, at half the cost.
-    outer = _x_shape(source, zoom * points, (zoom * _RING_RADII[-1],))[0]
-    points = points[outer >= _OUTER_SHAPE]
-    shape, contrast, level, axis = _x_shape(source, zoom * points, zoom * np.asarray(_RING_RADII))
+    # level's saddle instead. One Newton step, then the outer circle alone
+    # (it keeps every point that passes the full test and a third of the
+    # others, measured), then a second step and the full test.
+    centring = lv if finer is None else finer
+    zoom = 1.0 if finer is None else 2.0
+    points, found = _newton(centring, zoom * points)
+    if finer is not None:
+        points[~found] = _newton(finer, 2.0 * _newton(lv, 0.5 * points[~found])[0])[0]
+    outer = _x_shape(centring.image, points, (zoom * _RING_RADII[-1],))[0]
+    points = _newton(centring, points[outer >= _OUTER_SHAPE])[0]
+    shape, contrast, level, axis = _x_shape(centring.image, points, zoom * np.asarray(_RING_RADII))
+    points = points / zoom
     keep = np.flatnonzero((shape >= _MIN_SHAPE) & (contrast >= _MIN_CONTRAST))
     best = keep[_best_per_tile(points[keep], (shape * contrast)[keep], _TILE, _PER_TILE)]
     return _Saddles(points[best].astype(np.float64), contrast[best], level[best], axis[best], shape[best], lv.smooth)
 
 
-def _to_saddle(lv: _Level, points: np.ndarray, steps: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """Newton steps from ``points`` toward the saddle of the smoothed image (at most a pixel each).
+def _newton(lv: _Level, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One Newton step from ``points`` toward the saddle of the smoothed image (at most a pixel).
 
-    Returns the points and whether the first step found a saddle (det Hess < 0) to move to.
+    Returns the points and whether there was a saddle (det Hess < 0) to move to.
     """
-    found = np.ones(len(points), dtype=bool)
-    for k in range(steps):
-        if k == 0 and np.all(points == np.rint(points)):  # on the pixel grid: no interpolation
-            xs, ys = points[:, 0].astype(np.intp), points[:, 1].astype(np.intp)
-            inside = (xs >= 1) & (ys >= 1) & (xs < lv.smooth.shape[1] - 1) & (ys < lv.smooth.shape[0] - 1)
-            xs, ys = np.where(inside, xs, 1), np.where(inside, ys, 1)
-            gx = 0.5 * (lv.smooth[ys, xs + 1] - lv.smooth[ys, xs - 1])
-            gy = 0.5 * (lv.smooth[ys + 1, xs] - lv.smooth[ys - 1, xs])
-            xx, yy, xy = lv.ixx[ys, xs], lv.iyy[ys, xs], lv.ixy[ys, xs]
-        else:
-            xs, ys = points[:, 0], points[:, 1]
-            gx = 0.5 * (_remap(lv.smooth, xs + 1, ys) - _remap(lv.smooth, xs - 1, ys))
-            gy = 0.5 * (_remap(lv.smooth, xs, ys + 1) - _remap(lv.smooth, xs, ys - 1))
-            xx, yy, xy = (_remap(d, xs, ys) for d in (lv.ixx, lv.iyy, lv.ixy))
-        det = xx * yy - xy * xy
-        if k == 0:
-            found = det < 0
-        det = np.where(det < 0, det, -np.inf)  # not a saddle there: stay
-        step = np.column_stack([(xy * gy - yy * gx) / det, (xy * gx - xx * gy) / det])
-        points = points + np.clip(step, -1.0, 1.0).astype(np.float32)
-    return points, found
+    if np.all(points == np.rint(points)):  # on the pixel grid: no interpolation
+        xs, ys = points[:, 0].astype(np.intp), points[:, 1].astype(np.intp)
+        gx = 0.5 * (lv.smooth[ys, xs + 1] - lv.smooth[ys, xs - 1])
+        gy = 0.5 * (lv.smooth[ys + 1, xs] - lv.smooth[ys - 1, xs])
+        xx, yy, xy = lv.ixx[ys, xs], lv.iyy[ys, xs], lv.ixy[ys, xs]
+    else:
+        xs, ys = points[:, 0], points[:, 1]
+        gx = 0.5 * (_remap(lv.smooth, xs + 1, ys) - _remap(lv.smooth, xs - 1, ys))
+        gy = 0.5 * (_remap(lv.smooth, xs, ys + 1) - _remap(lv.smooth, xs, ys - 1))
+        xx, yy, xy = (_remap(d, xs, ys) for d in (lv.ixx, lv.iyy, lv.ixy))
+    det = xx * yy - xy * xy
+    found = det < 0
+    det = np.where(found, det, -np.inf)  # not a saddle there: stay
+    step = np.column_stack([(xy * gy - yy * gx) / det, (xy * gx - xx * gy) / det])
+    return points + np.clip(step, -1.0, 1.0).astype(np.float32), found
 
 
 def _x_shape(img: np.ndarray, points: np.ndarray, radii) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -529,21 +543,16 @@ def _seed_pairs(sad: _Saddles) -> np.ndarray:
     """
     pairs = sad.tree.query_pairs(_SPACING[1], output_type="ndarray").reshape(-1, 2)
     a, b = pairs[:, 0], pairs[:, 1]
-    # The cheapest tests first, most pairs of a busy frame fail them: axes
-    # within twice the tolerance of each other (|cos| of the angle between
-    # them; axes are lines), strengths alike.
-    cos, sin = np.cos(sad.axis).astype(np.float32), np.sin(sad.axis).astype(np.float32)
-    keep = np.abs(cos[a] * cos[b] + sin[a] * sin[b]) > np.cos(2 * _AXIS_TOL)
-    keep &= np.minimum(sad.strength[a], sad.strength[b]) > _STRENGTH_RATIO * np.maximum(sad.strength[a], sad.strength[b])
-    pairs = pairs[keep]
-    a, b = pairs[:, 0], pairs[:, 1]
     x, y = sad.points[:, 0].astype(np.float32), sad.points[:, 1].astype(np.float32)
+    cos, sin = np.cos(sad.axis).astype(np.float32), np.sin(sad.axis).astype(np.float32)
     dx, dy = x[b] - x[a], y[b] - y[a]
     # Each axis across the step: its component along the step under sin(tol) (squared here).
-    limit = np.float32(np.sin(_AXIS_TOL) ** 2) * (dx * dx + dy * dy)
-    keep = dx * dx + dy * dy >= np.float32(_SPACING[0] ** 2)
-    keep &= np.square(cos[a] * dx + sin[a] * dy) < limit
+    length = dx * dx + dy * dy
+    limit = np.float32(np.sin(_AXIS_TOL) ** 2) * length
+    keep = np.square(cos[a] * dx + sin[a] * dy) < limit
     keep &= np.square(cos[b] * dx + sin[b] * dy) < limit
+    keep &= length >= np.float32(_SPACING[0] ** 2)
+    keep &= np.minimum(sad.strength[a], sad.strength[b]) > _STRENGTH_RATIO * np.maximum(sad.strength[a], sad.strength[b])
     pairs = pairs[keep]
     a, b = pairs[:, 0], pairs[:, 1]
     start, step = sad.points[a], sad.points[b] - sad.points[a]
