@@ -324,8 +324,7 @@ def _place(
 
 
 def _layout_scene(
-    shape: tuple[int, int], unit: float, seed: int, targets: int, scale: float | None, angle: float | None,
-    paper: tuple[float, float] | None = None,
+    shape: tuple[int, int], unit: float, seed: int, targets: int, scale: float | None, angle: float | None
 ) -> tuple[np.ndarray, Scene]:
     """The radiance canvas with ``targets`` targets drawn in, before blur and exposure."""
     rng = np.random.default_rng(seed)
@@ -341,7 +340,7 @@ def _layout_scene(
         centres.append(np.array(centre))
         turn = angle if k == 0 else float(rng.uniform(0, 360))
         h = target_homography(centre, scale * unit, turn, tilt)
-        black, white = paper if paper is not None else (float(rng.uniform(0.02, 0.06)), float(rng.uniform(0.55, 0.85)))
+        black, white = float(rng.uniform(0.02, 0.06)), float(rng.uniform(0.55, 0.85))  # ink and paper
         draw_target(canvas, h, black=black, white=white, gradient=float(rng.uniform(-0.15, 0.15)), margin=margin)
         homographies.append(h)
     scene = Scene(homographies=homographies, scale=scale, angle=angle,

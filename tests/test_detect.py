@@ -316,6 +316,16 @@ def test_plane_shift_follows_the_bayer_offsets():
     assert detect.plane_shift((0, 0), (0, 0)) == (0.0, 0.0)
 
 
+def test_refining_from_a_start_a_pixel_away_gives_the_same_corners():
+    # The planes of a frame differ by the Bayer half-pixel offsets and the
+    # lens's lateral colour (up to about a pixel).
+    image, _ = render_target(frame_for(0.3), 0.3, angle=140, tilt=0.0003)
+    found = detect.find_target(image)
+    refined = detect.refine_target(image, found, shift=(1.0, -0.8))
+    np.testing.assert_allclose(refined.corners, found.corners, atol=1e-3)
+    assert refined.scale == pytest.approx(found.scale)
+
+
 def test_refining_where_there_is_no_target_is_refused():
     image, _ = render_target(frame_for(0.4), 0.4, angle=20)
     found = detect.find_target(image)
