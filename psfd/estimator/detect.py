@@ -133,8 +133,8 @@ def find_target(image: np.ndarray, saturated: np.ndarray | None = None) -> Detec
 
     Nothing is ranked over the whole frame, so a busy scene around the
     target (foliage against a clipped sky, fences, signs) does not hide it;
-    its cost grows with the frame's clutter, about 0.1 s per megapixel of a
-    busy plane here.
+    the search's cost grows with the frame's area and clutter
+    (bench/bench_detect.py times it).
 
     Raises
     ------
