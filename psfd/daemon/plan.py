@@ -46,13 +46,16 @@ from pathlib import Path
 from typing import Any
 
 from psfd.drivers import REAL_KEYS, SIM_KEYS
+from psfd.drivers.base import CameraSetup
 from psfd.errors import BadInputError
 from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, TWO_PHOTO, check_grid,
                              check_s, check_solver, check_support)
 
-# [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys) and our
-# camera settings, applied once before the first step.
-RIG_KEYS = {"simulate", "recording", "settings", *SIM_KEYS, *REAL_KEYS}
+# [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys), our
+# camera settings, applied once before the first step, and the camera's setup for PSF work
+# ([rig.camera], `psfd.drivers.base.CameraSetup`), applied after them and before any motion.
+RUNNER_KEYS = ("settings", "camera")
+RIG_KEYS = {"simulate", "recording", *RUNNER_KEYS, *SIM_KEYS, *REAL_KEYS}
 TABLES = {
     "rig": RIG_KEYS,
     "target": {"kind", "near", "far"},
@@ -130,8 +133,8 @@ class Plan:
         return out
 
     def rig_config(self) -> dict[str, Any]:
-        """The [rig] table as `psfd.drivers.open_rig` takes it (camera settings are the runner's)."""
-        return {k: v for k, v in self.rig.items() if k != "settings"}
+        """The [rig] table as `psfd.drivers.open_rig` takes it (camera settings and setup are the runner's)."""
+        return {k: v for k, v in self.rig.items() if k not in RUNNER_KEYS}
 
     def estimator_options(self) -> dict[str, Any]:
         """Keyword arguments for the estimator of this plan's target kind."""
@@ -282,6 +285,14 @@ def _check_rig(rig: dict) -> list[str]:
     settings = rig.get("settings", {})
     if not isinstance(settings, dict) or not all(isinstance(v, (str, int, float)) for v in settings.values()):
         problems.append("[rig] settings must be a table of camera setting names to values")
+    camera = rig.get("camera", {})
+    if not isinstance(camera, dict):
+        problems.append("[rig] camera must be a table [rig.camera] (keys of the camera setup)")
+    else:
+        try:
+            CameraSetup.from_mapping(camera)
+        except BadInputError as exc:
+            problems.append(f"[rig.camera] {exc}")
     limits = rig.get("rail_limits", {})
     if not isinstance(limits, dict):
         return problems + ["[rig] rail_limits must be a table such as { x = [0, 2000] }"]
