@@ -38,8 +38,8 @@ Optics (a bernoulli target only): ``[capture] scale = [0.25]`` (Bayer-channel pi
 cell) instead of ``x`` puts the rail where one cell images to that many pixels, from ``focal_mm``
 and ``pitch_um`` in [rig] and the cell in [target] (``cell_mm``, or ``printed = "target.pdf"``);
 ``x_at_lens`` and ``x_away`` map the lens-to-target distance to rail X (`scale_distances`).
-``[rig] rail`` names the rail driver (`psfd.drivers.RAIL_DRIVERS`). ``[rig.camera]`` holds the camera's setup for PSF work
-(`psfd.drivers.base.CameraSetup`: ``focus``, ``settle_s``, ``capture_target``...).
+``[rig] rail`` names the rail driver (`psfd.drivers.RAIL_DRIVERS`). ``[rig.camera]`` holds the
+camera's setup for PSF work (`psfd.drivers.base.CameraSetup`: ``focus``, ``settle_s``, ``capture_target``...).
 """
 
 from __future__ import annotations
@@ -210,7 +210,8 @@ def parse_plan(text: str, path: str = "<plan>") -> Plan:
         rig=rig,
         kind=kind_name(target["kind"]),
         apertures=[float(a) for a in capture["apertures"]],
-        x=[float(v) for v in capture["x"]] if "x" in capture else scale_distances(rig, target, capture.get("scale", [])),
+        x=([float(v) for v in capture["x"]] if "x" in capture
+           else scale_distances(rig, target, capture.get("scale", []))),
         y=[float(v) for v in capture["y"]] if "y" in capture else None,
         z=[float(v) for v in capture["z"]] if "z" in capture else None,
         channels=list(CHANNELS) if channels == "all" else list(channels),

@@ -143,7 +143,7 @@ class Recorder:
 
     @property
     def acted(self) -> bool:
-        """Whether the rig did anything yet (moved, homed, unlocked or captured): then the recording is worth keeping."""
+        """Whether the rig did anything yet (moved, homed, unlocked, captured): the recording is then worth keeping."""
         return any(r["call"] in ("move", "home", "unlock", "capture") for r in self.requests)
 
     def close(self) -> None:
@@ -331,7 +331,8 @@ class Replay:
         """A query's recorded answer: the one nearest after the last capture, else the latest before it."""
         if call == "position" and self.state.target is not None:
             return self._position()
-        matches = [i for i, r in enumerate(self.requests) if (r["device"], r["call"], r["args"]) == (device, call, args)]
+        asked = (device, call, args)
+        matches = [i for i, r in enumerate(self.requests) if (r["device"], r["call"], r["args"]) == asked]
         if call == "get" and args["name"] in self.state.settings:
             matches = [i for i in matches if i >= self.start and "result" in self.requests[i]]
             if not matches:  # the value the replay set, as the camera would read it back
