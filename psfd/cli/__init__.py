@@ -18,7 +18,9 @@ import argparse
 import atexit
 import gc
 import os
+import signal
 import sys
+import threading
 
 # The estimators solve many small systems (a few hundred unknowns): BLAS threads
 # gain nothing there and, on a loaded 2-core machine, stall them for up to a
@@ -67,6 +69,14 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the process is, so that a moving rail is stopped and its port released."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one command line and return its exit code; without ``argv``, the process's own (the program).
 
@@ -79,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv)
     args = parser.parse_args(argv)
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     try:
         return int(args.func(args) or 0)
     except PsfdError as exc:
@@ -90,9 +102,13 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"psfd: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return BadInputError.exit_code
-    except KeyboardInterrupt:
-        print("psfd: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        stopped = "".join(f" ({note})" for note in getattr(exc, "__notes__", ()))
+        print(f"psfd: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}{stopped}", file=sys.stderr)
+        return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":
