@@ -974,8 +974,13 @@ def _counter(progress: Callable[[float], None] | None, start: float, span: float
     return tick
 
 
-def _estimate_window(image, saturated, window, s, support, weight, band, length, sigma, known, progress=None):
-    """One window: predict the sharp image around it, mask, solve eq. (5); (kernel, diagnostics, warnings)."""
+def _window_equations(image, saturated, window, s, support, band, length, sigma, known, progress=None):
+    """One window's normal equations of eq. (5) and the edge points of its crop.
+
+    Returns
+    -------
+    ata, atb, btb, the number of pixels used, the crop's edge points, and the crop's first (col, row).
+    """
     x0, y0, x1, y1 = window
     rows, cols = image.shape
     margin = int(np.ceil(band + length)) + 6
@@ -1009,6 +1014,14 @@ def _estimate_window(image, saturated, window, s, support, weight, band, length,
     tiles = list(_tiles((y0 - cy0, y1 - cy0), (x0 - cx0, x1 - cx0)))
     ata, atb, btb, n_valid = _accumulate(crop, candidates, prediction, s, support, tiles,
                                          _counter(progress, start, 1.0 - start, len(tiles)))
+    return ata, atb, btb, n_valid, edges, (cx0, cy0)
+
+
+def _estimate_window(image, saturated, window, s, support, weight, band, length, sigma, known, progress=None):
+    """One window: predict the sharp image around it, mask, solve eq. (5); (kernel, diagnostics, warnings)."""
+    ata, atb, btb, n_valid, edges, (cx0, cy0) = _window_equations(image, saturated, window, s, support, band,
+                                                                   length, sigma, known, progress)
+    x0, y0, x1, y1 = window
     in_window = (edges.x >= x0 - cx0) & (edges.x < x1 - cx0) & (edges.y >= y0 - cy0) & (edges.y < y1 - cy0)
     hist = edges.subset(in_window).orientation_histogram()
     unknowns = support * support
