@@ -26,7 +26,11 @@ Frames: the real example photo (328 x 292) and the real wall pair
 known PSF and written as 16-bit PGMs like `dcraw -4 -D` output, and with
 --raw24 a simulated 24-megapixel RGGB DNG of the target (`--channel all`).
 
-Usage: python bench/bench_commands.py [--runs N] [--cases a,b] [--before DIR] [--reference K=CMD] [--raw24]
+Compile the trees timed first (`python -m compileall psfd`): an installed
+package has its bytecode, and without it every run would compile the
+modules it loads.
+
+Usage: python bench/bench_commands.py [--runs N] [--warmup N] [--cases a,b] [--before DIR] [--reference K=CMD] [--raw24]
 """
 
 from __future__ import annotations
@@ -143,6 +147,7 @@ def reference(kind: str, args: list[str], fields: dict[str, str], options, out_d
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=5, help="timed runs of each command (default 5)")
+    parser.add_argument("--warmup", type=int, default=1, help="uncounted rounds first (default 1)")
     parser.add_argument("--cases", help="comma-separated substrings of the case names to run")
     parser.add_argument("--before", metavar="DIR", help="psfd source tree whose commands are the reference")
     parser.add_argument("--reference", action="append", default=[], metavar="KIND=CMD",
@@ -160,7 +165,7 @@ def main() -> None:
                 continue
             ref, env, label = reference(kind, args, fields, options, folder)
             out_dir = folder / "ref"
-            result = whole.paired(PSFD + args, ref, runs=options.runs, env_b=env,
+            result = whole.paired(PSFD + args, ref, runs=options.runs, warmup=options.warmup, env_b=env,
                                   prepare=lambda: shutil.rmtree(out_dir, ignore_errors=True))
             pub = f"{published:8.2f} {result.median('a', 'wall') / published:5.2f}" if published else ""
             note = f"  exit codes {result.failed()}" if result.failed() else ""
