@@ -244,8 +244,8 @@ class PatternBand:
         cells = target.cells(noise, factor).astype(np.float32)
         self.factor, self.s, self.shape = factor, s, cells.shape
         ref = s_band(cells.shape, factor, s, reference)
-        self.bands = {_key(j): s_band(cells.shape, factor, s, j) for j in jacobians}
-        shapes = [ref[0].shape] + [band[0].shape for band in self.bands.values()]
+        # only the shapes are kept: 400 windows' masks would hold gigabytes
+        shapes = [ref[0].shape] + [s_band(cells.shape, factor, s, j)[0].shape for j in jacobians]
         self.keep = (max(r for r, _ in shapes), max(c for _, c in shapes))
         self.coeffs = resample.dct_coefficients(cells, self.keep)
         self.reference = self._padded(ref)
@@ -261,14 +261,9 @@ class PatternBand:
 
     def window(self, jacobian: np.ndarray) -> "WindowBand":
         """The band of the window whose local linear part of D is ``jacobian``."""
-        key = _key(jacobian)
-        band = self.bands[key] if key in self.bands else s_band(self.shape, self.factor, self.s, jacobian)
+        band = s_band(self.shape, self.factor, self.s, jacobian)
         same, cross = self._padded(band)
         return WindowBand(self, same - self.reference[0], cross - self.reference[1], band)
-
-
-def _key(jacobian: np.ndarray) -> bytes:
-    return np.asarray(jacobian, dtype=np.float64).tobytes()
 
 
 class WindowBand:
