@@ -39,7 +39,7 @@ from psfd.vocabulary import BERNOULLI, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, check
 
 __all__ = [
     "PatternBand", "WindowBand", "band_reach", "estimate_frames", "estimate_plane", "estimate_target", "estimate_window",
-    "jacobian_of", "noise_mask", "normal_equations", "raster_factor", "recentre", "s_band", "solve", "u_tilde",
+    "jacobian_of", "noise_mask", "normal_equations", "raster_factor", "recentre", "s_band", "s_band_shape", "solve", "u_tilde",
     "u_tilde_d",
 ]
 
@@ -105,23 +105,74 @@ def s_band(shape: tuple[int, int], factor: int, s: int, jacobian: np.ndarray) ->
         smallest box holding both.
     """
     rows, cols = shape
+    (lo_same, hi_same), (lo_cross, hi_cross) = _s_band_rows(shape, factor, s, jacobian)
+    keep_r, keep_c = _band_box(hi_same - lo_same, hi_cross - lo_cross, hi_same, hi_cross)
+    j = np.arange(keep_c)[None, :]
+    same = (j >= lo_same[:keep_r, None]) & (j < hi_same[:keep_r, None])
+    cross = (j >= lo_cross[:keep_r, None]) & (j < hi_cross[:keep_r, None])
+    return same, cross
+
+
+def s_band_shape(shape: tuple[int, int], factor: int, s: int, jacobian: np.ndarray) -> tuple[int, int]:
+    """The shape of `s_band`'s masks, without building them."""
+    (lo_same, hi_same), (lo_cross, hi_cross) = _s_band_rows(shape, factor, s, jacobian)
+    return _band_box(hi_same - lo_same, hi_cross - lo_cross, hi_same, hi_cross)
+
+
+def _band_box(width_same, width_cross, hi_same, hi_cross) -> tuple[int, int]:
+    """(rows, cols) of the smallest box from index 0 holding every row interval of both masks."""
+    used = (width_same > 0) | (width_cross > 0)
+    if not used.any():
+        return 1, 1
+    keep_r = int(np.nonzero(used)[0].max()) + 1
+    keep_c = int(max(hi_same[width_same > 0].max(initial=0), hi_cross[width_cross > 0].max(initial=0)))
+    return keep_r, max(keep_c, 1)
+
+
+def _s_band_rows(shape, factor, s, jacobian):
+    """For each row i of the DCT coefficients the box can reach, the columns [lo, hi) inside `s_band`'s masks.
+
+    For a fixed row, both inequalities of `s_band` are |alpha f_x + beta| < s / 2
+    with f_x increasing along the row: the kept columns are one interval.
+    Its ends are found by bisection on the very floating-point expression
+    `s_band` states (the rounded sum is monotone in f_x too), so the masks
+    are exactly those of evaluating it on the whole box, at a few
+    operations per row instead of per coefficient.
+    """
+    rows, cols = shape
     # only the box the band can reach (`band_reach`) is evaluated
     reach = np.abs(np.linalg.inv(jacobian)).sum(axis=0) * (s / 2)
     box_r = min(rows, int(reach[1] * 2 * rows / factor) + 2)
     box_c = min(cols, int(reach[0] * 2 * cols / factor) + 2)
-    f_y = np.arange(box_r)[:, None] * (factor / (2.0 * rows))
-    f_x = np.arange(box_c)[None, :] * (factor / (2.0 * cols))
+    f_y = np.arange(box_r) * (factor / (2.0 * rows))
+    f_x = np.arange(box_c) * (factor / (2.0 * cols))
     (a, b), (c, d) = jacobian
-
-    def inside(sign: float) -> np.ndarray:
+    half = s / 2
+    out = []
+    for sign in (1.0, -1.0):
         # xi = J^T f; strict inequality as the rectangular truncation keeps indices below s/2
-        return (np.abs(a * f_x + c * sign * f_y) < s / 2) & (np.abs(b * f_x + d * sign * f_y) < s / 2)
+        lo, hi = np.zeros(box_r, dtype=np.intp), np.full(box_r, box_c, dtype=np.intp)
+        for alpha, beta in ((a, c * sign * f_y), (b, d * sign * f_y)):
+            if alpha < 0:  # |x + beta| = |-x - beta| exactly in floating point: make the sum increasing
+                alpha, beta = -alpha, -beta
+            x = alpha * f_x
+            lo = np.maximum(lo, _first(x, beta, lambda v: v > -half))
+            hi = np.minimum(hi, _first(x, beta, lambda v: v >= half))
+        out.append((lo, np.maximum(hi, lo)))
+    return out[0], out[1]
 
-    same, cross = inside(1.0), inside(-1.0)
-    either = same | cross
-    keep_r = int(np.nonzero(either.any(axis=1))[0].max()) + 1 if either.any() else 1
-    keep_c = int(np.nonzero(either.any(axis=0))[0].max()) + 1 if either.any() else 1
-    return same[:keep_r, :keep_c], cross[:keep_r, :keep_c]
+
+def _first(x: np.ndarray, beta: np.ndarray, test: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """Per row, the first index j with ``test(x[j] + beta[row])`` (false, then true, along j); len(x) if none."""
+    lo, hi = np.zeros(beta.size, dtype=np.intp), np.full(beta.size, x.size, dtype=np.intp)
+    while True:
+        open_ = lo < hi
+        if not open_.any():
+            return lo
+        mid = (lo + hi) // 2
+        ok = test(x[np.minimum(mid, x.size - 1)] + beta) & open_
+        hi = np.where(ok, mid, hi)
+        lo = np.where(open_ & ~ok, mid + 1, lo)
 
 
 def u_tilde(
@@ -244,8 +295,8 @@ class PatternBand:
         cells = target.cells(noise, factor).astype(np.float32)
         self.factor, self.s, self.shape = factor, s, cells.shape
         ref = s_band(cells.shape, factor, s, reference)
-        # only the shapes are kept: 400 windows' masks would hold gigabytes
-        shapes = [ref[0].shape] + [s_band(cells.shape, factor, s, j)[0].shape for j in jacobians]
+        # only the shapes are needed: 400 windows' masks would hold gigabytes
+        shapes = [ref[0].shape] + [s_band_shape(cells.shape, factor, s, j) for j in jacobians]
         self.keep = (max(r for r, _ in shapes), max(c for _, c in shapes))
         self.coeffs = resample.dct_coefficients(cells, self.keep)
         self.reference = self._padded(ref)
@@ -287,11 +338,11 @@ class WindowBand:
         c0 = int(np.clip(np.floor(x[finite].min()) - 1, 0, cols))
         c1 = int(np.clip(np.floor(x[finite].max()) + 3, c0, cols))
         crop = self.band.base[r0:r1, c0:c1]
-        differ = int(np.count_nonzero(self.same | self.cross))
-        if differ:
-            # the difference costs about (crop rows + differing coefficients) x crop columns products,
-            # the window's own band a synthesis of the whole raster: take the cheaper
-            if (r1 - r0 + differ) * (c1 - c0) * 4 < rows * cols * np.log2(rows * cols):
+        cost = resample.band_part_cost(self.same, self.cross, r1 - r0, c1 - c0)
+        if cost:
+            # the difference costs `band_part_cost` multiply-adds on the crop, the window's own band
+            # a synthesis of the whole raster by FFTs, measured ~4x slower per rows x cols x log2(rows x cols)
+            if cost < 4 * rows * cols * np.log2(rows * cols):
                 part = resample.dct_band_part(self.band.coeffs, self.same, self.cross, self.band.shape,
                                               slice(r0, r1), slice(c0, c1))
                 crop = (crop + part).astype(np.float32)
