@@ -29,7 +29,7 @@ from typing import Callable
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy import fft, linalg, optimize
+from scipy import fft, linalg
 
 from psfd.errors import BadInputError, EstimationError, SaturatedError
 from psfd.estimator import detect, geometry, kernels, radiometry, resample, target
@@ -463,6 +463,8 @@ def solve(
     elif solver == "ls-threshold":
         h = np.maximum(h_ls, 0.0)
     else:
+        from scipy import optimize  # 0.15-0.3 s of imports: only for this solver
+
         h, _ = optimize.nnls(lower.T, rhs, maxiter=50 * ata.shape[0])
     return h, h_ls, lower
 

@@ -8,8 +8,9 @@ Delbracio, Almansa, Morel, Musé, SIAM J. Imaging Sci. 2012, sec. 4 (eq. (17)).
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
-from scipy import fft, ndimage
+from scipy import fft
 
 __all__ = [
     "band_part_cost", "dct_band_part", "dct_coefficients", "dct_lowpass", "dct_synthesise", "erode", "keys_bicubic",
@@ -303,8 +304,10 @@ def erode(mask: np.ndarray, radius: int) -> np.ndarray:
     every kept sample sees a full kernel footprint of valid data
     (Delbracio PhD thesis 2013, App. A.1).
     """
-    mask = np.asarray(mask, dtype=bool)
+    mask = np.ascontiguousarray(mask, dtype=bool)
     if radius <= 0:
         return mask.copy()
-    structure = np.ones((2 * radius + 1, 2 * radius + 1), dtype=bool)
-    return ndimage.binary_erosion(mask, structure=structure, border_value=0)
+    # OpenCV's erosion (outside the image counts as invalid): scipy.ndimage would add 0.1 s of imports
+    structure = np.ones((2 * radius + 1, 2 * radius + 1), dtype=np.uint8)
+    eroded = cv2.erode(mask.view(np.uint8), structure, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return eroded.view(bool)
