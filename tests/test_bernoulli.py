@@ -446,6 +446,11 @@ def test_dct_band_part_equals_the_synthesis_of_the_difference():
         for rows, cols in ((slice(0, 96), slice(0, 80)), (slice(10, 30), slice(50, 79))):
             got = resample.dct_band_part(coeffs, same, cross, size, rows, cols)
             assert np.allclose(got, want[rows, cols], atol=1e-12)
+            i, j = np.nonzero(same | cross)
+            a, b = same[i, j].astype(float), cross[i, j].astype(float)
+            tabulated = resample.dct_sparse_part(coeffs, i, j, (a + b) / 2, (b - a) / 2, size, rows, cols,
+                                                 resample.dct_bases(size, keep))
+            assert np.allclose(tabulated, want[rows, cols], atol=1e-12)
 
 
 def test_pattern_band_window_equals_u_tilde():

@@ -294,40 +294,69 @@ class PatternBand:
         # float32: 4x faster on the raster, rounding far below sensor noise (as in `u_tilde`)
         cells = target.cells(noise, factor).astype(np.float32)
         self.factor, self.s, self.shape = factor, s, cells.shape
-        ref = s_band(cells.shape, factor, s, reference)
-        # only the shapes are needed: 400 windows' masks would hold gigabytes
-        shapes = [ref[0].shape] + [s_band_shape(cells.shape, factor, s, j) for j in jacobians]
+        # only the sizes are needed: 400 windows' masks would hold gigabytes
+        shapes = [s_band_shape(cells.shape, factor, s, j) for j in [reference, *jacobians]]
         self.keep = (max(r for r, _ in shapes), max(c for _, c in shapes))
         self.coeffs = resample.dct_coefficients(cells, self.keep)
-        self.reference = self._padded(ref)
-        self.base = resample.dct_synthesise(self.coeffs, self.shape, *self.reference)
+        ref = s_band(cells.shape, factor, s, reference)
+        self.base = resample.dct_synthesise(self.coeffs[: ref[0].shape[0], : ref[0].shape[1]], self.shape, *ref)
+        self.reference = self.rows(reference)
+        # the basis functions the differences are synthesised from (tens of MB): tabulated once, before
+        # the workers fork, when many windows will read them; computed per window for a few
+        self.bases = resample.dct_bases(self.shape, self.keep) if len(jacobians) > 4 else None
 
-    def _padded(self, band: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    def rows(self, jacobian: np.ndarray) -> tuple[np.ndarray, ...]:
+        """`s_band` of ``jacobian`` as row intervals over the kept rows: lo, hi of ``same``, then of ``cross``."""
+        (lo_same, hi_same), (lo_cross, hi_cross) = _s_band_rows(self.shape, self.factor, self.s, jacobian)
         out = []
-        for m in band:
-            full = np.zeros(self.keep, dtype=np.int8)
-            full[: m.shape[0], : m.shape[1]] = m
+        for end in (lo_same, hi_same, lo_cross, hi_cross):
+            full = np.zeros(self.keep[0], dtype=np.intp)  # rows past the band: empty intervals
+            n = min(end.size, self.keep[0])  # rows past `keep` are empty in every band
+            full[:n] = end[:n]
             out.append(full)
-        return out[0], out[1]
+        return tuple(out)
 
     def window(self, jacobian: np.ndarray) -> "WindowBand":
         """The band of the window whose local linear part of D is ``jacobian``."""
-        band = s_band(self.shape, self.factor, self.s, jacobian)
-        same, cross = self._padded(band)
-        return WindowBand(self, same - self.reference[0], cross - self.reference[1], band)
+        return WindowBand(self, jacobian)
+
+    def difference(self, jacobian: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The coefficients where the band of ``jacobian`` differs from the reference band, as
+        (i, j, cosine weight, sine weight) for `resample.dct_sparse_part`: built from the row
+        intervals, never from masks of the whole band."""
+        own, ref = self.rows(jacobian), self.reference
+        parts = []
+        # (a, b) = (same, cross) enter as cos (a + b) / 2 and sin (b - a) / 2 (`resample.dct_synthesise`)
+        for k, (cos_w, sin_w) in ((0, (0.5, -0.5)), (2, (0.5, 0.5))):
+            lo, hi, lo_ref, hi_ref = own[k], own[k + 1], ref[k], ref[k + 1]
+            for sign, (a, b, c, d) in ((1.0, (lo, hi, lo_ref, hi_ref)), (-1.0, (lo_ref, hi_ref, lo, hi))):
+                # [a, b) minus [c, d): [a, min(b, c)) and [max(a, d), b)
+                for start, stop in ((a, np.minimum(b, c)), (np.maximum(a, d), b)):
+                    i, j = _runs(start, stop)
+                    parts.append((i, j, np.full(i.size, sign * cos_w), np.full(i.size, sign * sin_w)))
+        return tuple(np.concatenate(column) for column in zip(*parts))
+
+
+def _runs(start: np.ndarray, stop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) of every column in [start[row], stop[row]) of every row."""
+    length = np.maximum(stop - start, 0)
+    rows = np.repeat(np.arange(start.size), length)
+    first = np.cumsum(length) - length  # where each row's run begins in the output
+    return rows, np.arange(rows.size) - np.repeat(first - start, length)
 
 
 class WindowBand:
     """One window's u~ (`PatternBand.window`), read by `u_tilde_d` where the window needs it."""
 
-    def __init__(self, band: PatternBand, same: np.ndarray, cross: np.ndarray, own: tuple) -> None:
-        self.band, self.same, self.cross, self.own = band, same, cross, own
+    def __init__(self, band: PatternBand, jacobian: np.ndarray) -> None:
+        self.band, self.jacobian = band, jacobian
 
     def sample(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
         """Keys' bicubic interpolation (a = -0.5) of u~ at pattern cells (X, Y), as `u_tilde_d`."""
-        factor = self.band.factor
+        band = self.band
+        factor = band.factor
         x, y = X * factor - 0.5, Y * factor - 0.5
-        rows, cols = self.band.shape
+        rows, cols = band.shape
         finite = np.isfinite(x) & np.isfinite(y)
         if not finite.any():
             return np.full(x.shape, np.nan, dtype=np.float32)
@@ -337,19 +366,20 @@ class WindowBand:
         r1 = int(np.clip(np.floor(y[finite].max()) + 3, r0, rows))
         c0 = int(np.clip(np.floor(x[finite].min()) - 1, 0, cols))
         c1 = int(np.clip(np.floor(x[finite].max()) + 3, c0, cols))
-        crop = self.band.base[r0:r1, c0:c1]
-        cost = resample.band_part_cost(self.same, self.cross, r1 - r0, c1 - c0)
+        crop = band.base[r0:r1, c0:c1]
+        i, j, cos_w, sin_w = band.difference(self.jacobian)
+        cost = resample.band_part_cost(i, j, r1 - r0, c1 - c0)
         if cost:
             # the difference costs `band_part_cost` multiply-adds on the crop, the window's own band
             # a synthesis of the whole raster by FFTs, measured ~4x slower per rows x cols x log2(rows x cols)
             if cost < 4 * rows * cols * np.log2(rows * cols):
-                part = resample.dct_band_part(self.band.coeffs, self.same, self.cross, self.band.shape,
-                                              slice(r0, r1), slice(c0, c1))
+                part = resample.dct_sparse_part(band.coeffs, i, j, cos_w, sin_w, band.shape,
+                                                slice(r0, r1), slice(c0, c1), band.bases)
                 crop = (crop + part).astype(np.float32)
             else:
-                same, cross = self.own
-                coeffs = self.band.coeffs[: same.shape[0], : same.shape[1]]
-                crop = resample.dct_synthesise(coeffs, self.band.shape, same, cross)[r0:r1, c0:c1]
+                same, cross = s_band(band.shape, factor, band.s, self.jacobian)
+                coeffs = band.coeffs[: same.shape[0], : same.shape[1]]
+                crop = resample.dct_synthesise(coeffs, band.shape, same, cross)[r0:r1, c0:c1]
         return resample.keys_bicubic(crop, x - c0, y - r0, a=-0.5)
 
 
