@@ -39,8 +39,8 @@ from psfd.vocabulary import BERNOULLI, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, check
 
 __all__ = [
     "PatternBand", "WindowBand", "band_reach", "estimate_frames", "estimate_plane", "estimate_target", "estimate_window",
-    "jacobian_of", "noise_mask", "normal_equations", "raster_factor", "recentre", "s_band", "s_band_shape", "solve", "u_tilde",
-    "u_tilde_d",
+    "jacobian_of", "noise_mask", "normal_equations", "raster_factor", "recentre", "s_band", "solve", "u_tilde",
+    "u_tilde_d", "s_band_shape",
 ]
 
 Map = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
