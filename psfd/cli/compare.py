@@ -229,6 +229,6 @@ def write_outputs(out: Path, estimates: list[Estimate], table: dict, truth, s: i
     output.write_estimates(
         [e.psf for e in estimates],
         out,
-        extra={"compare.png": lambda path: figures.save_comparison(curves, path),
+        extra={"compare.png": lambda path: figures.save_comparison(curves, path, truth is not None),
                "compare.json": lambda path: path.write_text(json.dumps(output.plain(summary), indent=1))},
     )
