@@ -40,7 +40,7 @@ from psfd import __version__
 from psfd.drivers.base import CameraInfo
 from psfd.errors import BadInputError, CatalogueError
 from psfd.estimator.kernels import PSF
-from psfd.vocabulary import camera_fnumber, method_name, parse_fnumber
+from psfd.vocabulary import camera_fnumber, data_dir, method_name, parse_fnumber
 
 STEP_STATES = ("pending", "running", "done", "failed")
 RUN_STATES = ("running", "done", "paused", "cancelled", "failed")
@@ -81,9 +81,7 @@ def default_path() -> Path:
     A relative or empty ``XDG_DATA_HOME`` is ignored, as the XDG base directory
     specification requires.
     """
-    base = os.environ.get("XDG_DATA_HOME", "")
-    root = Path(base) if base and os.path.isabs(base) else Path.home() / ".local" / "share"
-    return root / "psfd" / "catalogue.sqlite"
+    return data_dir() / "catalogue.sqlite"
 
 
 # ---------------------------------------------------------------------------
