@@ -24,7 +24,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
 
 from psfd import __version__  # noqa: E402 - after the environment above
-from psfd.cli import compare, estimate, hardware, lab, query, target  # noqa: E402
+from psfd.cli import compare, estimate, hardware, lab, logs, query, target  # noqa: E402
 from psfd.errors import BadInputError, PsfdError  # noqa: E402
 
 COMMAND_MODULES = (target, estimate, compare, hardware, query, lab)
@@ -33,16 +33,30 @@ COMMAND_MODULES = (target, estimate, compare, hardware, query, lab)
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="psfd", description="Sub-pixel camera PSF measurement.")
     parser.add_argument("--version", action="version", version=f"psfd {__version__}")
+    logs.add_options(parser)
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     subparsers.required = True
     for module in COMMAND_MODULES:
         module.register(subparsers)
+    for command in _commands(parser):  # -v and -q after the command too: `psfd run plan.toml -v`
+        logs.add_options(command, suppress=True)
     return parser
+
+
+def _commands(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """Every parser below ``parser`` that runs a command (the leaves of the subcommand tree)."""
+    found = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in dict.fromkeys(action.choices.values()):  # aliases share their parser
+                found += _commands(sub) or [sub]
+    return found
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    logs.setup(args.verbose, args.quiet, service=args.command == "serve")
     try:
         return int(args.func(args) or 0)
     except PsfdError as exc:

@@ -389,8 +389,19 @@ def print_json(estimates: list[PSF], stream: TextIO | None = None) -> None:
     stream.flush()
 
 
+def log_warnings(estimates: list[PSF]) -> None:
+    """Each estimate's warnings on the log (stderr), named by source, channel and field: never inside a table."""
+    import logging
+
+    log = logging.getLogger("psfd.estimate")
+    for est in estimates:
+        source = "+".join(Path(s).name for s in est.sources) or "estimate"
+        for warning in est.warnings:
+            log.warning("%s %s at (%.2f, %.2f): %s", source, est.channel, est.field[0], est.field[1], warning)
+
+
 def print_table(estimates: list[PSF], stream: TextIO | None = None) -> None:
-    """A short human-readable table: one line per estimate, warnings below it."""
+    """A short human-readable table, one line per estimate, with its units line (warnings: `log_warnings`)."""
     stream = sys.stdout if stream is None else stream
     print(
         f"{'source':<28} {'chan':<5} {'field x,y':<11} {'MTF50 x':>8} {'MTF50 y':>8} "
@@ -407,8 +418,6 @@ def print_table(estimates: list[PSF], stream: TextIO | None = None) -> None:
             f"{fmt(m['fwhm_y'], '.2f'):>7} {fmt(est.noise_floor, '.2e'):>9}",
             file=stream,
         )
-        for warning in est.warnings:
-            print(f"  warning: {warning}", file=stream)
     print("MTF50 in cycles per channel pixel (Nyquist 0.5); FWHM in channel pixels.", file=stream)
 
 
