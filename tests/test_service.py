@@ -188,10 +188,11 @@ def test_unit_file_verifies():
         pytest.skip("the psfd console script is not on PATH (pip install -e .)")
     unit = (ROOT / "systemd" / "psfd.service").read_text()
     assert "Type=notify" in unit and "User=psfd" in unit and "DevicePolicy=closed" in unit
+    assert "ExecStart=/opt/psfd/bin/psfd serve" in unit  # the virtual environment the README installs
     # verify checks that ExecStart exists: point it at this machine's console script
     tmp = Path(os.environ.get("TMPDIR", "/tmp")) / f"psfd-verify-{os.getpid()}"
     tmp.mkdir(exist_ok=True)
-    (tmp / "psfd.service").write_text(unit.replace("/usr/local/bin/psfd", os.path.realpath(psfd)))
+    (tmp / "psfd.service").write_text(unit.replace("/opt/psfd/bin/psfd", os.path.realpath(psfd)))
     out = subprocess.run(["systemd-analyze", "verify", str(tmp / "psfd.service")], capture_output=True, text=True)
     shutil.rmtree(tmp)
     assert out.returncode == 0, out.stderr

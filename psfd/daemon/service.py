@@ -308,7 +308,8 @@ class Service:
         with self.lock:
             state = "running" if self.current else ("paused" if self.paused else "idle")
             return {"state": state, "current": self.current, "last": self.last, "queued": self.queued,
-                    "paused_plan": self.paused.path if self.paused else None}
+                    "paused_plan": self.paused.path if self.paused else None,
+                    "catalogue": str(self.catalogue_path)}
 
     def _cmd_pause(self, req: dict) -> dict:
         if self.current is None:
