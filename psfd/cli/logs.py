@@ -107,4 +107,6 @@ def setup(verbose: int = 0, quiet: int = 0, service: bool = False, stream: TextI
     logger.addHandler(handler)
     logger.setLevel(level(verbose, quiet, service))
     logger.propagate = False  # one line per record, whatever the embedding program's root logger does
+    # exifread says "File format not recognized." on its own logger for files psfd reports itself
+    logging.getLogger("exifread").setLevel(logging.ERROR)
     return handler

@@ -160,7 +160,7 @@ def base_names(estimates: list[PSF]) -> list[str]:
     return names
 
 
-def _write_one(folder: Path, name: str, est: PSF, pitch_um: float | None) -> list[str]:
+def _write_one(folder: Path, name: str, est: PSF, sensor: Any) -> list[str]:
     import tifffile  # only the writers need these
 
     from psfd import figures
@@ -169,9 +169,9 @@ def _write_one(folder: Path, name: str, est: PSF, pitch_um: float | None) -> lis
     np.save(folder / files[0], est.psf)
     meta = {"method": est.method, "channel": est.channel, "s": est.s, "field": [float(v) for v in est.field]}
     tifffile.imwrite(folder / files[1], est.psf.astype(np.float32), metadata=meta)
-    figures.save_psf(est, folder / files[2], pitch_um)
+    figures.save_psf(est, folder / files[2], sensor.pitch_um if sensor else None)
     # the provenance and metrics beside the arrays, so a folder of results describes itself
-    (folder / files[3]).write_text(json.dumps(plain(est.to_json()), allow_nan=False) + "\n")
+    (folder / files[3]).write_text(json.dumps(estimate_json(est, sensor), allow_nan=False) + "\n")
     for key, array in est.figures.items():
         label = re.sub(r"[^A-Za-z0-9._+-]", "_", key)
         array = np.asarray(array)
@@ -214,7 +214,7 @@ def write_estimates(
         records = []
         for name, est in zip(base_names(estimates), estimates):
             sensor = sensors.get(est.sources[0]) if est.sources else None
-            files += _write_one(folder, name, est, sensor.pitch_um if sensor else None)
+            files += _write_one(folder, name, est, sensor)
             records.append({**estimate_record(est, sensor), "file": f"{name}.npy"})
         with open(folder / "metrics.csv", "w", newline="", encoding="utf-8") as stream:
             write_csv(records, stream)
@@ -248,11 +248,14 @@ def source_sensor(path: str | os.PathLike, pitch_um: float | None = None) -> Any
     ``pitch_um`` (e.g. a plan's ``[rig] pitch_um``) stands in when the file gives no pitch.
     """
     from psfd import exif, figures
+    from psfd.estimator.raw import RAW_SUFFIXES
 
-    try:
-        meta = exif.read_metadata(path)
-    except (BadInputError, OSError):
-        meta = exif.FrameMetadata()
+    meta = exif.FrameMetadata()
+    if Path(path).suffix.lower() in RAW_SUFFIXES:  # a PGM or PNG plane carries no EXIF: nothing to warn about
+        try:
+            meta = exif.read_metadata(path)
+        except (BadInputError, OSError):
+            pass
     pitch = meta.pixel_pitch_um or pitch_um
     if not (meta.width and meta.height):
         return figures.Sensor(0, 0, pitch) if pitch else None
@@ -381,11 +384,18 @@ def fmt(value: float | None, spec: str = ".3f") -> str:
     return "-" if value is None or not math.isfinite(value) else format(value, spec)
 
 
+def estimate_json(est: PSF, sensor: Any = None) -> dict:
+    """The JSON object of one estimate (docs/formats.md): `estimate_record` and the kernel as ``psf``."""
+    return {**estimate_record(est, sensor), "psf": plain(est.psf)}
+
+
 def print_json(estimates: list[PSF], stream: TextIO | None = None) -> None:
-    """One JSON object per estimate per line (`PSF.to_json`)."""
+    """One JSON object per estimate per line (`estimate_json`)."""
     stream = sys.stdout if stream is None else stream
+    sensors = {path: source_sensor(path) for est in estimates for path in est.sources[:1]}
     for est in estimates:
-        stream.write(json.dumps(plain(est.to_json()), allow_nan=False) + "\n")
+        sensor = sensors.get(est.sources[0]) if est.sources else None
+        stream.write(json.dumps(estimate_json(est, sensor), allow_nan=False) + "\n")
     stream.flush()
 
 
