@@ -148,12 +148,8 @@ def _kernel_axes(ax: Any, title: str) -> None:
 def _cmap(name: str, under: str | None = None, bad: str | None = None) -> Any:
     import matplotlib
 
-    cmap = matplotlib.colormaps[name].copy()
-    if under:
-        cmap.set_under(under)
-    if bad:
-        cmap.set_bad(bad)
-    return cmap
+    extremes = {key: colour for key, colour in (("under", under), ("bad", bad)) if colour}
+    return matplotlib.colormaps[name].with_extremes(**extremes)
 
 
 def mtf_noise_band(est: PSF) -> float | None:
@@ -517,27 +513,32 @@ def report_figure(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: s
             for p in good:
                 ax.annotate(f"{p[kind]:.3f}", (p["x"], p["y"]), textcoords="offset points", xytext=(0, 7),
                             ha="center", fontsize=6.5, zorder=4, path_effects=[halo])
+    from matplotlib.ticker import MaxNLocator
+
     if psf_image is not None:
-        bar = fig.colorbar(psf_image, ax=psf_axes, location="bottom", shrink=0.6, aspect=40, extend="min")
-        bar.set_label(f"PSF value (fraction of energy per sample), log scale, {LOG_DECADES} decades: "
-                      "the same for every tile", fontsize=8)
+        bar = fig.colorbar(psf_image, ax=psf_axes, location="bottom", shrink=0.6 if len(channels) > 2 else 0.95,
+                           aspect=40 if len(channels) > 2 else 15, extend="min")
+        bar.set_label(f"PSF value (fraction of energy per sample),\nlog scale, {LOG_DECADES} decades, the same for "
+                      "every tile", fontsize=8)
     if mtf_markers is not None:
         bar = fig.colorbar(mtf_markers, ax=mtf_axes, location="bottom", shrink=0.9, aspect=25)
+        bar.locator = MaxNLocator(6)
+        bar.update_ticks()
         bar.set_label(f"MTF50 (cycles/pixel): one scale, {vmin:.3f} to {vmax:.3f}, for all apertures", fontsize=8)
 
     ax = fig.add_subplot(grid[-1, :ncols])
     _height_chart(ax, bands, channel)
+    import textwrap
+
     tile_px = {r["support"] / r["s"] for r in rows}
-    fig.suptitle(
-        f"Field report: PSFs of {', '.join(channels)} and MTF50 of {channel} over the sensor, per aperture\n"
-        f"each tile shows a whole kernel ({', '.join(f'{t:g}' for t in sorted(tile_px))} channel pixels) "
-        f"enlarged to {TILE:.0%} of the sensor width at its measured position; + marks the image centre; "
-        "meridional = frequencies along the radius, sagittal = across it",
-        fontsize=9,
-    )
+    about = (f"Each tile shows a whole kernel ({', '.join(f'{t:g}' for t in sorted(tile_px))} channel pixels) "
+             f"enlarged to {TILE:.0%} of the sensor width at its measured position; + marks the image centre; "
+             "meridional: frequencies along the radius, sagittal: across it.")
     if len(rigs) == 1:
-        camera, lens = next(iter(rigs))
-        fig.suptitle(f"{fig.get_suptitle()}\n{camera} {lens}".rstrip(), fontsize=9)
+        about = f"{' '.join(next(iter(rigs))).strip()}. {about}"
+    width = int(fig.get_figwidth() * 13)  # characters of 9-point text across the figure
+    fig.suptitle("\n".join([f"Field report: PSFs of {', '.join(channels)} and MTF50 of {channel} over the sensor, "
+                            "per aperture", *textwrap.wrap(about, width)]), fontsize=9)
     return fig
 
 
@@ -574,8 +575,9 @@ def _height_chart(ax: Any, bands: list, channel: str) -> None:
     handles += [Line2D([], [], color="0.2", ls="-", marker="o", label="sagittal"),
                 Line2D([], [], color="0.2", ls="--", marker="s", mfc="none", label="meridional")]
     ax.set_xlabel("image height: distance from the image centre (photosites)")
+    corner = max(math.hypot(sensor.width, sensor.height) / 2 for _, _, sensor, _ in bands)
+    ax.set_xlim(-0.02 * corner, 1.02 * corner)  # from the centre to the corner
     ax.set_ylabel(f"MTF50 of {channel} (cycles/pixel)")
-    ax.set_xlim(left=0)
     ax.grid(alpha=0.25)
     ax.set_title(f"MTF50 of {channel} against image height (lines through the mean at each measured height)",
                  fontsize=9)

@@ -32,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     rail = subparsers.add_parser("rail", help="home, move or read the rail")
     rail_sub = rail.add_subparsers(dest="rail_command", metavar="ACTION", required=True)
-    p = rail_sub.add_parser("home", help="run the homing cycle")
+    p = rail_sub.add_parser("home", help="run the homing cycle (--simulate: also start the simulated rig afresh)")
     options.add_rig_options(p)
     p.set_defaults(func=rail_home)
     p = rail_sub.add_parser("move", help="absolute move in mm, e.g. `psfd rail move X=120 Y=-5`")
@@ -125,6 +125,10 @@ def _with_rail(args: argparse.Namespace, action) -> int:
 
 
 def rail_home(args: argparse.Namespace) -> int:
+    if args.simulate:  # the simulated rig starts afresh: default settings, shutter count 0, then home
+        from psfd.drivers.sim import state_path
+
+        state_path().unlink(missing_ok=True)
     return _with_rail(args, lambda rail: rail.home())
 
 

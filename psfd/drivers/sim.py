@@ -23,8 +23,8 @@ covers a small part of the field); `SimRig.truth` returns that PSF.
 State: like a real camera and rail, the rig opened by a command (`psfd.drivers.open_rig`)
 remembers its settings, its rail position and its shutter count from one
 command to the next, in a small JSON file (`state_path`:
-``$XDG_DATA_HOME/psfd/sim-rig.json``). `SimRail.home` forgets it: homing
-starts the simulated rig afresh (default settings, shutter count 0) at home.
+``$XDG_DATA_HOME/psfd/sim-rig.json``); ``psfd rail home --simulate`` removes it
+first, so the simulated rig starts afresh (default settings, shutter count 0) at home.
 """
 
 from __future__ import annotations
@@ -178,11 +178,6 @@ class SimRig:
             with contextlib.suppress(NameError, OSError):
                 os.unlink(tmp)
             raise CameraError(f"cannot keep the simulated rig's state in {path}: {exc.strerror or exc}") from None
-
-    def forget_state(self) -> None:
-        """Start afresh: default settings and shutter count (the rail position is the caller's)."""
-        self.settings = dict(DEFAULT_SETTINGS)
-        self.captures = 0
 
     # ------------------------------------------------------------------ optics
 
@@ -437,9 +432,8 @@ class SimRail:
         self.rig = rig
 
     def home(self) -> Position:
-        """Go home (X at its low limit, Y and Z at 0) and start the simulated rig afresh (`SimRig.forget_state`)."""
+        """Go home: X at its low limit, Y and Z at 0."""
         self.rig._check_fault("rail")
-        self.rig.forget_state()
         self.rig.pos = Position(x=self.rig.limits["x"][0], y=self._zero("y"), z=self._zero("z"))
         self.rig.save_state()
         return self.rig.pos
