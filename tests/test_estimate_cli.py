@@ -5,6 +5,8 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -432,3 +434,35 @@ def test_no_target_is_an_estimation_error(tmp_path, capfd):
     assert code == 3  # EstimationError: the photograph does not support an estimate
     assert stderr.startswith("psfd: error: ") and stderr.count("\n") == 1 and stdout == ""
     assert [p.name for p in tmp_path.iterdir()] == ["wall.png"]
+
+
+def test_output_folders_honour_the_umask(tmp_path):
+    old = os.umask(0o022)
+    try:
+        output.write_estimates([synthetic(0)], tmp_path / "shared")
+        os.umask(0o077)
+        output.write_estimates([synthetic(0)], tmp_path / "private")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "shared").stat().st_mode) == 0o755  # not mkdtemp's 0700
+    assert stat.S_IMODE((tmp_path / "private").stat().st_mode) == 0o700
+    assert all(stat.S_IMODE(p.stat().st_mode) == 0o644 for p in (tmp_path / "shared").iterdir())
+
+
+def test_force_replaces_an_output_folder_whole_and_nothing_else(tmp_path, capsys):
+    out = tmp_path / "out"
+    output.write_estimates([synthetic(0), synthetic(1)], out)
+    with pytest.raises(BadInputError, match="add --force"):
+        output.write_estimates([synthetic(0)], out)
+    output.write_estimates([synthetic(0)], out, force=True)
+    assert sorted(p.name for p in out.iterdir()) == sorted(  # the earlier w01 files are gone, not mixed in
+        [f"IMG_0001_bernoulli_g1_w00.{ext}" for ext in ("npy", "tif", "png", "json")] + ["metrics.csv"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging or old folder left
+    home = tmp_path / "home"
+    (home / "Documents").mkdir(parents=True)
+    with pytest.raises(BadInputError, match="holds folders"):
+        output.write_estimates([synthetic(0)], home, force=True)
+    assert [p.name for p in home.iterdir()] == ["Documents"]
+    (tmp_path / "file").write_text("mine")
+    with pytest.raises(BadInputError, match="not a folder"):
+        output.write_estimates([synthetic(0)], tmp_path / "file", force=True)
