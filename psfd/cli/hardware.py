@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 from pathlib import Path
 
@@ -143,7 +142,7 @@ def rail_position(args: argparse.Namespace) -> int:
 
 def record(args: argparse.Namespace) -> int:
     """Capture at every --at position and --aperture, recording every request; DIR appears only when complete."""
-    from psfd.cli.output import check_out_dir, staging_dir
+    from psfd.cli.output import check_out_dir, publish, staging_dir
     from psfd.drivers import open_rig
     from psfd.drivers.recording import Recorder
 
@@ -164,9 +163,7 @@ def record(args: argparse.Namespace) -> int:
         finally:
             recorder.close()
         shutil.rmtree(work / "downloads", ignore_errors=True)
-        if out.exists():
-            out.rmdir()
-        os.replace(work / "recording", out)
+        publish(work / "recording", out)  # with the umask's permissions, as any new folder
     finally:
         shutil.rmtree(work, ignore_errors=True)
     print(f"recorded {len(recorder.requests)} requests and {frames} frames into {out}")
