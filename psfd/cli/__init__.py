@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
 
 # The estimators solve many small systems (a few hundred unknowns): BLAS threads
 # gain nothing there and, on a loaded 2-core machine, stall them for up to a
@@ -53,10 +55,20 @@ def _commands(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
     return found
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the process is, so that a moving rail is stopped and its port released."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logs.setup(args.verbose, args.quiet, service=args.command == "serve")
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     try:
         return int(args.func(args) or 0)
     except PsfdError as exc:
@@ -68,9 +80,13 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"psfd: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return BadInputError.exit_code
-    except KeyboardInterrupt:
-        print("psfd: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        stopped = "".join(f" ({note})" for note in getattr(exc, "__notes__", ()))
+        print(f"psfd: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}{stopped}", file=sys.stderr)
+        return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -428,7 +428,8 @@ def plan_template(simulate: bool = False) -> str:
         (False, "simulate = false", "true: the simulated rig instead of hardware")] * (not simulate) + [
         (False, 'recording = "session/"', "replay a recording made by `psfd record` instead of hardware"),
         (False, "timeout = 10", "camera: seconds to wait for an answer"),
-        (False, "rail_limits = { x = [0, 2000], y = [-150, 150] }", "soft limits of the rail, mm"),
+        (False, "rail_limits = { x = [-1500, 0], y = [-150, 0] }",
+         "narrower soft limits than the controller's travel, mm; also the rail's axes"),
         (False, "rail_baudrate = 115200", "serial speed of the rail controller"),
         (False, "rail_feed = 1000", "rail speed, mm/min"),
         (False, "rail_timeout = 2.0", "rail: seconds to wait for an answer"),
@@ -455,7 +456,8 @@ def plan_template(simulate: bool = False) -> str:
         ]
     else:
         positions = [
-            (True, "x = [1300]", "rail distances of the target, mm: where a noise cell images to about 1/4 px"),
+            (True, "x = [-1300]", "rail positions, mm, in GRBL's work coordinates (-travel to 0 after homing, "
+                                "see README): where a noise cell images to about 1/4 px"),
             (True, "y = [0]", "lateral positions, mm, that walk the target over the field, e.g. [-40, 0, 40]"),
             (False, "z = [0]", "vertical positions, mm (a rail with a Z axis)"),
         ]

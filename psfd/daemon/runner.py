@@ -266,6 +266,9 @@ class Runner:
                 if oneshot and result.state == "paused":
                     result.state = "failed"
                     self.catalogue.finish_run(run_id, "failed")
+                # INFO: the failed step that ended a run was already a warning, with its reason
+                log.info("run %d %s: %d steps, %d PSFs in %.1f s%s", run_id, result.state, result.steps_done,
+                         result.psfs, result.elapsed_s, f" ({result.reason})" if result.reason else "")
                 return result
         finally:
             release_rig(camera, rail)
@@ -344,9 +347,6 @@ class Runner:
         elif result.error is not None:
             result.state = "paused"
         self.catalogue.finish_run(run_id, result.state)
-        log.log(logging.WARNING if result.error is not None else logging.INFO,
-                "run %d %s: %d steps, %d PSFs in %.1f s%s", run_id, result.state, result.steps_done, result.psfs,
-                result.elapsed_s, f" ({result.reason})" if result.reason else "")
         return result
 
     def _set_state(self, run_id: int, key: str, state: str, reason: str | None = None) -> None:

@@ -283,11 +283,12 @@ class Service:
         job = Job(plan, resume, wait, new=new, oneshot=oneshot)
         with self.lock:
             self.queued += 1
+            queued = self.queued  # as submitted: the runner thread may take the job at once
         self.jobs.put(job)
         log.info("plan %s submitted%s, %d queued", plan.path,
-                 " to resume" if resume else " as a new run" if new else "", self.queued)
+                 " to resume" if resume else " as a new run" if new else "", queued)
         if not wait:
-            return {"queued": self.queued, "plan": plan.path}
+            return {"queued": queued, "plan": plan.path}
         while not job.done.wait(1.0):
             pass
         return {"result": job.result}
