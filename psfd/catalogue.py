@@ -166,12 +166,17 @@ def _database_folder(db: sqlite_utils.Database) -> Path | None:
     return None
 
 
-def _relative_frame_paths(db: sqlite_utils.Database) -> None:
-    """Version 5: frame paths inside the catalogue's folder become relative to it (others stay absolute)."""
+def _v5_relative_frame_paths(db: sqlite_utils.Database) -> None:
+    """Version 5: frame paths inside the catalogue's folder become relative to it (others stay absolute).
+
+    Paths already relative are left alone, so running it again, or after any other migration, changes nothing.
+    """
     folder = _database_folder(db)
     if folder is None:
         return
     for frame_id, path in db.execute("SELECT id, path FROM frames").fetchall():
+        if not os.path.isabs(path):
+            continue
         stored = stored_frame_path(path, folder)
         if stored != path:
             db.execute("UPDATE frames SET path = ? WHERE id = ?", [stored, frame_id])
@@ -189,8 +194,9 @@ def stored_frame_path(path: str | os.PathLike, folder: Path) -> str:
             return str(absolute)
 
 
-# Versions 3 and 4 are other changes of the schema; relative frame paths are version 5 whatever lands first.
-MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [_v1_tables, _v2_query_indexes, _relative_frame_paths]
+# Versions 3 and 4 are other changes of the schema; relative frame paths are version 5 whatever lands first
+# (each migration checks what is already there, so the order in which they reach a catalogue does not matter).
+MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [_v1_tables, _v2_query_indexes, _v5_relative_frame_paths]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 

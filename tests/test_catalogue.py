@@ -510,3 +510,19 @@ def test_datasette_metadata_describes_every_table_and_column(tmp_path):
     assert "cycles per channel pixel" in psfs["mtf50_x"] and "channel pixels" in psfs["fwhm_x"]
     assert "numpy.load" in psfs["psf"]
     assert tables["psfs"]["units"] == {"focal_length_mm": "mm", "focus_distance_m": "m"}
+
+
+def test_relative_frame_paths_migration_runs_again_without_change(tmp_path, monkeypatch):
+    """Other branches' migrations may reach a catalogue in another order: running version 5 again (from any
+    working folder) leaves relative paths alone instead of reading them against the working folder."""
+    path = tmp_path / "lab" / "cat.sqlite"
+    path.parent.mkdir()
+    with Catalogue(path) as cat:
+        cat.db["frames"].insert_all([{"path": "cat-frames/aa/x.dng", "sha256": "a" * 64},
+                                     {"path": "/mnt/raw/y.dng", "sha256": "b" * 64}])
+    monkeypatch.chdir(tmp_path)
+    db = sqlite_utils.Database(path)
+    MIGRATIONS[-1](db)
+    assert [r[0] for r in db.execute("SELECT path FROM frames ORDER BY id").fetchall()] == [
+        "cat-frames/aa/x.dng", "/mnt/raw/y.dng"]
+    db.close()
