@@ -192,7 +192,7 @@ def psf_figure(est: PSF, pitch_um: float | None = None) -> Figure:
     image = ax_log.imshow(np.where(psf > 0, psf, np.nan), cmap=_cmap("inferno", under="black", bad=NEGATIVE),
                           norm=LogNorm(floor, peak), extent=extent, interpolation="nearest")
     _draw_pixel_grid(ax_log, psf.shape, s)
-    _kernel_axes(ax_log, f"log scale, {LOG_DECADES} decades (black: below, blue: negative or 0)")
+    _kernel_axes(ax_log, f"log scale, {LOG_DECADES} decades\n(black: below, blue: negative or 0)")
     bar = fig.colorbar(image, ax=ax_log, shrink=0.85, extend="min")
     bar.set_label(VALUE_LABEL)
     if est.noise_floor and floor < est.noise_floor < peak:
@@ -321,14 +321,15 @@ def comparison_figure(curves: list[tuple[str, np.ndarray, int]], against_truth: 
     ax.set_ylim(0, 1.05 * top)
     if top > 1.0:
         ax.axhline(1.0, color="0.5", lw=0.6)
-        ax.text(fmax, 1.0, "MTF above 1: negative kernel lobes ", ha="right", va="bottom", fontsize=8, color="0.3")
+        ax.text(0.5, 1.0, " MTF above 1: negative kernel lobes", ha="left", va="bottom", fontsize=8, color="0.3")
     ax.set_xlabel(FREQ_LABEL)
     ax.set_ylabel("MTF")
     ax.grid(alpha=0.25)
     ax.set_title("MTF of each estimate" + (" and of the true PSF" if against_truth else ""), fontsize=11)
     styles = [Line2D([], [], color="0.2", ls="-", label="solid: x (horizontal frequency)"),
               Line2D([], [], color="0.2", ls="--", label="dashed: y (vertical frequency)")]
-    ax.legend(handles=handles + styles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    # inside, top right: every MTF has fallen there, and nothing of the legend falls off the figure
+    ax.legend(handles=handles + styles, loc="upper right", fontsize=8, framealpha=0.9)
     return fig
 
 
@@ -406,7 +407,7 @@ def _sensor_axes(ax: Any, sensor: Sensor, title: str, *, show_x: bool, show_y: b
     ax.set_aspect("equal")
     ax.set_facecolor("0.93")
     ax.set_title(title, fontsize=9)
-    ax.plot([sensor.width / 2], [sensor.height / 2], "+", color="0.4", ms=8, mew=0.8)  # the image centre
+    ax.plot([sensor.width / 2], [sensor.height / 2], "+", color="0.4", ms=8, mew=0.8, zorder=5)  # the image centre, above tiles
     ax.tick_params(labelsize=7)
     if show_x:
         ax.set_xlabel("x (photosites)", fontsize=8)

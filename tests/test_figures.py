@@ -203,3 +203,38 @@ def test_report_of_one_point_and_no_pitch():
     psf_ax = next(ax for ax in fig.axes if ax.get_title().endswith(": PSFs"))
     assert psf_ax.get_xlim() == (0, 1280) and psf_ax.get_ylim() == (880, 0)  # Bayer plane x 2 photosites
     assert not any(child.get_xlabel() == "x (mm)" for ax in fig.axes for child in ax.child_axes)
+
+
+def inside_figure(fig) -> list[str]:
+    """Texts and legends that fall (partly) outside the figure once drawn: a reader would see them cut."""
+    fig.canvas.draw()
+    renderer, box = fig.canvas.get_renderer(), fig.bbox
+    artists = [a for ax in fig.axes for a in (ax.title, ax.xaxis.label, ax.yaxis.label, ax.get_legend()) if a]
+    artists += [fig._suptitle] if fig._suptitle else []
+    out = []
+    for artist in artists:
+        if getattr(artist, "get_text", lambda: "x")() == "":
+            continue
+        extent = artist.get_window_extent(renderer)
+        if extent.x0 < box.x0 - 1 or extent.x1 > box.x1 + 1 or extent.y0 < box.y0 - 1 or extent.y1 > box.y1 + 1:
+            out.append(getattr(artist, "get_text", lambda: "legend")())
+    return out
+
+
+def test_nothing_is_cut_off_at_the_figure_edges():
+    label = "sharp-edge target w=2 IMG_0001_with_a_long_name.CR2"  # as `psfd compare` labels its curves
+    truth = gaussian(0.5, 0.5, support=33)
+    assert inside_figure(figures.comparison_figure([("truth", truth, 4), (label, gaussian(0.7, 0.6, support=33), 4)],
+                                                   against_truth=True)) == []
+    assert inside_figure(figures.psf_figure(estimate(gaussian(0.6, 0.9)), pitch_um=4.0)) == []
+    rows, arrays = rows_for((4.0, 11.0), [(x, y) for y in (0.2, 0.5, 0.8) for x in (0.15, 0.5, 0.85)])
+    assert inside_figure(figures.report_figure(rows, arrays, "g1")) == []
+
+
+def test_report_marks_the_image_centre_above_a_tile_measured_there():
+    rows, arrays = rows_for((5.6,), [(0.5, 0.5)], channels=("g1",))
+    fig = figures.report_figure(rows, arrays, "g1", {rows[0]["id"]: figures.Sensor(640, 480, None)})
+    for ax in (ax for ax in fig.axes if ax.get_title().startswith("f/")):
+        (centre,) = [line for line in ax.get_lines() if line.get_marker() == "+"]
+        assert tuple(centre.get_xydata()[0]) == (320, 240)
+        assert centre.get_zorder() > max(a.get_zorder() for a in ax.get_images() + ax.collections)

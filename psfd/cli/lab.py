@@ -425,11 +425,13 @@ def _demo_outputs(catalogue: Path, workdir: Path) -> None:
     """The query tables (centre and corner of the field) and the report figure, as `psfd query` and `psfd report`."""
     from psfd.catalogue import Catalogue
     from psfd.cli import output
+    from psfd.cli.query import with_units
 
     with Catalogue(catalogue, create=False) as cat:
         for name, near in (("centre", (0.5, 0.5)), ("corner", (0.0, 0.0))):
             print(f"\n$ psfd query --catalogue {catalogue} --channel g1 --near {near[0]:g},{near[1]:g}   # {name}")
-            print(output.format_rows(cat.query(channel="g1", near=near).rows))
+            print(output.format_rows(with_units(cat, cat.query(channel="g1", near=near).rows)))
+        print(output.UNITS)
         report = workdir / "report.png"
         output.write_report(cat, cat.query().rows, "g1", report)
     print(f"\nreport figure: {report}  (all PSFs: psfd query --catalogue {catalogue})")

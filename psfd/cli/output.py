@@ -34,7 +34,7 @@ from psfd.estimator.kernels import PSF
 
 UNITS = ("units: f/ f-number; field normalised (0,0 top-left, 1,1 bottom-right); size: kernel side in samples "
          "of the s-times grid; mtf50 in cycles per channel pixel (Nyquist 0.5), lp/mm: line pairs per mm on the "
-         "sensor; fwhm in channel pixels")
+         "sensor; fwhm in channel pixels; dist: field distance to --near")
 
 # ---------------------------------------------------------------- folders and files
 
