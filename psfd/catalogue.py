@@ -59,6 +59,7 @@ class FrameRecord:
     settings: dict
     rail: dict
     taken_at: str
+    exif: dict | None = None  # what the RAW says the camera did (`psfd.exif.FrameMetadata.as_dict`)
 
 
 @dataclass
@@ -194,9 +195,28 @@ def stored_frame_path(path: str | os.PathLike, folder: Path) -> str:
             return str(absolute)
 
 
-# Versions 3 and 4 are other changes of the schema; relative frame paths are version 5 whatever lands first
-# (each migration checks what is already there, so the order in which they reach a catalogue does not matter).
-MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [_v1_tables, _v2_query_indexes, _v5_relative_frame_paths]
+# A frame's own EXIF beside the requested ``settings``: column -> FrameMetadata field.
+FRAME_EXIF = {
+    "exif_focal_length_mm": "focal_length_mm", "exif_f_number": "f_number", "exif_exposure_s": "exposure_s",
+    "exif_iso": "iso", "exif_lens": "lens", "exif_serial": "serial", "exif_focus_distance_m": "focus_distance_m",
+}
+
+
+def _v4_frame_exif(db: sqlite_utils.Database) -> None:
+    """Version 4: what each frame's RAW says the camera used (NULL for older frames).
+
+    Adds only the columns that are missing, so it holds whichever other migrations ran before it.
+    """
+    have = set(db["frames"].columns_dict)
+    for column in FRAME_EXIF:
+        if column not in have:
+            db["frames"].add_column(column, str if column in ("exif_lens", "exif_serial") else float)
+
+
+# Schema version 3 is another change; frame EXIF is version 4 and relative frame paths version 5
+# whatever lands first (each migration checks what is already there, so the order does not matter).
+MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [
+    _v1_tables, _v2_query_indexes, _v4_frame_exif, _v5_relative_frame_paths]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -608,6 +628,7 @@ class Catalogue:
                 "settings": json.dumps(frame.settings, sort_keys=True),
                 "aperture": camera_fnumber(frame.settings.get("aperture")),
                 "rail": json.dumps(frame.rail, sort_keys=True), "taken_at": frame.taken_at,
+                **{column: (frame.exif or {}).get(name) for column, name in FRAME_EXIF.items()},
             },
             ignore=True,  # the same file (same hash) is one frame, whoever uses it
         )
@@ -796,6 +817,13 @@ COLUMNS: dict[str, dict[str, str]] = {
         "aperture": "f-number asked for",
         "rail": "rail position of the exposure, JSON {x, y, z} in mm",
         "taken_at": "exposure time, ISO 8601 UTC",
+        "exif_focal_length_mm": "focal length the RAW's EXIF records, mm (NULL when absent)",
+        "exif_f_number": "f-number the RAW's EXIF records",
+        "exif_exposure_s": "exposure time the RAW's EXIF records, s",
+        "exif_iso": "ISO speed the RAW's EXIF records",
+        "exif_lens": "lens the RAW's EXIF names",
+        "exif_serial": "camera serial number the RAW's EXIF records",
+        "exif_focus_distance_m": "focus distance the RAW's EXIF records, m (NULL when the lens does not say)",
     },
     "psfs": {
         "id": "PSF id",
