@@ -559,6 +559,11 @@ def plan_template(simulate: bool = False) -> str:
         (False, "rail_feed = 1000", "rail speed, mm/min"),
         (False, "rail_timeout = 2.0", "rail: seconds to wait for an answer"),
         (False, 'settings = { iso = "100", shutterspeed = "1/125" }', "camera settings set before the first step"),
+        (False, 'camera = { focus = "off", settle_s = 1.0, capture_target = "ram" }',
+         "[rig.camera]: autofocus off (or manual, any), seconds to settle after a move, frames to ram or card"),
+        (False, 'rail = "grbl"', 'the rail driver: "grbl", or "simulated"'),
+        (False, "x_at_lens = 0", "rail X, mm, of a target at the lens (for the capture scale key)"),
+        (False, "x_away = 1", "1: the target goes away from the lens as X grows; -1: as X falls"),
         (None, "the simulated rig's own keys (with simulate = true):", ""),
         (False, 'scene = "bernoulli"', '"bernoulli" (the noise target) or "texture" (a plane for two-photo)'),
         (False, "seed = 0", "image noise and texture"),
@@ -578,6 +583,7 @@ def plan_template(simulate: bool = False) -> str:
             (True, f"x = [{fmt(sim.distance_for_scale())}]", "rail distances of the target, mm (a cell images to 1/4 px)"),
             (True, "y = [0]", f"lateral positions, mm; y = {json.dumps(ys)} walks a 3x3 field grid"),
             (True, "z = [0]", f"vertical positions, mm; z = {json.dumps(zs)} with it"),
+            (False, "scale = [0.25]", "instead of x: channel pixels per target cell; psfd puts the rail there"),
         ]
     else:
         positions = [
@@ -585,11 +591,14 @@ def plan_template(simulate: bool = False) -> str:
                                 "see README): where a noise cell images to about 1/4 px"),
             (True, "y = [0]", "lateral positions, mm, that walk the target over the field, e.g. [-40, 0, 40]"),
             (False, "z = [0]", "vertical positions, mm (a rail with a Z axis)"),
+            (False, "scale = [0.25]", "instead of x: channel pixels per target cell; psfd puts the rail there"),
         ]
     target = [
         (True, f'kind = "{BERNOULLI}"', f'"{BERNOULLI}" (the printed noise target) or "{TWO_PHOTO}" (two photos)'),
         (False, "near = 600", f"{TWO_PHOTO}: near distance, mm (far / near must exceed s)"),
         (False, "far = 2200", f"{TWO_PHOTO}: far distance, mm"),
+        (False, "cell_mm = 0.5", f"{BERNOULLI}: printed size of one noise cell, mm (for the capture scale key)"),
+        (False, 'printed = "target.pdf"', f"{BERNOULLI}: or the printed PDF, whose cell size psfd reads"),
     ]
     capture = [(True, f"apertures = {'[5.6, 11]' if simulate else '[5.6, 8, 11]'}", "f-numbers, each at every position"),
                *positions,
