@@ -40,7 +40,7 @@ from psfd.vocabulary import BERNOULLI, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, check
 __all__ = [
     "PatternBand", "WindowBand", "band_reach", "estimate_frames", "estimate_plane", "estimate_target", "estimate_window",
     "jacobian_of", "noise_mask", "normal_equations", "raster_factor", "recentre", "s_band", "solve", "u_tilde",
-    "u_tilde_d", "s_band_shape",
+    "u_tilde_d",
 ]
 
 Map = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -113,12 +113,6 @@ def s_band(shape: tuple[int, int], factor: int, s: int, jacobian: np.ndarray) ->
     return same, cross
 
 
-def s_band_shape(shape: tuple[int, int], factor: int, s: int, jacobian: np.ndarray) -> tuple[int, int]:
-    """The shape of `s_band`'s masks, without building them."""
-    (lo_same, hi_same), (lo_cross, hi_cross) = _s_band_rows(shape, factor, s, jacobian)
-    return _band_box(hi_same - lo_same, hi_cross - lo_cross, hi_same, hi_cross)
-
-
 def _band_box(width_same, width_cross, hi_same, hi_cross) -> tuple[int, int]:
     """(rows, cols) of the smallest box from index 0 holding every row interval of both masks."""
     used = (width_same > 0) | (width_cross > 0)
@@ -140,10 +134,7 @@ def _s_band_rows(shape, factor, s, jacobian):
     operations per row instead of per coefficient.
     """
     rows, cols = shape
-    # only the box the band can reach (`band_reach`) is evaluated
-    reach = np.abs(np.linalg.inv(jacobian)).sum(axis=0) * (s / 2)
-    box_r = min(rows, int(reach[1] * 2 * rows / factor) + 2)
-    box_c = min(cols, int(reach[0] * 2 * cols / factor) + 2)
+    box_r, box_c = _reach_box(shape, factor, s, jacobian)
     f_y = np.arange(box_r) * (factor / (2.0 * rows))
     f_x = np.arange(box_c) * (factor / (2.0 * cols))
     (a, b), (c, d) = jacobian
@@ -160,6 +151,14 @@ def _s_band_rows(shape, factor, s, jacobian):
             hi = np.minimum(hi, _first(x, beta, lambda v: v >= half))
         out.append((lo, np.maximum(hi, lo)))
     return out[0], out[1]
+
+
+def _reach_box(shape: tuple[int, int], factor: int, s: int, jacobian: np.ndarray) -> tuple[int, int]:
+    """(rows, cols) of DCT coefficients from index 0 that hold `s_band` of ``jacobian`` (`band_reach`), a
+    bound on its masks' shape."""
+    rows, cols = shape
+    reach = np.abs(np.linalg.inv(jacobian)).sum(axis=0) * (s / 2)
+    return min(rows, int(reach[1] * 2 * rows / factor) + 2), min(cols, int(reach[0] * 2 * cols / factor) + 2)
 
 
 def _first(x: np.ndarray, beta: np.ndarray, test: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
@@ -294,8 +293,9 @@ class PatternBand:
         # float32: 4x faster on the raster, rounding far below sensor noise (as in `u_tilde`)
         cells = target.cells(noise, factor).astype(np.float32)
         self.factor, self.s, self.shape = factor, s, cells.shape
-        # only the sizes are needed: 400 windows' masks would hold gigabytes
-        shapes = [s_band_shape(cells.shape, factor, s, j) for j in [reference, *jacobians]]
+        # a bound on every window's band (the masks of 400 windows would hold gigabytes, and even their
+        # exact sizes cost milliseconds each); the coefficients past a band are zero in its masks
+        shapes = [_reach_box(cells.shape, factor, s, j) for j in [reference, *jacobians]]
         self.keep = (max(r for r, _ in shapes), max(c for _, c in shapes))
         self.coeffs = resample.dct_coefficients(cells, self.keep)
         ref = s_band(cells.shape, factor, s, reference)
