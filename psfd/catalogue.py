@@ -172,7 +172,12 @@ def _v2_query_indexes(db: sqlite_utils.Database) -> None:
     db["runs"].create_index(["plan_hash"])
 
 
-MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [_v1_tables, _v2_query_indexes]
+def _v3_prediction_error(db: sqlite_utils.Database) -> None:
+    """Version 3: the cross-validated prediction error beside the noise floor (NULL for older PSFs)."""
+    db["psfs"].add_column("prediction_error", float)
+
+
+MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [_v1_tables, _v2_query_indexes, _v3_prediction_error]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -211,7 +216,7 @@ def _stops(a: float, b: float) -> float:
 _ROW_SQL = """
 SELECT p.id, p.method, p.channel, p.aperture, p.focal_length_mm, p.focus_distance_m,
        p.field_x, p.field_y, p.window_x0, p.window_y0, p.window_x1, p.window_y1, p.s, p.support,
-       p.mtf50_x, p.mtf50_y, p.fwhm_x, p.fwhm_y, p.noise_floor, p.residual, p.params,
+       p.mtf50_x, p.mtf50_y, p.fwhm_x, p.fwhm_y, p.noise_floor, p.prediction_error, p.residual, p.params,
        p.psfd_version, p.warnings, p.sources, p.created, p.rig_id, p.run_id,
        st.key AS step, r.model AS camera, r.serial, r.lens
 FROM psfs p LEFT JOIN rigs r ON r.id = p.rig_id LEFT JOIN steps st ON st.id = p.step_id
@@ -597,7 +602,8 @@ class Catalogue:
             "window_x0": x0, "window_y0": y0, "window_x1": x1, "window_y1": y1,
             "s": int(estimate.s), "support": int(array.shape[0]), "psf": _npy(array),
             **{k: _real(v) for k, v in metrics.items()},
-            "noise_floor": _real(estimate.noise_floor), "residual": _real(estimate.residual),
+            "noise_floor": _real(estimate.noise_floor), "prediction_error": _real(estimate.prediction_error),
+            "residual": _real(estimate.residual),
             "params": json.dumps(estimate.params, sort_keys=True, default=str),
             "psfd_version": __version__,
             "warnings": json.dumps(list(estimate.warnings)),

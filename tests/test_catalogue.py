@@ -84,6 +84,29 @@ def test_migration_from_version_1_keeps_data_and_adds_indexes(tmp_path):
         assert cat.add_rig(CameraInfo("Old", "1", "L")) == 1  # the old row is still there
 
 
+def test_migration_to_version_3_adds_the_prediction_error_beside_the_noise_floor(tmp_path):
+    """A version-2 catalogue opens, its PSFs read with no prediction error, new ones store it."""
+    path = tmp_path / "v2.sqlite"
+    db = sqlite_utils.Database(path)
+    for migrate in MIGRATIONS[:2]:
+        migrate(db)
+    db.execute("PRAGMA user_version = 2")
+    db["psfs"].insert({"method": "bernoulli", "channel": "g1", "field_x": 0.5, "field_y": 0.5, "s": 4,
+                       "support": 17, "psf": b"", "noise_floor": 2e-3})
+    db.close()
+
+    with Catalogue(path) as cat:
+        assert cat.schema_version() == SCHEMA_VERSION >= 3
+        (old,) = cat.query().rows
+        assert old["noise_floor"] == 2e-3 and old["prediction_error"] is None
+        run = new_run(cat, keys=("a",))
+        estimate = make_psf()
+        estimate.prediction_error = 1.07
+        cat.commit_step(run, "a", [frame(1)], [(estimate, {"aperture": 5.6})])
+        new = next(row for row in cat.query().rows if row["id"] != old["id"])
+        assert new["prediction_error"] == 1.07 and new["noise_floor"] == 1e-4
+
+
 def test_failed_migration_is_rolled_back(tmp_path, monkeypatch):
     path = tmp_path / "cat.sqlite"
     Catalogue(path).close()

@@ -309,9 +309,9 @@ def test_target_end_to_end_on_real_photo(capsys, data_dir):
     (record,) = [json.loads(line) for line in stdout.splitlines()]
     assert record["method"] == "bernoulli" and record["channel"] == "mono"
     assert record["source"] == str(data_dir / "img_example.pgm")
-    assert record["s"] == 4 and record["support"] == 17 and record["params"]["solver"] == "ls-threshold"
+    assert record["s"] == 4 and record["support"] == 17 and record["params"]["solver"] == "nnls"
     psf = np.array(record["psf"])
-    # physical sanity: non-negative (ls-threshold), unit sum, centred within a channel pixel
+    # physical sanity: non-negative (nnls), unit sum, centred within a channel pixel
     assert psf.min() >= 0 and psf.sum() == pytest.approx(1.0, abs=1e-9)
     cx, cy = (float(np.sum(np.arange(17) * psf.sum(axis=a))) - 8 for a in (0, 1))
     assert abs(cx) < 4 and abs(cy) < 4

@@ -32,8 +32,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("frames", nargs="+", metavar="FRAME", help="RAW file or single-channel PGM/PNG/TIFF")
     _common(p, s=4)
     p.add_argument("--pattern", metavar="PGM", help="noise of the printed target (default: the published one)")
-    p.add_argument("--solver", default="ls-threshold",
-                   help="ls (least squares), ls-threshold (then clip negatives, default) or nnls (non-negative)")
+    p.add_argument("--solver",
+                   help="nnls (non-negative least squares, the default), ls (least squares) or "
+                        "ls-threshold (least squares, negatives clipped: biased towards too wide a PSF)")
     p.add_argument("--tps", metavar="LAMBDA",
                    help="map the target with a thin-plate spline of this smoothing (the thesis uses 10) "
                         "instead of the default homography plus radial distortion")
@@ -113,7 +114,7 @@ def _report(args: argparse.Namespace, estimates: list[PSF]) -> int:
 
 def run_target(args: argparse.Namespace) -> int:
     settings = _settings(args)
-    if args.solver not in SOLVERS:
+    if args.solver is not None and args.solver not in SOLVERS:
         raise BadInputError(f"--solver: use one of {', '.join(SOLVERS)}, got {args.solver!r}")
     tps = None if args.tps is None else output.parse_float(args.tps, "--tps")
     if tps is not None and tps < 0:
@@ -122,10 +123,12 @@ def run_target(args: argparse.Namespace) -> int:
     frames = _load_all(args.frames, args.channel)
     from psfd.estimator import bernoulli
 
+    if args.solver is not None:  # otherwise the estimator's default
+        settings["solver"] = args.solver
     estimates = [
         psf
         for frame in frames
-        for psf in bernoulli.estimate_target(frame, noise=noise, solver=args.solver, tps=tps, **settings)
+        for psf in bernoulli.estimate_target(frame, noise=noise, tps=tps, **settings)
     ]
     return _report(args, estimates)
 

@@ -403,7 +403,7 @@ def demo_plan() -> str:
         f"[capture]\napertures = [4, 8, 16]\nx = [{plans.fmt(distance)}]\n"
         f"y = {json.dumps([float(v) for v in y])}\nz = {json.dumps([float(v) for v in z])}\n"
         'channels = "all"\nrepeats = 1\n\n'
-        '[estimator]\ns = 4\nsolver = "ls-threshold"\n'
+        '[estimator]\ns = 4\n'
     )
 
 
