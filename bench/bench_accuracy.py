@@ -35,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import render  # noqa: E402
 
 from psfd.estimator import bernoulli  # noqa: E402
+from psfd.vocabulary import SOLVERS  # noqa: E402
 
 S = 4
 # (kind, support, pixels per cell, rotation in degrees)
@@ -47,7 +48,6 @@ CASES = [
     ("airy-f22", 25, 0.50, 75.0),
     ("defocus", 25, 0.33, 140.0),
 ]
-SOLVERS = ("ls", "ls-threshold", "nnls")
 
 
 def measure(case, seed: int, electrons: float) -> dict:

@@ -32,10 +32,13 @@ import sqlite_utils
 from psfd import __version__
 from psfd.drivers.base import CameraInfo
 from psfd.errors import BadInputError, CatalogueError
-from psfd.estimator.psf import PSF
+from psfd.estimator.kernels import PSF
+from psfd.vocabulary import camera_fnumber, method_name, parse_fnumber
 
 STEP_STATES = ("pending", "running", "done", "failed")
 RUN_STATES = ("running", "done", "paused", "cancelled", "failed")
+# A run in one of these states may be resumed; done, cancelled and failed runs are closed.
+UNFINISHED_STATES = ("running", "paused")
 # Two f-numbers within 1 % are the same aperture (cameras report 5.6 for f/5.66).
 APERTURE_TOLERANCE = 0.01
 
@@ -74,28 +77,6 @@ def default_path() -> Path:
     base = os.environ.get("XDG_DATA_HOME", "")
     root = Path(base) if base and os.path.isabs(base) else Path.home() / ".local" / "share"
     return root / "psfd" / "catalogue.sqlite"
-
-
-def parse_fnumber(value: Any) -> float | None:
-    """f-number from a camera setting or user input: ``5.6``, ``"f/5.6"``, ``"F5.6"``; None if absent."""
-    if value is None or value == "":
-        return None
-    text = str(value).strip().lower().removeprefix("f/").removeprefix("f")
-    try:
-        number = float(text)
-    except ValueError:
-        raise BadInputError(f"not an f-number: {value!r}") from None
-    if not math.isfinite(number) or number <= 0:
-        raise BadInputError(f"not an f-number: {value!r}")
-    return number
-
-
-def _lenient_fnumber(value: Any) -> float | None:
-    """f-number of a camera's own setting, None when it is not a number (``"implicit auto"``)."""
-    try:
-        return parse_fnumber(value)
-    except BadInputError:
-        return None
 
 
 # ---------------------------------------------------------------------------
@@ -421,19 +402,27 @@ class Catalogue:
             )
         return run_id
 
-    def unfinished_run(self, plan_text: str) -> int | None:
-        """Latest run of exactly this plan text whose state is not ``done`` (to resume it), or None."""
+    def plan_runs(self, plan_text: str) -> list[dict]:
+        """The runs of exactly this plan text, newest first: id, state, started, finished, psfs."""
         plan_hash = hashlib.sha256(plan_text.encode()).hexdigest()
         with self._read() as db:
-            row = next(
+            return list(
                 db.query(
-                    "SELECT id FROM runs WHERE plan_hash = ? AND plan_text = ? AND state != 'done' "
-                    "ORDER BY id DESC LIMIT 1",
+                    "SELECT u.id, u.state, u.started, u.finished, "
+                    "(SELECT count(*) FROM psfs p WHERE p.run_id = u.id) AS psfs "
+                    "FROM runs u WHERE u.plan_hash = ? AND u.plan_text = ? ORDER BY u.id DESC",
                     [plan_hash, plan_text],
-                ),
-                None,
+                )
             )
-        return None if row is None else int(row["id"])
+
+    def unfinished_run(self, plan_text: str) -> int | None:
+        """The run of this plan to resume: the newest of exactly this plan text that is ``running`` or
+        ``paused`` (`UNFINISHED_STATES`), or None. Done, cancelled and failed runs are closed.
+
+        Whether a ``running`` run is still alive or was killed is the frame store's to say
+        (`psfd.daemon.store.shown_state`); either way it is unfinished.
+        """
+        return next((int(r["id"]) for r in self.plan_runs(plan_text) if r["state"] in UNFINISHED_STATES), None)
 
     def finish_run(self, run_id: int, state: str) -> None:
         """Set a run's state (``done``, ``paused``, ``cancelled``, ``failed``; ``running`` to resume it)."""
@@ -578,7 +567,7 @@ class Catalogue:
             {
                 "path": str(frame.path), "sha256": frame.sha256,
                 "settings": json.dumps(frame.settings, sort_keys=True),
-                "aperture": _lenient_fnumber(frame.settings.get("aperture")),
+                "aperture": camera_fnumber(frame.settings.get("aperture")),
                 "rail": json.dumps(frame.rail, sort_keys=True), "taken_at": frame.taken_at,
             },
             ignore=True,  # the same file (same hash) is one frame, whoever uses it
@@ -633,7 +622,7 @@ class Catalogue:
             f-number. When it was not measured, the nearest measured aperture (in stops)
             among the other filters is used and ``note`` says so.
         channel, method : str, optional
-            Exact channel (r, g1, g2, b, mono) and method name.
+            Exact channel (r, g1, g2, b, mono), and method (`psfd.vocabulary.METHODS`, or an older alias).
         near : (x, y), optional
             Normalised field location: keeps, per (rig, focal length, aperture, channel, method),
             the PSF whose field position is nearest, and orders rows by that distance.
@@ -652,7 +641,7 @@ class Catalogue:
             params.append(channel)
         if method:
             where.append("p.method = ?")
-            params.append(method)
+            params.append(method_name(method))
         note = None
         with self._read() as db:
             if aperture is not None:

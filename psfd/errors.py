@@ -53,6 +53,10 @@ class CameraError(HardwareError):
     """The camera is missing, busy, gone, or refused a request."""
 
 
+class SettingsMismatch(CameraError):
+    """The RAW file says the camera used other settings than the ones asked for."""
+
+
 class RailError(HardwareError):
     """The rail controller reported an error or stopped answering."""
 

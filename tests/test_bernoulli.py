@@ -28,7 +28,7 @@ import pytest
 from scipy import optimize as scipy_optimize
 
 from psfd.errors import BadInputError, EstimationError, SaturatedError, TargetNotFoundError
-from psfd.estimator import bernoulli, detect, mtf, psf as psf_mod, raw, register, simulate, target
+from psfd.estimator import bernoulli, detect, geometry, kernels, mtf, raw, simulate, target
 
 S = 4
 MODEL_L2 = 0.01  # rendering mismatch, see the module docstring
@@ -174,7 +174,7 @@ def test_grid_windows_are_local_and_accurate(tmp_path):
     windows = [r["window"] for r in results]
     # row-major: left-right, then top-bottom; the windows tile one rectangle
     assert windows[0][2] == windows[1][0] and windows[0][3] == windows[2][1]
-    fields = [psf_mod.field_of_window(w, frame.shape) for w in windows]
+    fields = [kernels.field_of_window(w, frame.shape) for w in windows]
     assert fields[0][0] < fields[1][0] and fields[0][1] < fields[2][1]
     for r in results:
         # each window has a quarter of the samples: its own floor sets the tolerance
@@ -225,7 +225,7 @@ def test_rejects_bad_arguments(tmp_path):
 # test_estimate_target_end_to_end from the measured misregistration).
 
 
-def _registration_terms(frame: raw.Frame, est: psf_mod.PSF, truth: dict, pixels_per_cell: float,
+def _registration_terms(frame: raw.Frame, est: kernels.PSF, truth: dict, pixels_per_cell: float,
                         centred: bool = True) -> tuple[float, float, float]:
     """Misregistration delta and the L2 and MTF errors it explains.
 
@@ -237,7 +237,7 @@ def _registration_terms(frame: raw.Frame, est: psf_mod.PSF, truth: dict, pixels_
     delta ||grad h|| in L2.
     """
     h = truth["psf"][frame.channel]
-    to_pattern = register.target_maps(detect.find_target(frame.data, frame.saturated))[1]
+    to_pattern = geometry.target_maps(detect.find_target(frame.data, frame.saturated))[1]
     x0, y0, x1, y1 = est.window
     yy, xx = np.mgrid[y0:y1, x0:x1].astype(float)
     (X, Y), (Xt, Yt) = to_pattern(xx, yy), truth["to_pattern"][frame.channel](xx, yy)
@@ -294,8 +294,8 @@ def test_estimate_target_recentres_the_kernel(tmp_path):
     (est,) = bernoulli.estimate_target(frame)
     assert uncentred.params["kernel_shift"] == [0.0, 0.0]
     shift = est.params["kernel_shift"]
-    assert shift == pytest.approx(psf_mod.core_centroid(uncentred.psf), abs=0.02)
-    assert np.hypot(*psf_mod.core_centroid(est.psf)) < 0.02  # s-grid samples
+    assert shift == pytest.approx(kernels.core_centroid(uncentred.psf), abs=0.02)
+    assert np.hypot(*kernels.core_centroid(est.psf)) < 0.02  # s-grid samples
     assert est.psf.min() >= 0 and est.psf.sum() == pytest.approx(1.0)
     np.testing.assert_allclose(
         bernoulli.recentre(uncentred.psf, shift), est.psf, atol=0.05 * est.psf.max()
@@ -311,7 +311,7 @@ def test_estimate_target_rotated_view(tmp_path):
     """Detection, geometry and estimate at 30 degrees with off-centre lens distortion.
 
     The misregistration left once the kernel is re-centred is what the 12
-    corners' noise leaves in the fitted map (about 0.03 px, test_register:
+    corners' noise leaves in the fitted map (about 0.03 px, test_geometry:
     allow 0.04); the estimate stays within the tolerance of test_rotated_target, which has
     the true map, plus the terms that misregistration explains.
     """
@@ -346,7 +346,7 @@ def test_estimate_target_grid_gives_field_locations(photo):
     assert np.all(np.abs(fields - 0.5) < 0.15)
     for e in estimates:
         assert e.params["grid"] == [2, 2] and e.psf.min() >= 0
-        assert psf_mod.field_of_window(e.window, frame.shape) == e.field
+        assert kernels.field_of_window(e.window, frame.shape) == e.field
         assert _mtf_error(e.psf, truth["psf"]["g1"]) < 4 * e.noise_floor + MODEL_MTF
 
 
@@ -379,7 +379,7 @@ def test_real_photograph(data_dir):
     (est,) = bernoulli.estimate_target(frame)
     h = est.psf
     assert h.min() >= 0 and h.sum() == pytest.approx(1.0)
-    cx, cy = psf_mod.centroid(h)
+    cx, cy = kernels.centroid(h)
     assert abs(cx) < S / 2 and abs(cy) < S / 2  # within half a channel pixel of the centre
     fwhm_x, fwhm_y = mtf.fwhm(h, S)
     assert 0.5 < fwhm_x < 2.0 and 0.5 < fwhm_y < 2.0  # pixel aperture + f/5.6 diffraction

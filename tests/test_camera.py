@@ -1,10 +1,41 @@
-"""GPhotoCamera through libgphoto2's own virtual camera (the ``vusb`` port driver).
+"""GPhotoCamera on libgphoto2's own virtual camera, and on scripted stand-ins for what it cannot play.
 
-python-gphoto2 selects the virtual USB port driver at import time when
-VCAMERADIR is set, and the choice holds for the whole process. So the camera
-session runs in a child process with VCAMERADIR pointing at a folder holding a
-real JPEG; this test process never imports gphoto2, and other tests that do are
-unaffected. The child reports what it saw as JSON; the assertions are here.
+Virtual camera (the ``vusb`` port driver, libgphoto2 2.5.34 as bundled by
+python-gphoto2 2.6.4). python-gphoto2 selects the port driver at import time
+when VCAMERADIR is set, and the choice holds for the whole process, so the
+camera session runs in a child process with VCAMERADIR pointing at a folder
+holding a real JPEG (and HOME at a scratch folder: the ptp2 driver keeps its
+own settings, capture target and autofocus among them, in ~/.gphoto/settings).
+It identifies as "GP VC" (serial 0.1; libgphoto2 matches its USB ids to the
+driver model "Nikon DSC D750"), captures by copying the first JPEG of its
+folder, announces each capture as FILE_ADDED at +100 ms and CAPTURE_COMPLETE at
++120 ms, floods GP_EVENT_UNKNOWN property-change events (every property read
+schedules another one), and accepts PTP opcode 0x9999 through the ``opcode``
+widget to announce an extra file after a delay. Its configuration tree::
+
+    actions/    bulb (toggle: fails with GP_ERROR_IO), controlmode, opcode (text)
+    settings/   datetime, thumbsize, fastfs, capturetarget (Internal RAM | Memory card),
+                autofocus (On | Off)
+    status/     serialnumber 0.1, manufacturer GP, cameramodel VC, deviceversion,
+                vendorextension, batterylevel
+    imgsettings/ imagesize (read-only: 640x480 | 1024x768 | 2048x1536)
+    capturesettings/ exposurecompensation, f-number (f/2.8 ... f/22),
+                shutterspeed (1.0000s ... 0.0001s)
+    other/      5001 5003 5007 5010 500d 5011 (the same PTP properties by code)
+
+No image format setting and JPEG as its only capture format: it shows RAW
+refused before any motion. It also shows the capture target and the
+autofocus switch set by `prepare`, the capture deadline following the
+shutter speed, a second file announced 2.5 s after the trigger collected with
+the first, a late file from an earlier exposure discarded instead of counted,
+a hung call ending at its deadline, and reconnecting.
+
+Stand-ins (`tests/fake_gphoto.py`, real gphoto2 error codes in the order a body
+produces them) show what the virtual camera cannot: RAW chosen on Canon and
+Nikon widget trees (sRAW/mRAW refused), single-frame drive, exposure delay,
+autofocus reported by the lens, busy (-110) then ready, busy for good, a
+RAW+JPEG pair 1.5 s apart, a cable pulled mid-capture (reconnect, prepare
+again, retry once), bulb, and a capture that never announces its file.
 """
 
 from __future__ import annotations
@@ -14,6 +45,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -21,11 +53,10 @@ import numpy as np
 import pytest
 
 SESSION = r"""
-import json, os, sys
+import json, logging, os, sys, time
 from pathlib import Path
 import gphoto2 as gp
-from psfd.drivers.base import Camera
-import time
+from psfd.drivers.base import Camera, CameraSetup
 from psfd.drivers.gphoto import GPhotoCamera, camera_error, reset_usb_device
 from psfd.errors import CameraError
 
@@ -38,15 +69,45 @@ def attempt(key, fn):
     except CameraError as exc:
         report[key] = {"error": str(exc)}
 
+def names(widget, prefix=""):
+    found = []
+    for i in range(widget.count_children()):
+        child = widget.get_child(i)
+        found.append(prefix + child.get_name())
+        found += names(child, prefix + child.get_name() + "/")
+    return found
+
+def files_in(folder):
+    return sorted(p.name for p in folder.iterdir()) if folder.exists() else []
+
 try:
     GPhotoCamera(port="usb:009,009")
 except CameraError as exc:
     report["wrong_port"] = str(exc)
 
-camera = GPhotoCamera(settle=0.1, timeout=5.0)
+camera = GPhotoCamera(quiet_s=0.1, timeout=5.0)
 report["protocol"] = isinstance(camera, Camera)
+report["tree"] = names(camera._config())
 info = camera.info()
 report["info"] = [info.model, info.serial, info.port]
+
+# -- setup for PSF work
+attempt("raw_refused", lambda: camera.prepare(CameraSetup()))
+report["files_after_refusal"] = files_in(out)
+report["ready"] = camera.prepare(CameraSetup(raw=False, focus="manual")).as_dict()
+report["autofocus_after"] = camera.get("autofocus")
+report["target_after"] = camera.get("capturetarget")
+camera.prepare(CameraSetup(raw=False, capture_target="card"))
+report["target_card"] = camera.get("capturetarget")
+camera.set("autofocus", "On")
+report["ready_any"] = camera.prepare(CameraSetup(raw=False, focus="any", capture_target="ram")).as_dict()
+report["autofocus_any"] = camera.get("autofocus")
+camera.set("shutterspeed", "1.0000s")
+report["deadline_1s"] = camera._capture_deadline()[0]
+camera.set("shutterspeed", "0.0050s")
+report["deadline_short"] = camera._capture_deadline()[0]
+
+# -- settings
 report["aperture_before"] = camera.get("aperture")
 report["aperture_choices"] = camera.choices("aperture")
 camera.set("aperture", "5.6")
@@ -56,9 +117,26 @@ report["aperture_vendor_spelling"] = camera.get("aperture")
 attempt("aperture_refused", lambda: camera.set("aperture", "1.2"))
 report["aperture_kept"] = camera.get("aperture")
 attempt("unknown_setting", lambda: camera.get("iso"))
-camera.set("shutterspeed", "0.0050s")
 report["shutterspeed"] = camera.get("shutterspeed")
+
+# -- capture
 report["captures"] = [[p.name for p in camera.capture(out)] for _ in range(2)]
+# one exposure of two files, the second announced 2.5 s after the trigger
+camera.files_per_exposure = 2
+camera.set("opcode", "0x9999,0x0,0x9c4")  # vusb: announce one more file in 2500 ms
+started = time.monotonic()
+report["late_pair"] = [p.name for p in camera.capture(out / "late")]
+report["late_pair_s"] = time.monotonic() - started
+# count unknown: the late file arrives after the capture was collected, and the next
+# capture (after the rail has moved and settled) does not count it
+camera.files_per_exposure = None
+camera.set("opcode", "0x9999,0x0,0x9c4")
+report["quiet_first"] = [p.name for p in camera.capture(out / "quiet1")]
+time.sleep(3.0)
+report["quiet_second"] = [p.name for p in camera.capture(out / "quiet2")]
+report["strays"] = [s.rsplit("/", 1)[-1] for s in camera.strays]
+
+# -- failures
 os.remove(os.path.join(os.environ["VCAMERADIR"], "frame.jpg"))  # the camera's storage goes away
 attempt("capture_gone", lambda: camera.capture(out))
 camera.reconnect()
@@ -80,12 +158,14 @@ print(json.dumps(report))
 
 
 def _virtual_camera(folder: Path) -> tuple[dict, str]:
-    """A VCAMERADIR holding one real JPEG; returns the environment and the JPEG's sha256."""
+    """A VCAMERADIR holding one real JPEG, and a scratch HOME; returns the environment and the JPEG's sha256."""
     folder.mkdir()
+    (folder.parent / "home").mkdir()
     jpeg = folder / "frame.jpg"
     rng = np.random.default_rng(3)
     assert cv2.imwrite(str(jpeg), (rng.random((48, 64)) * 255).astype(np.uint8))
-    return dict(os.environ, VCAMERADIR=str(folder)), hashlib.sha256(jpeg.read_bytes()).hexdigest()
+    env = dict(os.environ, VCAMERADIR=str(folder), HOME=str(folder.parent / "home"))
+    return env, hashlib.sha256(jpeg.read_bytes()).hexdigest()
 
 
 @pytest.fixture(scope="module")
@@ -94,7 +174,7 @@ def session(tmp_path_factory):
     env, digest = _virtual_camera(root / "store")
     out = root / "downloads"
     proc = subprocess.run(
-        [sys.executable, "-c", SESSION, str(out)], env=env, capture_output=True, text=True, timeout=120
+        [sys.executable, "-c", SESSION, str(out)], env=env, capture_output=True, text=True, timeout=180
     )
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout.strip().splitlines()[-1]), out, digest
@@ -107,6 +187,41 @@ def test_connect_and_info(session):
     assert model == "GP VC" and serial == "0.1" and port.startswith("usb:")
     assert "no camera found on usb:009,009" in report["wrong_port"]
     assert "detected: " in report["wrong_port"] and port in report["wrong_port"]
+
+
+def test_the_virtual_camera_is_what_the_docstring_says(session):
+    tree = set(session[0]["tree"])
+    for name in ("actions/bulb", "actions/opcode", "settings/capturetarget", "settings/autofocus",
+                 "capturesettings/f-number", "capturesettings/shutterspeed", "imgsettings/imagesize"):
+        assert name in tree
+    assert not [n for n in tree if n.endswith(("imageformat", "imagequality", "focusmode", "drivemode"))]
+
+
+def test_raw_is_refused_before_any_motion(session):
+    report, _, _ = session
+    message = report["raw_refused"]["error"]
+    assert "has no image format setting, so RAW cannot be set" in message
+    assert message.endswith("refusing before any motion")
+    assert report["files_after_refusal"] == []  # nothing was shot
+
+
+def test_prepare_sets_capture_target_and_turns_autofocus_off(session):
+    report, _, _ = session
+    ready = report["ready"]
+    assert ready["capture_target"] == "Internal RAM" and report["target_after"] == "Internal RAM"
+    assert ready["focus"] == "af-off" and ready["focus_detail"] == "autofocus = Off"
+    assert report["autofocus_after"] == "Off"
+    assert ready["settle_s"] == 2.0 and ready["image_format"] is None
+    assert any("no exposure delay" in note for note in ready["notes"])
+    assert report["target_card"] == "Memory card"
+    # focus = "any" leaves the lens alone and records what the camera reports (here: nothing)
+    assert report["autofocus_any"] == "On" and report["ready_any"]["focus"] == "unknown"
+
+
+def test_capture_deadline_follows_the_shutter_speed(session):
+    report, _, _ = session
+    assert report["deadline_1s"] == pytest.approx(30.0 + 2 * 1.0)  # writing + exposure + its dark frame
+    assert report["deadline_short"] == pytest.approx(30.0 + 2 * 0.005)
 
 
 def test_aperture_maps_to_f_number(session):
@@ -133,7 +248,21 @@ def test_capture_downloads_the_file(session):
     assert len(first) == 1 and len(second) == 1 and first != second
     for name in first + second:
         assert hashlib.sha256((out / name).read_bytes()).hexdigest() == digest
-    assert not [p for p in out.iterdir() if p.name.endswith(".part")]
+    assert not [p for p in out.rglob("*.part")]
+
+
+def test_a_file_announced_seconds_later_belongs_to_its_exposure(session):
+    report, out, digest = session
+    pair = report["late_pair"]
+    assert len(pair) == 2 and report["late_pair_s"] > 2.0  # waited for the second file, 2.5 s on
+    assert all(hashlib.sha256((out / "late" / n).read_bytes()).hexdigest() == digest for n in pair)
+
+
+def test_a_late_file_is_not_counted_in_the_next_capture(session):
+    report, _, _ = session
+    assert len(report["quiet_first"]) == 1 and len(report["quiet_second"]) == 1
+    assert len(report["strays"]) == 1
+    assert report["strays"][0] not in report["quiet_first"] + report["quiet_second"]
 
 
 def test_failures_are_camera_errors(session):
@@ -170,3 +299,227 @@ def test_cli_on_the_virtual_camera(tmp_path):
     assert refused.returncode == 4 and refused.stderr.startswith("psfd: error: aperture 1.2 is not offered")
     missing = psfd("camera", "info", "--camera-port", "usb:009,009")
     assert missing.returncode == 4 and "no camera found on usb:009,009" in missing.stderr
+
+
+# ---------------------------------------------------------------------- stand-ins
+
+
+@pytest.fixture
+def bodies():
+    """The stand-in bodies (importing gphoto2 here is harmless: no VCAMERADIR, no USB access)."""
+    import fake_gphoto
+
+    return fake_gphoto
+
+
+@pytest.fixture
+def fake(monkeypatch, bodies):
+    """Build a GPhotoCamera on scripted bodies: ``fake(bus, **camera_options)``."""
+    from psfd.drivers.gphoto import GPhotoCamera
+
+    def make(bus, **options):
+        bodies.install(monkeypatch, bus)
+        options.setdefault("timeout", 5.0)
+        return GPhotoCamera(**options)
+
+    return make
+
+
+def _value(config, name):
+    return config.get_child_by_name(name).get_value()
+
+
+def test_canon_prepare_picks_raw_ram_single_and_refuses_an_af_lens(fake, bodies):
+    from psfd.drivers.base import CameraSetup
+    from psfd.errors import CameraError
+
+    body = bodies.Body(bodies.canon_eos(lens_af=True))
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body))
+    with pytest.raises(CameraError, match=r"reports autofocus \(focusmode = One Shot\).*set the lens \(or body\) "
+                                          r"focus switch to M; refusing before any motion"):
+        camera.prepare(CameraSetup())
+    assert body.shots == 0 and "trigger_capture" not in body.calls
+    # RAW alone (not sRAW/mRAW, not RAW+JPEG), RAM, single frame were set on the way
+    assert _value(body.config, "imageformat") == "RAW"
+    assert _value(body.config, "capturetarget") == "Internal RAM"
+    assert _value(body.config, "drivemode") == "Single"
+
+    body = bodies.Body(bodies.canon_eos(lens_af=False, image_format="RAW + Large Fine JPEG"))
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body))
+    ready = camera.prepare(CameraSetup(focus="manual"))
+    assert (ready.image_format, ready.files_per_exposure, ready.focus) == ("RAW", 1, "manual")
+    assert ready.exposure_delay is None and any("mirror lock-up" in n for n in ready.notes)
+
+
+def test_nikon_prepare_sets_exposure_delay_and_driver_af_off(fake, bodies):
+    from psfd.drivers.base import CameraSetup
+    from psfd.errors import CameraError
+
+    body = bodies.Body(bodies.nikon_d5300(focus="Manual"))
+    camera = fake(bodies.Bus("Nikon DSC D5300", body))
+    ready = camera.prepare(CameraSetup(focus="manual", capture_target="card"))
+    assert ready.image_format == "NEF (Raw)" and ready.files_per_exposure == 1
+    assert ready.capture_target == "Memory card" and ready.drive_mode == "Single Shot"
+    assert ready.exposure_delay == "On" and _value(body.config, "exposuredelaymode") == "On"
+    assert ready.focus == "manual" and _value(body.config, "autofocus") == "Off"
+    # 0.5 s exposure: 30 s writing + twice the exposure + up to 3 s of exposure delay
+    assert camera._capture_deadline() == (pytest.approx(30.0 + 1.0 + 3.0), None)
+
+    body = bodies.Body(bodies.nikon_d5300(focus="AF-S"))
+    camera = fake(bodies.Bus("Nikon DSC D5300", body))
+    with pytest.raises(CameraError, match="focusmode = AF-S"):
+        camera.prepare(CameraSetup())
+    assert camera.prepare(CameraSetup(focus="any")).focus == "af"
+
+
+def test_a_jpeg_only_camera_is_refused(fake, bodies):
+    from psfd.drivers.base import CameraSetup
+    from psfd.errors import CameraError
+
+    camera = fake(bodies.Bus("Compact", bodies.Body(bodies.jpeg_compact())))
+    with pytest.raises(CameraError, match=r"cannot shoot full-resolution RAW \(imageformat offers: Large Fine JPEG"):
+        camera.prepare(CameraSetup())
+
+
+def test_raw_choice_and_files_per_exposure():
+    from psfd.drivers.gphoto import _files_of, raw_choice
+
+    canon = ["Large Fine JPEG", "RAW + Large Fine JPEG", "RAW", "mRAW", "sRAW"]
+    assert raw_choice("Large Fine JPEG", canon) == "RAW"
+    assert raw_choice("sRAW", ["sRAW", "mRAW", "S-RAW", "RAW (M)"]) is None  # reduced RAW is not the mosaic
+    assert raw_choice("JPEG", ["RAW+JPEG", "JPEG"]) == "RAW+JPEG"  # no RAW alone: RAW with a JPEG
+    assert raw_choice("C-RAW", ["cRAW", "RAW"]) == "RAW"  # lossy compressed RAW only when nothing better
+    assert raw_choice("Standard", ["Standard", "Fine", "cRAW"]) == "cRAW"
+    assert raw_choice("C-RAW", ["JPEG", "C-RAW", "C-RAW+JPEG"]) == "C-RAW"
+    formats = ("NEF (Raw)", "NEF+Fine", "RAW + Large Fine JPEG", "RAW", "JPEG Fine", "C-RAW", "RAW & JPEG")
+    assert [_files_of(f) for f in formats] == [1, 2, 2, 1, 1, 1, 2]
+
+
+def test_busy_then_ready_is_retried_with_backoff(fake, bodies, tmp_path):
+    import gphoto2 as gp
+
+    busy = gp.GPhoto2Error(gp.GP_ERROR_CAMERA_BUSY)
+    body = bodies.Body(bodies.canon_eos(), script={"trigger_capture": [busy, busy, None]})
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), quiet_s=0.1)
+    started = time.monotonic()
+    files = camera.capture(tmp_path)
+    assert [f.name for f in files] == ["IMG_0001.CR2"] and body.shots == 1
+    assert body.calls.count("trigger_capture") == 3
+    assert time.monotonic() - started >= 0.3  # 0.1 s then 0.2 s of backoff
+
+
+def test_a_camera_busy_for_good_is_a_clear_error(fake, bodies, tmp_path):
+    import gphoto2 as gp
+    from psfd.errors import CameraError
+
+    busy = gp.GPhoto2Error(gp.GP_ERROR_CAMERA_BUSY)
+    body = bodies.Body(bodies.canon_eos(), script={"trigger_capture": [busy] * 50})
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), busy_s=0.6)
+    with pytest.raises(CameraError, match=r"stayed busy for 0.6 s while triggering a capture .* \[gphoto2 -110\]"):
+        camera.capture(tmp_path)
+    assert body.shots == 0
+
+
+def test_raw_and_jpeg_seconds_apart_are_one_exposure(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+
+    files = (("IMG_0001.CR2", 0.1), ("IMG_0001.JPG", 1.6))  # the JPEG 1.5 s after the RAW
+    body = bodies.Body(bodies.canon_eos(lens_af=False, image_format="RAW + Large Fine JPEG"), files=files)
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body))
+    camera.prepare(CameraSetup(focus="manual", raw=False))  # keeps RAW + JPEG: two files per exposure
+    assert camera.files_per_exposure == 2
+    first = camera.capture(tmp_path / "1")
+    second = camera.capture(tmp_path / "2")
+    assert [f.name for f in first] == ["IMG_0001.CR2", "IMG_0001.JPG"]
+    assert [f.name for f in second] == ["IMG_0002.CR2", "IMG_0002.JPG"]
+    assert (tmp_path / "1" / "IMG_0001.JPG").read_bytes() == b"IMG_0001.JPG of shot 1"
+    assert body.store == {}  # every file deleted from the camera once downloaded
+
+
+def test_a_file_queued_before_the_trigger_is_not_counted(fake, bodies, tmp_path):
+    body = bodies.Body(bodies.canon_eos(), queued=["IMG_0000.JPG"])
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), quiet_s=0.2)
+    assert [f.name for f in camera.capture(tmp_path)] == ["IMG_0001.CR2"]
+    assert camera.strays == [f"{body.FOLDER}/IMG_0000.JPG"] and "IMG_0000.JPG" not in body.store
+
+
+def test_a_cable_pulled_mid_capture_reconnects_and_retries_once(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+
+    config = bodies.canon_eos(lens_af=False)
+    first = bodies.Body(config, unplug_after_trigger=True)
+    again = bodies.Body(config)  # the same body after it re-enumerated, a new USB session
+    bus = bodies.Bus("Canon EOS 5D Mark III", first, again, absent_scans=1)
+    camera = fake(bus, quiet_s=0.1, reconnect_s=5.0)
+    camera.prepare(CameraSetup())
+    assert _value(config, "capturetarget") == "Internal RAM"
+    files = camera.capture(tmp_path)
+    assert [f.name for f in files] == ["IMG_0001.CR2"]
+    assert files[0].read_bytes() == b"IMG_0001.CR2 of shot 1"  # shot again by the new session
+    assert first.calls[-2:] == ["wait_for_event", "exit"]  # GP_ERROR_IO on the wait, then released
+    assert bus.opened == ["usb:001,004", "usb:001,005"] and bus.resets == ["usb:001,004"]
+    assert camera.port == "usb:001,005"
+    assert _value(config, "capturetarget") == "Internal RAM"  # prepared again after the new session
+
+
+def test_a_second_loss_fails_the_capture(fake, bodies, tmp_path):
+    from psfd.errors import CameraError
+
+    config = bodies.canon_eos()
+    bus = bodies.Bus("Canon EOS 5D Mark III", bodies.Body(config, unplug_after_trigger=True),
+                     bodies.Body(config, unplug_after_trigger=True))
+    camera = fake(bus, quiet_s=0.1)
+    with pytest.raises(CameraError, match=r"waiting for the capture failed: USB input/output failed.*\[gphoto2 -7\]"):
+        camera.capture(tmp_path)
+    assert len(bus.opened) == 2 and list(tmp_path.iterdir()) == []
+
+
+def test_a_camera_that_stays_away_is_reported(fake, bodies, tmp_path):
+    from psfd.errors import CameraError
+
+    bus = bodies.Bus("Canon EOS 5D Mark III", bodies.Body(bodies.canon_eos(), unplug_after_trigger=True))
+    camera = fake(bus, reconnect_s=0.5)
+    with pytest.raises(CameraError, match=r"\[gphoto2 -7\]; reconnecting failed: no camera found"):
+        camera.capture(tmp_path)
+
+
+def test_bulb_needs_a_time_and_always_closes_the_shutter(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+    from psfd.errors import CameraError
+
+    body = bodies.Body(bodies.canon_eos(lens_af=False, shutter="bulb"))
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body))
+    camera.prepare(CameraSetup())
+    with pytest.raises(CameraError, match=r"shutterspeed is bulb: give the exposure time \(bulb_s\)"):
+        camera.capture(tmp_path)
+    assert body.shots == 0
+    camera.prepare(CameraSetup(bulb_s=0.3))
+    assert camera._capture_deadline() == (pytest.approx(30.0 + 0.6), 0.3)
+    assert [f.name for f in camera.capture(tmp_path)] == ["IMG_0001.CR2"]
+    (on, t_on), (off, t_off) = body.bulb_log
+    assert (on, off) == (1, 0) and t_off - t_on >= 0.3
+
+
+def test_no_file_within_the_deadline(fake, bodies, tmp_path):
+    from psfd.errors import CameraError
+
+    body = bodies.Body(bodies.canon_eos(), files=())
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), capture_timeout=0.4)
+    with pytest.raises(CameraError, match=r"capture produced no file within 0.4\d* s"):
+        camera.capture(tmp_path)
+
+
+def test_camera_setup_from_a_plan_table():
+    from psfd.drivers.base import CameraSetup, settle
+    from psfd.errors import BadInputError
+
+    setup = CameraSetup.from_mapping({"focus": "manual", "settle_s": 3})
+    assert setup.focus == "manual" and setup.settle_s == 3 and setup.raw and setup.capture_target == "ram"
+    with pytest.raises(BadInputError, match="unknown camera setup key"):
+        CameraSetup.from_mapping({"focuss": "manual"})
+    with pytest.raises(BadInputError, match="focus = 'auto': use one of off, manual, any"):
+        CameraSetup(focus="auto")
+    waits = []
+    clock = iter([10.5, 10.5]).__next__
+    assert settle(2.0, since=10.0, sleep=waits.append, clock=clock) == pytest.approx(1.5) and waits == [1.5]
+    assert settle(2.0, since=0.0, sleep=waits.append, clock=lambda: 10.0) == 0.0 and waits == [1.5]

@@ -20,7 +20,7 @@ from psfd import catalogue as catalogue_module
 from psfd.catalogue import MIGRATIONS, SCHEMA_VERSION, Catalogue, FrameRecord, default_path
 from psfd.drivers.base import CameraInfo
 from psfd.errors import BadInputError, CatalogueError
-from psfd.estimator.psf import PSF
+from psfd.estimator.kernels import PSF
 
 CANON = CameraInfo("Canon EOS 400D", "0420", "EF 50mm f/1.8", 50.0)
 NIKON = CameraInfo("Nikon D850", "77", "AF-S 24-70mm", 35.0)
@@ -168,6 +168,22 @@ def test_default_path_follows_xdg(monkeypatch, tmp_path):
 # -- rigs, runs, steps ------------------------------------------------------------
 
 
+def test_unfinished_run_is_the_newest_running_or_paused_run_of_exactly_that_plan(tmp_path):
+    """The one rule the runner, the service and the demo use: cancelled and failed runs are closed."""
+    text = "[rig]\nsimulate = true\n"
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        paused, cancelled = new_run(cat), new_run(cat)
+        cat.finish_run(paused, "paused")
+        cat.finish_run(cancelled, "cancelled")
+        assert [r["id"] for r in cat.plan_runs(text)] == [cancelled, paused]  # newest first
+        assert cat.unfinished_run(text) == paused  # a newer closed run does not hide it
+        cat.finish_run(paused, "failed")
+        assert cat.unfinished_run(text) is None
+        running = new_run(cat)  # journalled running: alive or killed, it is unfinished either way
+        assert cat.unfinished_run(text) == running
+        assert cat.unfinished_run(text + " ") is None and cat.plan_runs("other plan") == []
+
+
 def test_rigs_runs_and_steps_lifecycle(tmp_path):
     with Catalogue(tmp_path / "cat.sqlite") as cat:
         rig = cat.add_rig(CANON)
@@ -256,7 +272,7 @@ CRASH_SCRIPT = """
 import os, sys
 import numpy as np
 from psfd.catalogue import Catalogue, FrameRecord
-from psfd.estimator.psf import PSF
+from psfd.estimator.kernels import PSF
 real = Catalogue._psf_record
 calls = []
 def die_on_third(*args):

@@ -15,9 +15,11 @@ import numpy as np
 import pytest
 
 from psfd.cli import main
-from psfd.cli.compare import HIGH, LOW, Estimate, mtf_errors, print_table
+from psfd import figures
+from psfd.cli.compare import Estimate, print_table
 from psfd.estimator import gamma, mtf, sharpedge, simulate
-from psfd.estimator.psf import PSF
+from psfd.estimator.kernels import PSF
+from psfd.estimator.mtf import HIGH, LOW, band_errors
 
 S = 4
 SUPPORT = 17
@@ -56,7 +58,7 @@ def test_edge_pattern_depends_on_the_weight_and_loses_high_frequencies(sharp_tru
     for name, view, ws in (("bernoulli", bern_view, (0.0, 2.0)), ("edges", edge_view, weights)):
         for w in ws:
             runs = [ideal_estimate(view, sharp_truth, w, seed) for seed in range(2)]
-            errs = [mtf_errors(k, S, sharp_truth, S) for k in runs]
+            errs = [band_errors(k, S, sharp_truth, S) for k in runs]
             rows[name, w] = (np.mean([e[LOW] for e in errs]), np.mean([e[HIGH] for e in errs]),
                              np.mean([signed_high(k, sharp_truth) for k in runs]))
     print("\npattern    weight   MTF err <=Nyq  >Nyq   mean signed >Nyq")
@@ -101,8 +103,8 @@ def edge_target_errors(tmp_path_factory, sharp_truth):
     path = tmp_path_factory.mktemp("edges") / "edges.dng"
     edge_scene_dng(path, sharp_truth)
     frame = raw.load_frame(path, "g1")
-    edge = {w: sharpedge.estimate_edges(frame, s=S, weight=w, target=True)[0].psf for w in (2.0, 2e6)}
-    return {w: (mtf_errors(k, S, sharp_truth, S)[HIGH], signed_high(k, sharp_truth)) for w, k in edge.items()}
+    edge = {w: sharpedge.estimate_edges(frame, s=S, weight=w, target_form=True)[0].psf for w in (2.0, 2e6)}
+    return {w: (band_errors(k, S, sharp_truth, S)[HIGH], signed_high(k, sharp_truth)) for w, k in edge.items()}
 
 
 def test_pipeline_sharp_edge_depends_on_the_weight(edge_target_errors):
@@ -122,7 +124,7 @@ def test_pipeline_bernoulli_beats_sharp_edge(tmp_path, sharp_truth, edge_target_
     simulate.simulate_target(tmp_path / "bern.dng", psf=sharp_truth, s=S, pixels_per_cell=0.25, rotation_deg=5,
                              sensor=(480, 640), seed=2)
     bern = bernoulli.estimate_target(raw.load_frame(tmp_path / "bern.dng", "g1"), s=S)[0].psf
-    bern_err = mtf_errors(bern, S, sharp_truth, S)[HIGH]
+    bern_err = band_errors(bern, S, sharp_truth, S)[HIGH]
     edge = {w: e for w, (e, _) in edge_target_errors.items()}
     print(f"\nbernoulli: MTF err >Nyq {bern_err:.4f}; sharp-edge target {edge[2.0]:.4f} (w=2), {edge[2e6]:.4f} (w=2e6)")
     assert bern_err < min(edge.values())
@@ -211,7 +213,7 @@ def test_a_failed_comparison_figure_leaves_no_output_folder(tmp_path, monkeypatc
     def disk_full(curves):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(compare, "mtf_figure", disk_full)  # the last files fail, after the estimates
+    monkeypatch.setattr(figures, "comparison_figure", disk_full)  # the last files fail, after the estimates
     out = tmp_path / "cmp"
     with pytest.raises(BadInputError, match="No space left on device"):
         compare.write_outputs(out, estimates, {}, None, 4)

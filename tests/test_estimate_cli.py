@@ -15,10 +15,11 @@ import pytest
 import tifffile
 from scipy.special import ndtr
 
+from psfd import figures
 from psfd.cli import main, output
 from psfd.errors import BadInputError
 from psfd.estimator import raw
-from psfd.estimator.psf import PSF
+from psfd.estimator.kernels import PSF
 
 
 def gaussian(sigma_x: float, sigma_y: float, s: int = 4, support: int = 17) -> np.ndarray:
@@ -83,32 +84,32 @@ def test_figure_structure(tmp_path):
     est = synthetic(0)
     output.write_estimates([est], tmp_path)
     image = cv2.imread(str(tmp_path / "IMG_0001_bernoulli_g1_w00.png"), cv2.IMREAD_COLOR)
-    np.testing.assert_array_equal(image, output.psf_figure(est))  # PNG is lossless
-    zoom = output.zoom(17)
+    np.testing.assert_array_equal(image, figures.psf_figure(est))  # PNG is lossless
+    zoom = figures.zoom(17)
     assert zoom == 21
     # channel-pixel borders every s = 4 samples around the centre sample 8: sample edges 2.5, 6.5, 10.5, 14.5
-    lines = output.grid_lines(17, 4, zoom)
+    lines = figures.grid_lines(17, 4, zoom)
     assert lines == [round(e * zoom) for e in (2.5, 6.5, 10.5, 14.5)]
-    panel = image[output.TITLE : output.TITLE + 17 * zoom, output.PAD : output.PAD + 17 * zoom]
+    panel = image[figures.TITLE : figures.TITLE + 17 * zoom, figures.PAD : figures.PAD + 17 * zoom]
     for pos in lines:
-        assert (panel[:, pos] == output.GRID_COLOUR).all() and (panel[pos, :] == output.GRID_COLOUR).all()
+        assert (panel[:, pos] == figures.GRID_COLOUR).all() and (panel[pos, :] == figures.GRID_COLOUR).all()
     # the centre sample (the peak) is brightest: inferno maps 1.0 to near white
     centre = panel[8 * zoom + zoom // 2, 8 * zoom + zoom // 2]
     assert centre.astype(int).sum() > 3 * 200
     # the MTF plot: both profiles drawn in their colours, right of the panel
-    plot = image[output.TITLE : output.TITLE + output.PLOT_H, 2 * output.PAD + 17 * zoom :]
-    for colour in (output.X_COLOUR, output.Y_COLOUR):
+    plot = image[figures.TITLE : figures.TITLE + figures.PLOT_H, 2 * figures.PAD + 17 * zoom :]
+    for colour in (figures.X_COLOUR, figures.Y_COLOUR):
         assert (np.abs(plot.astype(int) - colour).sum(axis=2) == 0).sum() > 200
 
 
 def test_grid_lines_odd_s():
     # s = 3, 13 samples: centre sample 6 spans [6, 7); its pixel [5, 8); borders every 3 samples
-    assert output.grid_lines(13, 3, 1) == [2, 5, 8, 11]
+    assert figures.grid_lines(13, 3, 1) == [2, 5, 8, 11]
 
 
 def test_write_estimates_is_atomic(tmp_path, monkeypatch):
     calls = {"n": 0}
-    real = output.psf_figure
+    real = figures.psf_figure
 
     def failing(est):
         calls["n"] += 1
@@ -116,7 +117,7 @@ def test_write_estimates_is_atomic(tmp_path, monkeypatch):
             raise OSError(28, "No space left on device")
         return real(est)
 
-    monkeypatch.setattr(output, "psf_figure", failing)
+    monkeypatch.setattr(figures, "psf_figure", failing)
     with pytest.raises(BadInputError, match="cannot write results"):
         output.write_estimates([synthetic(0), synthetic(1)], tmp_path / "new")
     assert list(tmp_path.iterdir()) == []  # neither the folder nor a temporary one

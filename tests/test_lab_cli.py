@@ -9,8 +9,8 @@ import pytest
 
 from psfd.catalogue import Catalogue
 from psfd.cli import main
-from psfd.cli.lab import parse_rail
-from psfd.daemon import service
+from psfd.cli.options import parse_axes
+from psfd.daemon import client
 from psfd.errors import BadInputError
 
 from test_service import served  # noqa: F401 - fixture
@@ -53,7 +53,7 @@ def test_capture_goes_through_the_service_when_it_is_up(served, tmp_path):  # no
     with Catalogue(db) as cat:  # stored in the service's catalogue, not the one on the command line
         assert [r["aperture"] for r in cat.query().rows] == [8.0]
     assert not (tmp_path / "ignored.sqlite").exists()
-    assert service.request(sock, {"cmd": "status"})["last"]["state"] == "done"
+    assert client.request(sock, {"cmd": "status"})["last"]["state"] == "done"
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -65,7 +65,7 @@ def test_capture_goes_through_the_service_when_it_is_up(served, tmp_path):  # no
     (["capture", "--aperture", "5.6", "--simulate", "--workers", "0"], "--workers: must be at least 1"),
     (["capture", "--aperture", "-2", "--simulate"], "--aperture: expected a positive f-number"),
     (["capture", "--aperture", "5.6", "--channels", "g3", "--simulate"], "--channels: expected all, or a comma"),
-    (["capture", "--aperture", "5.6", "--near", "800", "--simulate"], "--near and --far apply to --target pair"),
+    (["capture", "--aperture", "5.6", "--near", "800", "--simulate"], "--near and --far apply to --target two-photo"),
 ])
 def test_bad_capture_arguments(argv, message, tmp_path, capsys):
     db = tmp_path / "cat.sqlite"
@@ -167,9 +167,9 @@ def test_bad_plan_run_leaves_no_catalogue(tmp_path, capsys):
 
 
 def test_parse_rail():
-    assert parse_rail(["X=1200,y=-40", "Z=5"]) == {"x": 1200.0, "y": -40.0, "z": 5.0}
+    assert parse_axes(["X=1200,y=-40", "Z=5"], "--rail") == {"x": 1200.0, "y": -40.0, "z": 5.0}
     with pytest.raises(BadInputError, match="Y must be a number"):
-        parse_rail(["Y=left"])
+        parse_axes(["Y=left"], "--rail")
 
 
 def test_status_without_service_lists_runs(tmp_path, capsys):

@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 import tifffile
 
+from psfd import figures
 from psfd.catalogue import Catalogue
 from psfd.cli import main
 from psfd.cli import query as query_cli
 from psfd.drivers.base import CameraInfo
-from psfd.estimator.psf import PSF
+from psfd.estimator.kernels import PSF
 
 GRID = [(x, y) for y in (1 / 6, 0.5, 5 / 6) for x in (1 / 6, 0.5, 5 / 6)]
 
@@ -130,8 +131,8 @@ def test_report_draws_psfs_and_mtf_map(capsys, catalogue, tmp_path):
     code, _, _ = run_cli(capsys, "report", "--catalogue", catalogue, "--out", str(out))
     assert code == 0
     image = cv2.imread(str(out))
-    width, height = query_cli.PANEL
-    m, h = query_cli.MARGIN, query_cli.HEADER
+    width, height = figures.REPORT_PANEL
+    m, h = figures.REPORT_MARGIN, figures.REPORT_HEADER
     assert image.shape == (h + m + 2 * (height + h + m), 2 * width + 3 * m, 3)
     top = h + m + h  # first band (f/5.6): its two panels start here
 

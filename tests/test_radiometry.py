@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from psfd.errors import EstimationError
-from psfd.estimator import detect, radiometry, register, target
+from psfd.estimator import detect, geometry, radiometry, target
 
 SHAPE = (200, 240)
 
@@ -140,7 +140,7 @@ def test_crf_binary_values():
 def test_real_photograph(data_dir):
     """Detection, maps and both corrections on the published example photo."""
     image = cv2.imread(str(data_dir / "img_example.pgm"), cv2.IMREAD_UNCHANGED).astype(float)
-    to_image, to_pattern = register.target_maps(detect.find_target(image))
+    to_image, to_pattern = geometry.target_maps(detect.find_target(image))
     black, white = radiometry.illumination(image, to_image)
     yy, xx = np.mgrid[0 : image.shape[0], 0 : image.shape[1]].astype(float)
     X, Y = to_pattern(xx, yy)

@@ -14,8 +14,8 @@ import pytest
 
 from psfd.catalogue import Catalogue
 from psfd.daemon.plan import parse_plan
-from psfd.daemon.runner import (Control, Runner, frames_dir_for, shown_state, store_busy, store_frame, store_lock,
-                                sweep_frames)
+from psfd.daemon.runner import Control, Runner
+from psfd.daemon.store import frames_dir_for, shown_state, store_busy, store_frame, store_lock, sweep_frames
 from psfd.drivers import open_rig
 from psfd.errors import BadInputError, CameraError, EstimationError, RailAlarm
 

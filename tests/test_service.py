@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from psfd.catalogue import Catalogue
-from psfd.daemon import service
+from psfd.daemon import client
 from psfd.daemon.plan import parse_plan
 from psfd.errors import ServiceError
 
@@ -96,10 +96,10 @@ def test_socket_is_0660_and_bad_requests_leave_the_service_running(served):
     assert answer["ok"] is False and len(answer["problems"]) >= 2
     assert any("kind must be one of" in p for p in answer["problems"])
     with pytest.raises(ServiceError, match="no run is in progress"):
-        service.request(sock, {"cmd": "pause"})
+        client.request(sock, {"cmd": "pause"})
     with pytest.raises(ServiceError, match="no paused run"):
-        service.request(sock, {"cmd": "resume"})
-    assert service.request(sock, {"cmd": "status"})["state"] == "idle"
+        client.request(sock, {"cmd": "resume"})
+    assert client.request(sock, {"cmd": "status"})["state"] == "idle"
     # `psfd status` asks the service when its socket answers
     cli = subprocess.run([sys.executable, "-m", "psfd", "status", "--socket", str(sock)],
                          capture_output=True, text=True)
@@ -114,7 +114,7 @@ def test_socket_is_0660_and_bad_requests_leave_the_service_running(served):
 def wait_status(sock: Path, predicate, timeout: float = 120.0) -> dict:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        status = service.request(sock, {"cmd": "status"})
+        status = client.request(sock, {"cmd": "status"})
         if predicate(status):
             return status
         time.sleep(0.2)
@@ -126,20 +126,20 @@ def test_pause_resume_then_sigterm_mid_run_and_resume_from_the_cli(served, tmp_p
     plan_path = tmp_path / "plan.toml"
     plan_path.write_text(small_plan())
     plan = parse_plan(plan_path.read_text(), str(plan_path))
-    answer = service.request(sock, {"cmd": "submit", "plan": plan.text, "path": str(plan_path)})
+    answer = client.request(sock, {"cmd": "submit", "plan": plan.text, "path": str(plan_path)})
     assert answer["queued"] == 1
     wait_status(sock, lambda s: s["current"] and s["current"]["step"])
-    assert service.request(sock, {"cmd": "pause"})["requested"] == "pause"
+    assert client.request(sock, {"cmd": "pause"})["requested"] == "pause"
     status = wait_status(sock, lambda s: s["state"] == "paused")
     assert status["last"]["state"] == "paused" and status["last"]["steps_done"] < 4
     # submitting the paused plan afresh is refused at once (no PSF stored twice) ...
     with pytest.raises(ServiceError, match=r"is paused .*add --resume to continue it, or --new"):
-        service.request(sock, {"cmd": "submit", "plan": plan.text, "path": str(plan_path)})
+        client.request(sock, {"cmd": "submit", "plan": plan.text, "path": str(plan_path)})
     # ... and so is resuming a plan that has no unfinished run
     with pytest.raises(ServiceError, match="no unfinished run of plan other.toml to resume"):
-        service.request(sock, {"cmd": "submit", "plan": plan.text + "\n# other\n", "path": "other.toml",
+        client.request(sock, {"cmd": "submit", "plan": plan.text + "\n# other\n", "path": "other.toml",
                                "resume": True})
-    assert service.request(sock, {"cmd": "resume"})["queued"] == 1
+    assert client.request(sock, {"cmd": "resume"})["queued"] == 1
     notes.messages.clear()
     notes.wait_for("STATUS=running", timeout=60)
     proc.send_signal(signal.SIGTERM)  # finish the current frame, commit, pause, exit 0
@@ -166,7 +166,7 @@ def test_cancel_closes_the_run(served, tmp_path):
     assert cli.returncode == 0 and "submitted" in cli.stdout  # `psfd run` hands the plan to the service
     assert f"follow it with: psfd status --socket {sock}" in cli.stdout
     wait_status(sock, lambda s: s["current"] is not None)
-    service.request(sock, {"cmd": "cancel"})
+    client.request(sock, {"cmd": "cancel"})
     status = wait_status(sock, lambda s: s["last"] is not None)
     assert status["last"]["state"] == "cancelled" and status["state"] == "idle"
     with Catalogue(db) as cat:
@@ -176,8 +176,8 @@ def test_cancel_closes_the_run(served, tmp_path):
 
 def test_client_error_when_no_service(tmp_path):
     with pytest.raises(ServiceError, match="cannot reach the service"):
-        service.request(tmp_path / "nothing.sock", {"cmd": "status"})
-    assert not service.service_up(tmp_path / "nothing.sock")
+        client.request(tmp_path / "nothing.sock", {"cmd": "status"})
+    assert not client.service_up(tmp_path / "nothing.sock")
 
 
 def test_unit_file_verifies():

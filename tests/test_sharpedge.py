@@ -12,7 +12,7 @@ from scipy import signal
 
 from psfd.errors import BadInputError, EstimationError, TargetNotFoundError
 from psfd.estimator import gamma, mtf, sharpedge, simulate
-from psfd.estimator.psf import centroid
+from psfd.estimator.kernels import centroid
 from psfd.estimator.raw import Frame
 
 S = 4
@@ -151,7 +151,7 @@ def test_estimate_recovers_a_smooth_psf(smooth_frame, smooth_truth, target):
     within 10 % of the plateau (sec. 4.1), which biases the contrast by a few
     per cent: we allow an RMS MTF error of 0.05 below Nyquist.
     """
-    [est] = sharpedge.estimate_edges(smooth_frame, s=S, target=target)
+    [est] = sharpedge.estimate_edges(smooth_frame, s=S, target_form=target)
     low = mtf_rms(est.psf, smooth_truth, (0, 0.5))
     print(f"\ntarget={target}: RMS MTF error below Nyquist {low:.4f}, params {est.params}")
     assert est.method == "sharp-edge" and est.psf.shape == (SUPPORT, SUPPORT)
@@ -177,7 +177,7 @@ def test_target_form_on_the_bernoulli_marks(tmp_path):
 
     truth = simulate.gaussian_psf(0.4, 0.3, theta=0.5, s=S, support=SUPPORT)
     simulate.simulate_target(tmp_path / "bern.dng", psf=truth, s=S, pixels_per_cell=0.25, rotation_deg=5, seed=3)
-    [est] = sharpedge.estimate_edges(raw.load_frame(tmp_path / "bern.dng", "g1"), s=S, target=True)
+    [est] = sharpedge.estimate_edges(raw.load_frame(tmp_path / "bern.dng", "g1"), s=S, target_form=True)
     low = mtf_rms(est.psf, truth, (0, 0.5))
     print(f"\nBernoulli marks: RMS MTF error below Nyquist {low:.4f}, {est.params['valid_pixels']} pixels")
     assert est.params["pattern"] == "Bernoulli target marks"
@@ -205,7 +205,7 @@ def test_bad_inputs(smooth_frame):
     with pytest.raises(EstimationError, match="usable pixels near edges"):
         sharpedge.estimate_edges(flat)
     with pytest.raises(TargetNotFoundError):
-        sharpedge.estimate_edges(flat, target=True)
+        sharpedge.estimate_edges(flat, target_form=True)
 
 
 # ---------------------------------------------------------------- psfd target --kind edges

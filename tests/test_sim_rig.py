@@ -11,7 +11,7 @@ from psfd.drivers.base import Camera, Position, Rail
 from psfd.drivers.sim import SimRig
 from psfd.errors import BadInputError, CameraError, RailAlarm, RailError
 from psfd.estimator import raw
-from psfd.estimator.psf import centroid
+from psfd.estimator.kernels import centroid
 
 
 def _second_moments(psf: np.ndarray, s: int) -> np.ndarray:

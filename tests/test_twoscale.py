@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from psfd.errors import BadInputError, PairError
-from psfd.estimator import homography, mtf, raw, simulate, twoscale
-from psfd.estimator import psf as psf_mod
+from psfd.estimator import kernels, mtf, pair_register, raw, simulate, twoscale
 
 S = 3
 SUPPORT = 4 * S + 1
@@ -60,7 +59,7 @@ def test_recovers_the_mtf_of_a_simulated_pair(simulated):
     assert est.sources == ["simulated-near", "simulated-far"]
     # SIFT + homography: the zoom within 0.5 % (far-pixel registration error ~0.1 px over ~100 px)
     assert est.params["lambda"] == pytest.approx([pair["lam"]] * 2, rel=5e-3)
-    assert est.params["inliers"] >= homography.MIN_INLIERS
+    assert est.params["inliers"] >= pair_register.MIN_INLIERS
     assert est.params["spectral_energy"] > 0
     assert est.noise_floor is not None and est.noise_floor < 0.03
     assert set(est.figures) == {"kernel", "residual"}
@@ -125,7 +124,7 @@ def test_real_pair_in_either_order(data_dir):
         assert 4.5 < est.params["lambda"][0] < 6.0
         assert est.psf.sum() == pytest.approx(1.0)
         # centred: the core's centre of mass within a quarter of an s-grid sample (1/12 pixel)
-        cx, cy = psf_mod.core_centroid(est.psf)
+        cx, cy = kernels.core_centroid(est.psf)
         assert abs(cx) < 0.25 and abs(cy) < 0.25
         assert np.unravel_index(np.argmax(est.psf), est.psf.shape) == (6, 6)
         m = est.metrics()
@@ -179,10 +178,10 @@ def test_large_far_photo_is_registered_again_at_full_resolution(monkeypatch):
     # photos above MAX_PIXELS are shrunk for a first SIFT pass; a shrunk far photo
     # loses precision, so the common region is matched again at full resolution
     pair = simulate.simulate_pair(psf=TRUE_PSF, s=S, lam=4.0, near_shape=(512, 512), far_shape=(256, 256), seed=9)
-    monkeypatch.setattr(homography, "MAX_PIXELS", 30_000)
+    monkeypatch.setattr(pair_register, "MAX_PIXELS", 30_000)
     calls = []
-    refine = homography._refine
-    monkeypatch.setattr(homography, "_refine", lambda *a, **k: calls.append(1) or refine(*a, **k))
+    refine = pair_register._refine
+    monkeypatch.setattr(pair_register, "_refine", lambda *a, **k: calls.append(1) or refine(*a, **k))
     [est] = twoscale.estimate_pair(pair["near"], pair["far"], s=S)
     assert calls == [1]
     assert est.params["lambda"] == pytest.approx([4.0, 4.0], rel=5e-3)

@@ -2,15 +2,19 @@
 
 Each command group lives in its own module with a ``register(subparsers)``
 function; this module only assembles them and turns typed errors into a
-one-line message and an exit code.
+one-line message and an exit code. Building the parser imports the command
+modules and `psfd.cli.options` only, which load nothing heavier than the
+standard library: every handler imports the numerics, drivers, catalogue or
+daemon it needs when it runs.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
+import signal
 import sys
+import threading
 
 # The estimators solve many small systems (a few hundred unknowns): BLAS threads
 # gain nothing there and, on a loaded 2-core machine, stall them for up to a
@@ -21,18 +25,11 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 # reports the error in one line; must be set before cv2 is imported.
 os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
 
-from psfd import __version__
-from psfd.errors import BadInputError, PsfdError
+from psfd import __version__  # noqa: E402 - after the environment above
+from psfd.cli import compare, estimate, hardware, lab, query, target  # noqa: E402
+from psfd.errors import BadInputError, PsfdError  # noqa: E402
 
-# Modules that add commands. A module listed here but not present yet is skipped.
-COMMAND_MODULES = (
-    "psfd.cli.target",
-    "psfd.cli.estimate",
-    "psfd.cli.compare",
-    "psfd.cli.hardware",
-    "psfd.cli.query",
-    "psfd.cli.lab",
-)
+COMMAND_MODULES = (target, estimate, compare, hardware, query, lab)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,20 +37,24 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"psfd {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     subparsers.required = True
-    for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name == name:
-                continue
-            raise
+    for module in COMMAND_MODULES:
         module.register(subparsers)
     return parser
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the process is, so that a moving rail is stopped and its port released."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated()
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     try:
         return int(args.func(args) or 0)
     except PsfdError as exc:
@@ -65,9 +66,13 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"psfd: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return BadInputError.exit_code
-    except KeyboardInterrupt:
-        print("psfd: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        stopped = "".join(f" ({note})" for note in getattr(exc, "__notes__", ()))
+        print(f"psfd: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}{stopped}", file=sys.stderr)
+        return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

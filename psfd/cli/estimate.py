@@ -1,9 +1,9 @@
-"""`psfd estimate target|pair|edges`: PSFs from photographs already on disk.
+"""`psfd estimate bernoulli|two-photo|sharp-edge`: PSFs from photographs already on disk.
 
 Thin: check the arguments, load the channel planes, call the estimator, write
-or print. The estimators are imported inside the handlers, after the arguments
-and files are checked, so that `psfd` starts quickly and a bad input is
-reported before any numerical work.
+or print. Every argument and the output folder are checked before any file is
+read; the estimators are imported inside the handlers. The command words of
+psfd 0.1 (``target``, ``pair``, ``edges``) stay as aliases.
 """
 
 from __future__ import annotations
@@ -11,37 +11,35 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from psfd.cli import output
+from psfd.cli import options
 from psfd.errors import BadInputError
-from psfd.estimator import raw, target
-from psfd.estimator.psf import PSF
-
-SOLVERS = ("ls", "ls-threshold", "nnls")  # bernoulli.estimate_target's; checked here for a one-line error
+from psfd.vocabulary import ALIASES, BERNOULLI, DEFAULT_SOLVER, SHARP_EDGE, SOLVERS, TWO_PHOTO, check_solver
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("estimate", help="estimate PSFs from photographs on disk")
-    methods = parser.add_subparsers(dest="method", metavar="METHOD")
-    methods.required = True
+    commands = parser.add_subparsers(dest="method", metavar="METHOD")
+    commands.required = True
+    aliases = {method: [word for word, name in ALIASES.items() if name == method] for method in ALIASES.values()}
 
-    p = methods.add_parser(
-        "target",
+    p = commands.add_parser(
+        BERNOULLI, aliases=aliases[BERNOULLI],
         help="non-blind: photographs of the Bernoulli noise target",
         description="Sub-pixel PSF from one photograph of the Bernoulli target (Delbracio et al., IJCV 2012).",
     )
     p.add_argument("frames", nargs="+", metavar="FRAME", help="RAW file or single-channel PGM/PNG/TIFF")
-    _common(p, s=4)
+    _common(p, BERNOULLI)
     p.add_argument("--pattern", metavar="PGM", help="noise of the printed target (default: the published one)")
-    p.add_argument("--solver",
-                   help="nnls (non-negative least squares, the default), ls (least squares) or "
-                        "ls-threshold (least squares, negatives clipped: biased towards too wide a PSF)")
+    p.add_argument("--solver", default=DEFAULT_SOLVER,
+                   help=f"{', '.join(SOLVERS)}: least squares; least squares with negatives clipped "
+                        f"(biased: too wide a PSF); non-negative least squares (default {DEFAULT_SOLVER})")
     p.add_argument("--tps", metavar="LAMBDA",
                    help="map the target with a thin-plate spline of this smoothing (the thesis uses 10) "
                         "instead of the default homography plus radial distortion")
-    p.set_defaults(func=run_target)
+    p.set_defaults(func=run_bernoulli)
 
-    p = methods.add_parser(
-        "pair",
+    p = commands.add_parser(
+        TWO_PHOTO, aliases=aliases[TWO_PHOTO],
         help="blind: two photographs of a textured plane at different distances",
         description=(
             "Sub-pixel PSF from a near/far pair (Delbracio et al., SIAM J. Imaging Sciences 2012; "
@@ -50,57 +48,54 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("photo_a", metavar="PHOTO_A")
     p.add_argument("photo_b", metavar="PHOTO_B")
-    _common(p, s=3)
+    _common(p, TWO_PHOTO)
     p.add_argument("--clip", action="store_true", help="set negative PSF values to 0 before normalising")
-    p.set_defaults(func=run_pair)
+    p.set_defaults(func=run_two_photo)
 
-    p = methods.add_parser(
-        "edges",
+    p = commands.add_parser(
+        SHARP_EDGE, aliases=aliases[SHARP_EDGE],
         help="baseline: sharp-edge prediction (Joshi et al., CVPR 2008)",
         description="PSF from the sharp edges of a photograph (Joshi, Szeliski, Kriegman, CVPR 2008).",
     )
     p.add_argument("frames", nargs="+", metavar="FRAME")
-    _common(p, s=4)
+    _common(p, SHARP_EDGE)
     p.add_argument("--weight", help="lambda, the kernel smoothness weight of eq. (5) (default 2, the paper's)")
     p.add_argument("--radius", help="use pixels within this many channel pixels of an edge (default: kernel radius)")
     p.add_argument("--target", action="store_true",
                    help="the frame shows the printed edge target: predict the sharp image from its geometry")
-    p.set_defaults(func=run_edges)
+    p.set_defaults(func=run_sharp_edge)
 
 
-def _common(p: argparse.ArgumentParser, s: int) -> None:
+def _common(p: argparse.ArgumentParser, method: str) -> None:
     # Checked by raw.load_frames (one-line error) rather than argparse choices (usage dump).
     p.add_argument("--channel", default="all",
                    help="r, g1, g2, b or all: Bayer plane of a RAW file (default all; "
                         "a single-channel image is its own plane)")
-    p.add_argument("-s", default=str(s), help=f"super-resolution factor (default {s})")
-    p.add_argument("--support", help="odd kernel side on the s-times grid, >= 3 (default 4s+1)")
-    p.add_argument("--grid", default="1x1", help="NxM local windows, N across and M down (default 1x1)")
+    options.add_size_options(p, method)
     p.add_argument("--out", metavar="DIR", help="write .npy, .tif and .png figures here")
     p.add_argument("--json", action="store_true", help="print one JSON object per estimate per line")
 
 
-def _settings(args: argparse.Namespace) -> dict:
+def _settings(args: argparse.Namespace, method: str) -> dict:
     """The options every method shares, checked; the output folder checked before any work."""
+    settings = options.sizes(args, method)
     if args.out is not None:
+        from psfd.cli import output
+
         output.check_out_dir(args.out)
-    return {
-        "s": output.parse_int(args.s, "-s", minimum=1),
-        "support": output.parse_support(args.support),
-        "grid": output.parse_grid(args.grid),
-    }
+    return settings
 
 
-def _optional_float(text: str | None, name: str) -> float | None:
-    return None if text is None else output.parse_float(text, name)
-
-
-def _load_all(paths: list[str], channel: str) -> list[raw.Frame]:
+def _load_all(paths: list[str], channel: str) -> list:
     """Every requested plane of every file; all files are read before any estimation starts."""
+    from psfd.estimator import raw
+
     return [frame for path in paths for frame in raw.load_frames(path, channel)]
 
 
-def _report(args: argparse.Namespace, estimates: list[PSF]) -> int:
+def _report(args: argparse.Namespace, estimates: list) -> int:
+    from psfd.cli import output
+
     if args.out is not None:
         files = output.write_estimates(estimates, args.out)
     if args.json:
@@ -112,29 +107,29 @@ def _report(args: argparse.Namespace, estimates: list[PSF]) -> int:
     return 0
 
 
-def run_target(args: argparse.Namespace) -> int:
-    settings = _settings(args)
-    if args.solver is not None and args.solver not in SOLVERS:
-        raise BadInputError(f"--solver: use one of {', '.join(SOLVERS)}, got {args.solver!r}")
-    tps = None if args.tps is None else output.parse_float(args.tps, "--tps")
+def run_bernoulli(args: argparse.Namespace) -> int:
+    settings = _settings(args, BERNOULLI)
+    check_solver(args.solver, "--solver")
+    tps = None if args.tps is None else options.parse_float(args.tps, "--tps")
     if tps is not None and tps < 0:
         raise BadInputError(f"--tps: the smoothing must be 0 or more, got {args.tps}")
+    from psfd.estimator import target
+
     noise = target.load_noise(args.pattern) if args.pattern else None
     frames = _load_all(args.frames, args.channel)
     from psfd.estimator import bernoulli
 
-    if args.solver is not None:  # otherwise the estimator's default
-        settings["solver"] = args.solver
     estimates = [
         psf
         for frame in frames
-        for psf in bernoulli.estimate_target(frame, noise=noise, tps=tps, **settings)
+        for psf in bernoulli.estimate_target(frame, noise=noise, solver=args.solver, tps=tps, **settings)
     ]
     return _report(args, estimates)
 
 
-def pair_planes(a: list[raw.Frame], b: list[raw.Frame]) -> list[tuple[raw.Frame, raw.Frame]]:
-    """Match the planes of two photographs by channel (a lone plane on each side pairs as is)."""
+def pair_planes(a: list, b: list) -> list[tuple]:
+    """Match the planes (`psfd.estimator.raw.Frame`) of two photographs by channel (a lone plane on each
+    side pairs as is)."""
     if len(a) == 1 and len(b) == 1:
         return [(a[0], b[0])]
     by_channel = {f.channel: f for f in b}
@@ -147,25 +142,25 @@ def pair_planes(a: list[raw.Frame], b: list[raw.Frame]) -> list[tuple[raw.Frame,
     return [(f, by_channel[f.channel]) for f in a]
 
 
-def run_pair(args: argparse.Namespace) -> int:
-    settings = _settings(args)
-    pairs = pair_planes(raw.load_frames(args.photo_a, args.channel), raw.load_frames(args.photo_b, args.channel))
+def run_two_photo(args: argparse.Namespace) -> int:
+    settings = _settings(args, TWO_PHOTO)
+    pairs = pair_planes(_load_all([args.photo_a], args.channel), _load_all([args.photo_b], args.channel))
     from psfd.estimator import twoscale
 
     estimates = [psf for a, b in pairs for psf in twoscale.estimate_pair(a, b, clip=args.clip, **settings)]
     return _report(args, estimates)
 
 
-def run_edges(args: argparse.Namespace) -> int:
-    settings = _settings(args)
-    weight = _optional_float(args.weight, "--weight")
-    radius = _optional_float(args.radius, "--radius")
+def run_sharp_edge(args: argparse.Namespace) -> int:
+    settings = _settings(args, SHARP_EDGE)
+    weight = None if args.weight is None else options.parse_float(args.weight, "--weight")
+    radius = None if args.radius is None else options.parse_float(args.radius, "--radius")
     frames = _load_all(args.frames, args.channel)
     from psfd.estimator import sharpedge
 
     estimates = [
         psf
         for frame in frames
-        for psf in sharpedge.estimate_edges(frame, weight=weight, radius=radius, target=args.target, **settings)
+        for psf in sharpedge.estimate_edges(frame, weight=weight, radius=radius, target_form=args.target, **settings)
     ]
     return _report(args, estimates)

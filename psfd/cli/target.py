@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from psfd import printing
-from psfd.cli.output import parse_float, parse_int
+from psfd.cli.options import parse_float, parse_int
 from psfd.errors import BadInputError
-from psfd.estimator import sharpedge, target
+from psfd.vocabulary import BERNOULLI, SHARP_EDGE
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -16,7 +15,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="write the calibration target as a print-ready PDF or a PNG",
         description=(
             "Render the Bernoulli noise target (published layout). The noise is saved beside the output "
-            "as NAME.noise.pgm; give it to `psfd estimate target --pattern` when photographing a print of it."
+            "as NAME.noise.pgm; give it to `psfd estimate bernoulli --pattern` when photographing a print of it."
         ),
     )
     parser.add_argument("--out", required=True, help="output file, .pdf (vector, for print) or .png (raster)")
@@ -24,8 +23,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--noise", metavar="PGM", help="use this 256x256 noise pattern instead of a seed")
     parser.add_argument("--size-mm", default="700", help="side of the printed target in mm (PDF; default 700)")
     parser.add_argument("--px-per-cell", default="8", help="pixels per noise cell (PNG; default 8)")
-    parser.add_argument("--kind", default="bernoulli",
-                        help="bernoulli (default) or edges: the sharp-edge target of Joshi et al., CVPR 2008 "
+    parser.add_argument("--kind", default=BERNOULLI,
+                        help=f"{BERNOULLI} (default) or {SHARP_EDGE} (once edges): the edge target of Joshi et al., "
+                             "CVPR 2008 "
                              "(8x8 squares with disks; --size-mm is the board side, a square is 16 cells in PNG)")
     parser.set_defaults(func=run)
 
@@ -39,14 +39,18 @@ def parse_size(text: str) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.kind not in ("bernoulli", "edges"):
-        raise BadInputError(f"--kind: use bernoulli or edges, got {args.kind!r}")
-    if args.kind == "edges":
+    kind = SHARP_EDGE if args.kind == "edges" else args.kind  # the word of psfd 0.1
+    if kind not in (BERNOULLI, SHARP_EDGE):
+        raise BadInputError(f"--kind: use {BERNOULLI} or {SHARP_EDGE}, got {args.kind!r}")
+    if kind == SHARP_EDGE:
         return run_edges(args)
     size_mm = parse_size(args.size_mm)
     px_per_cell = parse_int(args.px_per_cell, "--px-per-cell", minimum=1)
     if args.noise is not None and args.seed is not None:
         raise BadInputError("give --seed or --noise, not both")
+    from psfd import printing
+    from psfd.estimator import target
+
     if args.noise is not None:
         noise = target.load_noise(args.noise)
         origin = f"noise {args.noise}"
@@ -72,6 +76,9 @@ def run_edges(args: argparse.Namespace) -> int:
         raise BadInputError("--seed and --noise apply to the Bernoulli target only")
     size_mm = parse_size(args.size_mm)
     px_per_cell = parse_int(args.px_per_cell, "--px-per-cell", minimum=1)
+    from psfd import printing
+    from psfd.estimator import sharpedge
+
     square_mm = size_mm / sharpedge.SQUARES[0]
     caption = f"psfd sharp-edge target - square {square_mm:.4g} mm - print at 100 % (no scaling)"
     out = printing.write_edge_target(args.out, size_mm=size_mm, caption=caption, px_per_cell=px_per_cell)

@@ -4,14 +4,14 @@ A plan has four tables::
 
     [rig]                       # simulate = true, or the ports of real hardware
     simulate = true             # any other key of psfd.drivers.open_rig may follow
-    # scene = "texture"         # simulated rig: the textured plane a pair needs
+    # scene = "texture"         # simulated rig: the textured plane a two-photo target needs
     # camera_port = "usb:001,004"
     # rail_port = "/dev/ttyUSB0"
     # rail_limits = { x = [0, 2000], y = [-150, 150], z = [-100, 100] }
     # settings = { iso = "100", shutterspeed = "1/60" }
 
     [target]
-    kind = "bernoulli"          # or "pair", with near = ... and far = ... in mm
+    kind = "bernoulli"          # or "two-photo" (once "pair"), with near = ... and far = ... in mm
 
     [capture]                   # positions that frame the target on the simulated rig
     apertures = [5.6, 8, 11]
@@ -24,11 +24,12 @@ A plan has four tables::
     [estimator]
     s = 4
     support = 17                # odd; default 4 s + 1
-    solver = "nnls"             # bernoulli only: "nnls" (default), "ls", "ls-threshold"
+    solver = "nnls"             # bernoulli only: "nnls" (default), "ls", "ls-threshold" (psfd.vocabulary)
     grid = [1, 1]
 
 Rail positions are checked against ``rail_limits`` (on the simulated rig, its
-default travel when none are given), and a pair's far/near ratio against ``s``.
+default travel when none are given), and a pair's far/near ratio against ``s``;
+``s``, ``support`` and ``grid`` against their bounds (`psfd.vocabulary.check_sizes`).
 `check_text` returns every problem found, one sentence each, so that
 ``psfd plan check`` can list them all at once; `load_plan` raises one
 BadInputError naming the first and counting the rest.
@@ -37,6 +38,7 @@ BadInputError naming the first and counting the rest.
 from __future__ import annotations
 
 import itertools
+import json
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -45,11 +47,9 @@ from typing import Any
 
 from psfd.drivers import REAL_KEYS, SIM_KEYS
 from psfd.errors import BadInputError
-from psfd.estimator.raw import CHANNELS
+from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, TWO_PHOTO, check_grid,
+                             check_s, check_solver, check_support)
 
-KINDS = ("bernoulli", "pair")
-SOLVERS = ("ls", "ls-threshold", "nnls")
-AXES = ("x", "y", "z")
 # [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys) and our
 # camera settings, applied once before the first step.
 RIG_KEYS = {"simulate", "recording", "settings", *SIM_KEYS, *REAL_KEYS}
@@ -65,7 +65,7 @@ TABLES = {
 class Step:
     """One exposure position: aperture, rail position(s), repeat index.
 
-    For a ``pair`` plan ``x`` is ``(near, far)``: the step shoots both frames.
+    For a two-photo plan ``x`` is ``(near, far)``: the step shoots both frames.
     """
 
     aperture: float
@@ -104,7 +104,7 @@ class Plan:
     text: str
     path: str
     rig: dict[str, Any]
-    kind: str
+    kind: str  # bernoulli or two-photo (`kind_name`)
     apertures: list[float]
     x: list[float]
     y: list[float] | None
@@ -118,7 +118,7 @@ class Plan:
     def steps(self) -> list[Step]:
         """Steps in execution order: rail distance, then a serpentine walk of the field grid
         (the shortest lateral moves), then apertures and repeats at each position."""
-        xs: list[Any] = [(self.near, self.far)] if self.kind == "pair" else list(self.x)
+        xs: list[Any] = [(self.near, self.far)] if self.kind == TWO_PHOTO else list(self.x)
         ys: list[Any] = self.y if self.y is not None else [None]
         zs: list[Any] = self.z if self.z is not None else [None]
         out = []
@@ -139,6 +139,26 @@ class Plan:
         if "grid" in opts:
             opts["grid"] = tuple(opts["grid"])
         return opts
+
+
+def kind_name(kind: Any) -> Any:
+    """A plan's target kind by its one name: ``pair`` (psfd 0.1, still in stored plans) is ``two-photo``."""
+    return TWO_PHOTO if kind == "pair" else kind
+
+
+def plan_text(tables: dict[str, dict[str, Any]]) -> str:
+    """The TOML text of a plan given as its tables (the value types plans use: booleans,
+    numbers, strings, lists of them, and tables of lists such as ``rail_limits``)."""
+    lines: list[str] = []
+    for name, table in tables.items():
+        lines += [f"[{name}]", *(f"{key} = {_toml(value)}" for key, value in table.items()), ""]
+    return "\n".join(lines)
+
+
+def _toml(value: Any) -> str:
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{key} = {_toml(v)}" for key, v in value.items()) + " }"
+    return json.dumps(value)  # JSON's booleans, numbers, strings and arrays are TOML's too
 
 
 def fmt(value: float) -> str:
@@ -178,7 +198,7 @@ def parse_plan(text: str, path: str = "<plan>") -> Plan:
         text=text,
         path=path,
         rig=rig,
-        kind=target["kind"],
+        kind=kind_name(target["kind"]),
         apertures=[float(a) for a in capture["apertures"]],
         x=[float(v) for v in capture.get("x", [])],
         y=[float(v) for v in capture["y"]] if "y" in capture else None,
@@ -213,13 +233,13 @@ def check_text(text: str) -> list[str]:
         if name not in data:
             problems.append(f"missing table [{name}]")
     problems += _check_rig(tables["rig"])
-    kind = tables["target"].get("kind")
-    problems += _check_target(tables["target"], "target" in data)
+    kind = kind_name(tables["target"].get("kind"))
+    problems += _check_target(tables["target"], kind, "target" in data)
     if tables["rig"].get("simulate") is True:
         scene = tables["rig"].get("scene", "bernoulli")
-        if kind == "pair" and scene != "texture":
+        if kind == TWO_PHOTO and scene != "texture":
             problems.append('[rig] a simulated pair needs scene = "texture" (a textured plane)')
-        if kind == "bernoulli" and scene != "bernoulli":
+        if kind == BERNOULLI and scene != "bernoulli":
             problems.append('[rig] a simulated bernoulli target needs scene = "bernoulli" (the default)')
     problems += _check_capture(tables["capture"], kind, "capture" in data)
     problems += _check_limits(tables["rig"], tables["target"], tables["capture"], kind)
@@ -273,18 +293,18 @@ def _check_rig(rig: dict) -> list[str]:
     return problems
 
 
-def _check_target(target: dict, present: bool) -> list[str]:
+def _check_target(target: dict, kind: Any, present: bool) -> list[str]:
     if not present:
         return []
-    kind = target.get("kind")
-    if kind not in KINDS:
-        return [f"[target] kind must be one of {', '.join(repr(k) for k in KINDS)}, got {kind!r}"]
-    if kind == "bernoulli":
-        return [f"[target] {k} applies to kind = \"pair\" only" for k in ("near", "far") if k in target]
+    if kind not in CAPTURE_KINDS:
+        expected = ", ".join(repr(k) for k in CAPTURE_KINDS)
+        return [f"[target] kind must be one of {expected}, got {target.get('kind')!r}"]
+    if kind == BERNOULLI:
+        return [f"[target] {k} applies to kind = \"{TWO_PHOTO}\" only" for k in ("near", "far") if k in target]
     problems = []
     for key in ("near", "far"):
         if key not in target:
-            problems.append(f"[target] kind = \"pair\" needs {key} (distance in mm)")
+            problems.append(f"[target] kind = \"{TWO_PHOTO}\" needs {key} (distance in mm)")
         elif not _is_number(target[key]) or target[key] <= 0:
             problems.append(f"[target] {key} must be a positive distance in mm, got {target[key]!r}")
     if not problems and target["near"] >= target["far"]:
@@ -300,9 +320,9 @@ def _check_capture(capture: dict, kind: Any, present: bool) -> list[str]:
         problems.append("[capture] needs apertures, e.g. apertures = [5.6, 8]")
     else:
         problems += _number_list(capture, "apertures", "[capture]", positive=True)
-    if kind == "bernoulli" and "x" not in capture:
+    if kind == BERNOULLI and "x" not in capture:
         problems.append("[capture] needs x (rail distances in mm) for a bernoulli target")
-    if kind == "pair" and "x" in capture:
+    if kind == TWO_PHOTO and "x" in capture:
         problems.append("[capture] x does not apply to a pair target: set near and far in [target]")
     for axis in AXES:
         if axis in capture:
@@ -339,7 +359,7 @@ def _check_limits(rig: dict, target: dict, capture: dict, kind: Any) -> list[str
     if not isinstance(limits, dict):
         return []
     values: dict[str, list] = {axis: capture.get(axis) for axis in AXES}
-    if kind == "pair":
+    if kind == TWO_PHOTO:
         values["x"] = [target.get("near"), target.get("far")]
     problems = []
     for axis, pair in limits.items():
@@ -356,8 +376,8 @@ def _check_limits(rig: dict, target: dict, capture: dict, kind: Any) -> list[str
 def _check_ratio(target: dict, est: dict, kind: Any) -> list[str]:
     """A pair's distance ratio lambda ~ far / near must exceed s (SIAM J. Imaging Sci. 2012, Remark 2;
     the estimator measures lambda from the photos and refuses lambda <= s, so say it before the rig moves)."""
-    near, far, s = target.get("near"), target.get("far"), est.get("s", 3)
-    if kind != "pair" or not all(map(_is_number, (near, far, s))) or near <= 0 or near >= far:
+    near, far, s = target.get("near"), target.get("far"), est.get("s", DEFAULT_S[TWO_PHOTO])
+    if kind != TWO_PHOTO or not all(map(_is_number, (near, far, s))) or near <= 0 or near >= far:
         return []
     if far / near <= s:
         return [f"[target] far / near = {far / near:.3g} must exceed s = {fmt(s)} (move near closer or far away)"]
@@ -365,22 +385,22 @@ def _check_ratio(target: dict, est: dict, kind: Any) -> list[str]:
 
 
 def _check_estimator(est: dict, kind: Any) -> list[str]:
-    problems = []
-    s = est.get("s", 4 if kind == "bernoulli" else 3)
-    if not isinstance(s, int) or isinstance(s, bool) or not 1 <= s <= 8:
-        problems.append(f"[estimator] s must be an integer from 1 to 8, got {s!r}")
-    if "support" in est:
-        support = est["support"]
-        if not isinstance(support, int) or isinstance(support, bool) or support < 3 or support % 2 == 0:
-            problems.append(f"[estimator] support must be an odd integer >= 3, got {support!r}")
+    """The sizes and solver, each by the one check of `psfd.vocabulary` (every problem, not only the first)."""
+    checks = [(check_s, est.get("s", DEFAULT_S.get(kind, DEFAULT_S[BERNOULLI])), "s")]
+    checks += [(check, est[key], key) for check, key in ((check_support, "support"), (check_grid, "grid"))
+               if key in est]
     if "solver" in est:
-        if kind == "pair":
-            problems.append("[estimator] solver applies to a bernoulli target only")
-        elif est["solver"] not in SOLVERS:
-            problems.append(f"[estimator] solver must be one of {', '.join(SOLVERS)}, got {est['solver']!r}")
-    if "grid" in est:
-        grid = est["grid"]
-        if not (isinstance(grid, list) and len(grid) == 2
-                and all(isinstance(g, int) and not isinstance(g, bool) and g >= 1 for g in grid)):
-            problems.append(f"[estimator] grid must be [nx, ny] with positive integers, got {grid!r}")
+        if kind == TWO_PHOTO:
+            return _problems(checks) + ["[estimator] solver applies to a bernoulli target only"]
+        checks.append((check_solver, est["solver"], "solver"))
+    return _problems(checks)
+
+
+def _problems(checks: list[tuple[Any, Any, str]]) -> list[str]:
+    problems = []
+    for check, value, key in checks:
+        try:
+            check(value, f"[estimator] {key}")
+        except BadInputError as exc:
+            problems.append(str(exc))
     return problems

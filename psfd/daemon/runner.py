@@ -3,9 +3,7 @@
 Durability rules, in the order a step goes through them:
 
 1. the step is marked ``running`` in the catalogue before the rig moves;
-2. each RAW file is written to a temporary name in the frame store, fsynced,
-   and renamed to its sha256 (``frames/ab/ab12...ef.dng``): a file with that
-   name is complete, and the same exposure stored twice is one file;
+2. each RAW file goes into the content-addressed frame store (`psfd.daemon.store`);
 3. PSFs are estimated in worker processes while the rig goes on to the next
    step, so the rig only waits when every worker is busy;
 4. the parent commits frames, PSFs and the step's ``done`` state in one
@@ -19,21 +17,21 @@ A failed step (camera gone, rail alarm, no target in the frame) is marked
 the rig is released, and the run is ``paused``: ``--resume`` retries it.
 
 A run's journal says ``running`` only while its process holds the frame-store
-lock (`store_busy`): a ``running`` run whose store is free was killed, and is
+lock (`store.store_busy`): a ``running`` run whose store is free was killed, and is
 resumable like a paused one (`interrupted`). Starting a plan that has an
-unfinished run is refused unless the caller resumes it or asks for a new run,
-so that no position is measured twice by accident.
+unfinished run (`Catalogue.unfinished_run`) is refused unless the caller
+resumes it or asks for a new run, so that no position is measured twice by accident.
+
+`run_plan` is the one way to run a plan: open the catalogue and the plan's rig,
+run, and fetch the stored rows; the command line and the service both call it.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
-import fcntl
-import hashlib
 import multiprocessing
 import os
-import re
 import shutil
 import sys
 import tempfile
@@ -42,17 +40,19 @@ import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import IO, Any, Callable, Iterator
+from typing import IO, Any, Callable
 
-from psfd.catalogue import FrameRecord
+from psfd.catalogue import Catalogue, FrameRecord
 from psfd.daemon import work
 from psfd.daemon.plan import Plan, Step
+from psfd.daemon.store import INCOMING, shown_state, store_frame, store_lock, sweep_frames
+from psfd.drivers import open_rig
 from psfd.drivers.base import Camera, Rail
-from psfd.errors import BadInputError, CameraError, EstimationError, HardwareError, PsfdError, ServiceError
+from psfd.errors import BadInputError, CameraError, EstimationError, HardwareError, PsfdError
 from psfd.estimator.raw import RAW_SUFFIXES
+from psfd.vocabulary import camera_fnumber
 
-FRAME_NAME = re.compile(r"^[0-9a-f]{64}\.[A-Za-z0-9]+$")
-INCOMING = ".incoming-"
+__all__ = ["Control", "RunResult", "Runner", "default_workers", "release_rig", "run_plan", "start_check"]
 
 
 class Control:
@@ -92,6 +92,19 @@ class RunResult:
     capture_s: float = 0.0
     rig_wait_s: float = 0.0
     psf_ids: list[int] = field(default_factory=list)
+    rows: list[dict] | None = None  # the stored PSF rows, when `run_plan` was asked for them
+
+    def to_dict(self) -> dict:
+        """JSON-ready fields: what the service answers and the command line prints."""
+        out = {
+            "run_id": self.run_id, "state": self.state, "reason": self.reason,
+            "exit_code": self.error.exit_code if self.error else 0,
+            "steps_done": self.steps_done, "frames": self.frames, "psfs": self.psfs,
+            "psf_ids": self.psf_ids, "elapsed_s": round(self.elapsed_s, 3),
+        }
+        if self.rows is not None:
+            out["rows"] = self.rows
+        return out
 
 
 class Progress:
@@ -131,107 +144,6 @@ def default_workers() -> int:
     the bench 1.8x faster than two (bench/bench_throughput.py).
     """
     return max(1, min(4, (os.cpu_count() or 2) - 1))
-
-
-def frames_dir_for(catalogue_path: str | os.PathLike) -> Path:
-    """Default frame store beside a catalogue file: ``catalogue.db`` -> ``catalogue-frames/``."""
-    path = Path(catalogue_path)
-    return path.with_name(path.stem + "-frames")
-
-
-def store_frame(src: Path, frames_dir: Path) -> tuple[Path, str]:
-    """Move a captured file into the store under its sha256; returns (path, sha256).
-
-    The data is fsynced before the rename and the folder after it, so the
-    name is only ever seen on a complete file. An identical file already
-    stored is re-used.
-    """
-    digest = hashlib.sha256()
-    with open(src, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-        os.fsync(fh.fileno())
-    sha = digest.hexdigest()
-    folder = frames_dir / sha[:2]
-    folder.mkdir(parents=True, exist_ok=True)
-    dest = folder / f"{sha}{src.suffix.lower()}"
-    if dest.exists():
-        src.unlink()
-    else:
-        os.replace(src, dest)
-        _fsync_dir(folder)
-    return dest.resolve(), sha
-
-
-def _fsync_dir(folder: Path) -> None:
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-@contextlib.contextmanager
-def store_lock(frames_dir: Path) -> Iterator[None]:
-    """Hold the frame store for one run at a time.
-
-    Another run's sweep would take this run's stored-but-not-yet-committed
-    frames for orphans. The lock is an flock, so a killed run never leaves it behind.
-    """
-    try:
-        frames_dir.mkdir(parents=True, exist_ok=True)
-        fh = open(frames_dir / ".lock", "a")
-    except OSError as exc:
-        raise BadInputError(f"cannot use {frames_dir} as the frame store: {exc.strerror or exc}") from None
-    with fh:
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise ServiceError(f"the frame store {frames_dir} is in use by another run") from None
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
-
-
-def store_busy(frames_dir: str | os.PathLike) -> bool:
-    """True while some process holds the frame store's lock, i.e. runs a plan on it."""
-    lock = Path(frames_dir) / ".lock"
-    try:
-        fh = open(lock, "rb")
-    except OSError:
-        return False  # no lock file (or unreadable): no run has ever held it
-    with fh:
-        try:
-            fcntl.flock(fh, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return True
-        fcntl.flock(fh, fcntl.LOCK_UN)
-        return False
-
-
-def shown_state(state: str, frames_dir: str | os.PathLike) -> str:
-    """A run's state as a user should read it: ``running`` with nobody holding the store is ``interrupted``."""
-    return "interrupted" if state == "running" and not store_busy(frames_dir) else state
-
-
-def sweep_frames(frames_dir: Path, known: set[str]) -> list[Path]:
-    """Remove what a crash left in the store: temporary folders and frames the catalogue does not hold.
-
-    Only files named like stored frames (sha256 + suffix) are touched; ``known``
-    holds the catalogued hashes. Returns the removed paths.
-    """
-    removed: list[Path] = []
-    if not frames_dir.is_dir():
-        return removed
-    for incoming in frames_dir.glob(INCOMING + "*"):
-        shutil.rmtree(incoming, ignore_errors=True)
-        removed.append(incoming)
-    for path in frames_dir.glob("??/*"):
-        if FRAME_NAME.match(path.name) and path.name.split(".")[0] not in known:
-            path.unlink()
-            removed.append(path)
-    return removed
 
 
 class Runner:
@@ -479,7 +391,7 @@ class Runner:
         bar.step(step.key)
 
 
-def start_check(catalogue: Any, plan: Plan, resume: bool, new: bool,
+def start_check(catalogue: Catalogue, plan: Plan, resume: bool, new: bool,
                 frames_dir: str | os.PathLike | None = None) -> int | None:
     """The run to resume (None: start a new one), or why this plan may not start.
 
@@ -489,24 +401,50 @@ def start_check(catalogue: Any, plan: Plan, resume: bool, new: bool,
     Raises
     ------
     BadInputError
-        ``resume`` and the plan has no paused or interrupted run; or it has one
-        and neither ``resume`` nor ``new`` was asked (cancelled and failed runs are closed).
+        ``resume`` and the plan has no unfinished run (`Catalogue.unfinished_run`); or it has one
+        and neither ``resume`` nor ``new`` was asked.
     """
-    plan_hash = hashlib.sha256(plan.text.encode()).hexdigest()
-    unfinished = next((r for r in catalogue.runs()
-                       if r["plan_hash"] == plan_hash and r["state"] in ("paused", "running")), None)
+    unfinished = catalogue.unfinished_run(plan.text)
     if resume:
         if unfinished is None:
             raise BadInputError(f"no unfinished run of plan {plan.path} to resume")
-        return int(unfinished["id"])
+        return unfinished
     if unfinished is not None and not new:
-        summary = catalogue.run_summary(unfinished["id"])
-        state = unfinished["state"]
+        summary = catalogue.run_summary(unfinished)
+        state = summary["state"]
         state = shown_state(state, frames_dir) if frames_dir is not None else state.replace("running", "interrupted")
         raise BadInputError(
-            f"run {unfinished['id']} of plan {plan.path} is {state} ({summary['done']}/{summary['total']} "
+            f"run {unfinished} of plan {plan.path} is {state} ({summary['done']}/{summary['total']} "
             "steps done): add --resume to continue it, or --new to start a fresh run")
     return None
+
+
+def run_plan(
+    plan: Plan,
+    catalogue_path: str | os.PathLike,
+    frames_dir: str | os.PathLike,
+    *,
+    resume: bool = False,
+    new: bool = False,
+    oneshot: bool = False,
+    rows: bool = False,
+    **runner_options: Any,
+) -> RunResult:
+    """Run a plan on the rig its ``[rig]`` table names, into a catalogue and a frame store.
+
+    The one way to run a plan: open the catalogue (created when missing), open the
+    rig, `Runner.run` (``resume``, ``new`` and ``oneshot`` as there), and with
+    ``rows`` put the stored PSF rows (metadata, no arrays) into the result.
+    ``runner_options`` go to `Runner` (``workers``, ``backlog``, ``control``,
+    ``progress``, ``on_step``).
+    """
+    with Catalogue(catalogue_path) as catalogue:
+        camera, rail = open_rig(plan.rig_config())
+        result = Runner(catalogue, frames_dir, **runner_options).run(plan, camera, rail, resume=resume, new=new,
+                                                                     oneshot=oneshot)
+        if rows:
+            result.rows = [catalogue.psf(i)[1] for i in result.psf_ids]
+    return result
 
 
 def _aperture_choice(camera: Camera, aperture: float) -> str:
@@ -516,12 +454,9 @@ def _aperture_choice(camera: Camera, aperture: float) -> str:
     except CameraError:
         choices = []
     for choice in choices:
-        number = re.sub(r"^[fF]/?", "", choice.strip())
-        try:
-            if abs(float(number) - aperture) < 1e-6:
-                return choice
-        except ValueError:
-            continue
+        number = camera_fnumber(choice)
+        if number is not None and abs(number - aperture) < 1e-6:
+            return choice
     offered = ", ".join(choices)
     if choices:
         raise CameraError(f"aperture f/{aperture:g} is not offered by the camera (offered: {offered})")

@@ -12,7 +12,8 @@ JSON object back::
     {"cmd": "submit", ..., "wait": true}   # answer only when the job has ended (used by `psfd capture`)
     {"cmd": "submit", ..., "oneshot": true}  # never left resumable: closed as failed where it would pause
 
-``resume`` and ``new`` mean what they mean to `Runner.run`; a submit that the
+`psfd.daemon.client` is the other end (any command can use it without loading
+this module). ``resume`` and ``new`` mean what they mean to `Runner.run`; a submit that the
 catalogue refuses (nothing to resume, or an unfinished run without ``new``)
 is answered with the error at once instead of queued.
 
@@ -38,23 +39,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from psfd.daemon.client import MAX_REQUEST, service_up
 from psfd.daemon.plan import Plan, check_text, parse_plan
-from psfd.daemon.runner import Control, Runner, RunResult, start_check
+from psfd.daemon.runner import Control, run_plan, start_check
 from psfd.errors import BadInputError, PsfdError, ServiceError
 
-MAX_REQUEST = 1 << 20  # a plan is a few kB; refuse anything absurd instead of buffering it
 SOCKET_MODE = 0o660
-
-
-def default_socket_path() -> Path:
-    """$PSFD_SOCKET, else the systemd RuntimeDirectory, else a per-user runtime folder."""
-    if os.environ.get("PSFD_SOCKET"):
-        return Path(os.environ["PSFD_SOCKET"])
-    if os.environ.get("RUNTIME_DIRECTORY"):
-        return Path(os.environ["RUNTIME_DIRECTORY"].split(":")[0]) / "control.sock"
-    if os.environ.get("XDG_RUNTIME_DIR"):
-        return Path(os.environ["XDG_RUNTIME_DIR"]) / "psfd" / "control.sock"
-    return Path(f"/tmp/psfd-{os.getuid()}") / "control.sock"
 
 
 def notify(message: str) -> bool:
@@ -80,45 +70,6 @@ def watchdog_interval() -> float | None:
     if not usec or (pid and pid != str(os.getpid())):
         return None
     return int(usec) / 2e6
-
-
-# -- client --------------------------------------------------------------------------------------
-
-
-def request(path: str | os.PathLike, payload: dict, timeout: float | None = 10.0) -> dict:
-    """Send one request to the service and return its answer.
-
-    Raises
-    ------
-    ServiceError
-        The socket cannot be reached or the service refused the request.
-    """
-    try:
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-            sock.settimeout(timeout)
-            sock.connect(str(path))
-            sock.sendall(json.dumps(payload).encode() + b"\n")
-            with sock.makefile("rb") as reader:
-                line = reader.readline(MAX_REQUEST)
-    except OSError as exc:
-        raise ServiceError(f"cannot reach the service at {path}: {exc.strerror or exc}") from None
-    if not line:
-        raise ServiceError(f"the service at {path} closed the connection without answering")
-    answer = json.loads(line)
-    if not answer.get("ok"):
-        raise ServiceError(answer.get("error", "request refused"))
-    return answer
-
-
-def service_up(path: str | os.PathLike) -> bool:
-    """True when something accepts connections on the control socket."""
-    try:
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-            sock.settimeout(2.0)
-            sock.connect(str(path))
-        return True
-    except OSError:
-        return False
 
 
 # -- service -------------------------------------------------------------------------------------
@@ -228,9 +179,6 @@ class Service:
     # -- runner thread -----------------------------------------------------------------------
 
     def _run_jobs(self) -> None:
-        from psfd.catalogue import Catalogue
-        from psfd.drivers import open_rig
-
         while True:
             job = self.jobs.get()
             if job is None:
@@ -245,15 +193,10 @@ class Service:
                 self.current = {"plan": job.plan.path, "step": None, "done": 0,
                                 "total": len(job.plan.steps())}
             try:
-                with Catalogue(self.catalogue_path) as catalogue:
-                    camera, rail = open_rig(job.plan.rig_config())
-                    runner = Runner(catalogue, self.frames_dir, control=self.control, **self.runner_options,
-                                    progress=None, on_step=self._on_step)
-                    result = runner.run(job.plan, camera, rail, resume=job.resume, new=job.new,
-                                        oneshot=job.oneshot)
-                    job.result = result_dict(result)
-                    if job.wait:
-                        job.result["rows"] = [catalogue.psf(i)[1] for i in result.psf_ids]
+                result = run_plan(job.plan, self.catalogue_path, self.frames_dir, resume=job.resume, new=job.new,
+                                  oneshot=job.oneshot, rows=job.wait, control=self.control, progress=None,
+                                  on_step=self._on_step, **self.runner_options)
+                job.result = result.to_dict()
                 self.paused = job.plan if result.state == "paused" else None
             except PsfdError as exc:
                 job.result = {"state": "failed", "reason": str(exc), "exit_code": exc.exit_code}
@@ -373,13 +316,3 @@ class Service:
         if self.paused is None:
             raise ServiceError("no paused run to resume")
         return self._enqueue(self.paused, True, bool(req.get("wait")))
-
-
-def result_dict(result: RunResult) -> dict:
-    """A RunResult as JSON-ready answer fields."""
-    return {
-        "run_id": result.run_id, "state": result.state, "reason": result.reason,
-        "exit_code": result.error.exit_code if result.error else 0,
-        "steps_done": result.steps_done, "frames": result.frames, "psfs": result.psfs,
-        "psf_ids": result.psf_ids, "elapsed_s": round(result.elapsed_s, 3),
-    }

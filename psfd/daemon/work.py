@@ -12,6 +12,8 @@ import os
 import threading
 import time
 
+from psfd.vocabulary import BERNOULLI
+
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
@@ -44,7 +46,7 @@ def estimate_step(kind: str, paths: list[str], channels: list[str], options: dic
     Parameters
     ----------
     kind : str
-        ``bernoulli`` (one frame of the noise target) or ``pair`` (near frame, far frame).
+        ``bernoulli`` (one frame of the noise target) or ``two-photo`` (near frame, far frame): `Plan.kind`.
     paths : list of str
         The stored RAW frames of the step, in capture order.
     channels : list of str
@@ -54,7 +56,7 @@ def estimate_step(kind: str, paths: list[str], channels: list[str], options: dic
 
     Returns
     -------
-    list of psfd.estimator.psf.PSF
+    list of psfd.estimator.kernels.PSF
         All windows of every channel, channel by channel.
     """
     import cv2
@@ -63,7 +65,7 @@ def estimate_step(kind: str, paths: list[str], channels: list[str], options: dic
 
     cv2.setNumThreads(1)
     out = []
-    if kind == "bernoulli":
+    if kind == BERNOULLI:
         from psfd.estimator.bernoulli import estimate_target
 
         planes = {f.channel: f for f in raw.load_frames(paths[0])}

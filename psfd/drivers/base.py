@@ -6,9 +6,14 @@ gphoto2 or pyserial, so that the simulated rig and the recordings can stand in.
 
 from __future__ import annotations
 
+import dataclasses
+import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
+
+from psfd.errors import BadInputError
 
 
 @dataclass(frozen=True)
@@ -22,6 +27,114 @@ class CameraInfo:
     port: str = ""
 
 
+FOCUS_RULES = ("off", "manual", "any")
+CAPTURE_TARGETS = ("ram", "card")
+
+
+@dataclass(frozen=True)
+class CameraSetup:
+    """How a camera must be set up for PSF work; `Camera.prepare` applies it before the rail moves.
+
+    Parameters
+    ----------
+    raw : bool
+        Shoot RAW: refuse (before any motion) a camera that cannot be set to a
+        full-resolution RAW format. False only for demonstrations.
+    focus : str
+        ``off``: turn autofocus off where the body allows it and refuse when the
+        lens or body still reports autofocus; ``manual``: as ``off``, and also
+        refuse when the camera reports no focus mode at all (nothing confirms
+        manual focus); ``any``: leave focus alone (a person at the bench).
+    capture_target : str
+        ``ram`` (default): frames go to the camera's RAM and only exist on this
+        computer once downloaded; ``card``: they are written to the memory card
+        first (kept on the card if the download fails).
+    exposure_delay : bool
+        Use the body's exposure delay (mirror up, pause, then shutter) where it
+        offers one over USB.
+    settle_s : float
+        Seconds between the rail stopping and the shutter, for the rig's
+        vibrations to die out (plan setting, default 2 s); see `settle`.
+    bulb_s : float, optional
+        Exposure time when the camera's shutter speed is bulb (bulb is refused without it).
+    """
+
+    raw: bool = True
+    focus: str = "off"
+    capture_target: str = "ram"
+    exposure_delay: bool = True
+    settle_s: float = 2.0
+    bulb_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.focus not in FOCUS_RULES:
+            raise BadInputError(f"focus = {self.focus!r}: use one of {', '.join(FOCUS_RULES)}")
+        if self.capture_target not in CAPTURE_TARGETS:
+            raise BadInputError(f"capture_target = {self.capture_target!r}: use ram or card")
+        if not 0.0 <= float(self.settle_s) <= 600.0:
+            raise BadInputError(f"settle_s = {self.settle_s}: give seconds between 0 and 600")
+        if self.bulb_s is not None and not float(self.bulb_s) > 0.0:
+            raise BadInputError(f"bulb_s = {self.bulb_s}: give a positive exposure time in seconds")
+
+    @classmethod
+    def from_mapping(cls, table: Mapping[str, Any] | None) -> "CameraSetup":
+        """A setup from a plan table whose keys are the field names; unknown keys are refused."""
+        table = dict(table or {})
+        fields = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(table) - fields)
+        if unknown:
+            known = ", ".join(sorted(fields))
+            raise BadInputError(f"unknown camera setup key(s) {', '.join(unknown)} (known: {known})")
+        try:
+            return cls(**table)
+        except (TypeError, ValueError) as exc:
+            raise BadInputError(f"bad camera setup: {exc}") from None
+
+
+@dataclass(frozen=True)
+class CameraReady:
+    """What `Camera.prepare` did and found: store it with the run, log the notes.
+
+    ``image_format``, ``capture_target``, ``drive_mode`` and ``exposure_delay``
+    are the camera's own values after preparation (None: the body has no such
+    setting). ``focus`` is ``manual`` (the lens or body reports manual focus),
+    ``af-off`` (autofocus turned off through the driver, nothing reports AF),
+    ``af`` (autofocus on: only with ``focus = "any"``) or ``unknown``.
+    ``files_per_exposure`` is how many files one exposure produces (2 for
+    RAW+JPEG; None when the format does not tell). ``settle_s`` is the wait the
+    runner applies after each move (0 for a simulated rail, which does not shake).
+    """
+
+    image_format: str | None
+    files_per_exposure: int | None
+    capture_target: str | None
+    focus: str
+    focus_detail: str
+    exposure_delay: str | None
+    drive_mode: str | None
+    settle_s: float
+    notes: tuple[str, ...] = ()
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain dict, for the catalogue."""
+        return dataclasses.asdict(self)
+
+
+def settle(seconds: float, since: float | None = None, *, sleep: Callable[[float], None] = time.sleep,
+           clock: Callable[[], float] = time.monotonic) -> float:
+    """Wait until ``seconds`` have passed since the rail stopped; returns the seconds waited.
+
+    ``since`` is the `time.monotonic` reading taken when the move returned
+    (default: now), so time already spent (saving the previous frame) counts.
+    """
+    start = clock() if since is None else float(since)
+    remaining = start + float(seconds) - clock()
+    if remaining > 0:
+        sleep(remaining)
+        return remaining
+    return 0.0
+
+
 @dataclass(frozen=True)
 class Position:
     """Rail position in millimetres (None for an axis the rail does not have)."""
@@ -29,6 +142,23 @@ class Position:
     x: float
     y: float | None = None
     z: float | None = None
+
+
+@dataclass(frozen=True)
+class RailInfo:
+    """What a rail controller says about itself.
+
+    ``travel`` is the reachable span per axis in mm, in the coordinates `Rail.move` takes (for a GRBL
+    controller: its machine travel [-$130, 0] shifted by the work offset, narrowed by the rig's limits).
+    Positions are always mm; ``units`` is what the controller itself reports in ("mm" or "inch").
+    """
+
+    controller: str
+    axes: tuple[str, ...]
+    travel: dict[str, tuple[float, float]]
+    units: str = "mm"
+    homing: bool = False
+    state: str = ""
 
 
 @runtime_checkable
@@ -49,6 +179,14 @@ class Camera(Protocol):
 
     def set(self, name: str, value: str) -> None:
         """Set a setting; a value not offered raises CameraError listing the offered ones."""
+        ...
+
+    def prepare(self, setup: CameraSetup) -> CameraReady:
+        """Set the camera up for PSF work (RAW, capture target, focus, exposure delay) before any motion.
+
+        Raises CameraError, naming what to change, when the camera cannot be set
+        up as asked (no RAW, autofocus that cannot be turned off).
+        """
         ...
 
     def capture(self, dest: Path) -> list[Path]:
@@ -76,6 +214,14 @@ class Rail(Protocol):
         """Current position."""
         ...
 
+    def info(self) -> RailInfo:
+        """Controller, axes, travel per axis, units, whether it homes, current state."""
+        ...
+
+    def unlock(self) -> Position:
+        """Clear an alarm lock without homing (the position is what the controller believes)."""
+        ...
+
     def close(self) -> None:
-        """Release the port."""
+        """Release the port (a rail is never left moving: moves return only once motion has stopped)."""
         ...

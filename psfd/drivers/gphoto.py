@@ -1,9 +1,18 @@
-"""A camera driven through libgphoto2 (python-gphoto2): settings, capture, download.
+"""A camera driven through libgphoto2 (python-gphoto2): setup for PSF work, capture, download.
 
 Plain hardware code in the style of python-gphoto2's examples: detect the
 camera, read and write configuration widgets, trigger a capture and collect
 the files it produces from camera events (a RAW+JPEG capture produces two
-``GP_EVENT_FILE_ADDED``), download them, optionally delete them from the card.
+``GP_EVENT_FILE_ADDED``, not always close together), download them, delete
+them from the camera.
+
+`GPhotoCamera.prepare` sets a camera up for PSF work before the rail moves:
+a full-resolution RAW format (refused when there is none), the capture
+target, single-frame drive, exposure delay where the body offers it over USB,
+and autofocus off. `GPhotoCamera.capture` drains stale events before the
+trigger, retries a busy camera with backoff, waits as long as the exposure
+needs, collects every file of the exposure, and reconnects once (with a USB
+reset where the device is still there) when the camera was lost.
 
 Every libgphoto2 call runs in a worker thread with a deadline: python-gphoto2
 releases the GIL during libgphoto2 calls, so a camera unplugged in the middle of
@@ -12,6 +21,8 @@ a USB transfer ends in a `CameraError` instead of freezing the service.
 
 from __future__ import annotations
 
+import logging
+import math
 import os
 import re
 import threading
@@ -21,9 +32,12 @@ from typing import Any, Callable
 
 import gphoto2 as gp
 
-from psfd.drivers.base import CameraInfo
+from psfd.drivers.base import CameraInfo, CameraReady, CameraSetup
 from psfd.drivers.recording import free_name
 from psfd.errors import CameraError
+from psfd.exif import exposure_seconds
+
+log = logging.getLogger(__name__)
 
 # Our setting names -> the widget names vendors use for them (first found wins).
 SETTING_ALIASES = {
@@ -33,6 +47,19 @@ SETTING_ALIASES = {
     "imageformat": ("imageformat", "imagequality"),
     "capturetarget": ("capturetarget",),
 }
+
+# Widgets `prepare` looks at, in the order tried (names of libgphoto2's ptp2 driver).
+DRIVE_WIDGETS = ("drivemode", "capturemode", "stillcapturemode")  # Canon EOS; Nikon and Sony
+# ``autofocus`` is the ptp2 driver's own switch for focusing before a capture (Nikon and
+# generic PTP bodies); ``continuousaf`` is Canon's continuous AF in live view.
+AF_SWITCH_WIDGETS = ("autofocus", "continuousaf")
+# What the lens or body reports: Canon ``focusmode`` (One Shot / AI Servo / Manual: the lens
+# AF/MF switch), Nikon ``focusmode`` (read-only on many bodies) and ``focusmode2`` (MF (fixed)).
+FOCUS_MODE_WIDGETS = ("focusmode", "focusmode2")
+# Nikon's exposure delay raises the mirror and waits before the shutter. Canon bodies keep
+# mirror lock-up in a custom function (``customfuncex``, a raw list of numbers per model),
+# which is not set from here: the settle time still applies to them.
+DELAY_WIDGETS = ("exposuredelaymode",)
 
 # What the usual libgphoto2 failures mean for the person at the bench.
 _HINTS = {
@@ -47,6 +74,10 @@ _HINTS = {
     gp.GP_ERROR_CAMERA_BUSY: "the camera is busy (still writing a previous frame, or in a menu)",
     gp.GP_ERROR_NOT_SUPPORTED: "the camera does not support this operation",
 }
+# Failures after which the camera handle is useless: reconnect (a USB reset if the device
+# is still on the bus) and retry once. A claim by another process is not one of them.
+GONE_CODES = frozenset({gp.GP_ERROR_IO, gp.GP_ERROR_IO_READ, gp.GP_ERROR_IO_WRITE, gp.GP_ERROR_IO_USB_FIND,
+                        gp.GP_ERROR_MODEL_NOT_FOUND, gp.GP_ERROR_TIMEOUT})
 
 
 class GPhotoCamera:
@@ -59,10 +90,19 @@ class GPhotoCamera:
     timeout : float
         Seconds allowed for one call (settings, one event wait, one download).
     capture_timeout : float
-        Seconds allowed from the trigger to the first file of a capture (long exposures need more).
-    settle : float
-        Quiet time after the last new file before a capture is considered complete
-        (a RAW+JPEG capture announces its two files one after the other).
+        Seconds allowed from the trigger to the last file of a capture on top of the
+        exposure itself: writing and announcing a RAW file. The exposure time (twice
+        it, for the dark frame of long-exposure noise reduction) and the exposure
+        delay are added from the camera's settings at each capture.
+    quiet_s : float
+        When the number of files per exposure is unknown (no `prepare`, or a format
+        that does not tell), a capture is complete after this long without a new file.
+    busy_s : float
+        How long a busy camera (gphoto2 -110) is retried, with backoff from 0.1 s to 2 s.
+    drain_s : float
+        Longest time spent discarding stale events before a trigger.
+    reconnect_s : float
+        How long a lost camera is waited for (re-enumeration after a USB reset or a replug).
     delete_after_download : bool
         Delete each file from the camera once downloaded (keeps the card from filling overnight).
     """
@@ -72,13 +112,23 @@ class GPhotoCamera:
         port: str | None = None,
         timeout: float = 10.0,
         capture_timeout: float = 30.0,
-        settle: float = 1.0,
+        quiet_s: float = 1.0,
+        busy_s: float = 10.0,
+        drain_s: float = 0.5,
+        reconnect_s: float = 20.0,
         delete_after_download: bool = True,
     ) -> None:
         self.timeout = float(timeout)
         self.capture_timeout = float(capture_timeout)
-        self.settle = float(settle)
+        self.quiet_s = float(quiet_s)
+        self.busy_s = float(busy_s)
+        self.drain_s = float(drain_s)
+        self.reconnect_s = float(reconnect_s)
         self.delete_after_download = delete_after_download
+        self.files_per_exposure: int | None = None  # set by prepare from the image format
+        self.strays: list[str] = []  # files announced outside any capture, discarded
+        self._setup: CameraSetup | None = None
+        self._delay_s = 0.0
         self._camera: Any = None
         self._model = ""
         self.port = ""
@@ -88,8 +138,7 @@ class GPhotoCamera:
 
     def _connect(self, port: str | None, model: str | None = None) -> None:
         """Find the camera (by port, by driver model, or the only one) and initialise it."""
-        cameras = self._call("detecting cameras", gp.Camera.autodetect)
-        found = [(cameras.get_name(i), cameras.get_value(i)) for i in range(cameras.count())]
+        found = self._call("detecting cameras", _detect)
         if port is not None:
             matches = [c for c in found if c[1] == port]
         elif model is not None:
@@ -105,17 +154,29 @@ class GPhotoCamera:
         self._model, self.port = matches[0]
         self._camera = self._call(f"connecting to {self._model}", _open_camera, self._model, self.port)
 
-    def reconnect(self, reset_usb: bool = True) -> None:
+    def reconnect(self, reset_usb: bool = True, wait_s: float = 0.0) -> None:
         """Release the camera, reset its USB device if possible, and connect again.
 
-        After a USB reset the device may come back at another address, so the
-        camera is found again by its driver model rather than by its old port.
+        After a USB reset or a replug the device comes back at another address,
+        so the camera is found again by its driver model, for up to ``wait_s``
+        seconds. A camera prepared before is prepared again (Canon bodies forget
+        the capture target with the USB session).
         """
         self.close()
         if reset_usb and self.port.startswith("usb:"):
             if reset_usb_device(self.port):
                 time.sleep(2.0)  # the camera re-enumerates after a bus reset
-        self._connect(None, model=self._model)
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                self._connect(None, model=self._model)
+                break
+            except CameraError:
+                if time.monotonic() >= deadline:
+                    raise
+                time.sleep(1.0)
+        if self._setup is not None:
+            self.prepare(self._setup)
 
     def close(self) -> None:
         """Release the camera (idempotent)."""
@@ -136,7 +197,7 @@ class GPhotoCamera:
 
     def info(self) -> CameraInfo:
         """Model, serial and lens from the status widgets the camera reports."""
-        config = self._call("reading the configuration", self._cam().get_config)
+        config = self._config()
         values = {name: _widget_value(config, name) for name in (
             "manufacturer", "cameramodel", "serialnumber", "eosserialnumber", "lensname", "focallength")}
         manufacturer, model = values["manufacturer"] or "", values["cameramodel"] or self._model
@@ -175,45 +236,238 @@ class GPhotoCamera:
         else:
             raw = str(value)
         self._call(f"setting {name}", widget.set_value, raw)
-        self._call(f"setting {name}", self._cam().set_config, config)
+        self._busy(f"setting {name}", self._cam().set_config, config)
+
+    def prepare(self, setup: CameraSetup) -> CameraReady:
+        """Set the camera up for PSF work before the rail moves; see `CameraSetup`.
+
+        In order: a full-resolution RAW format (raw-only preferred, RAW+JPEG
+        accepted, reduced sRAW/mRAW never: they are not the sensor's mosaic), the
+        capture target, single-frame drive (a self-timer or burst changes what one
+        trigger does), the exposure delay, and autofocus off.
+
+        Raises
+        ------
+        CameraError
+            The camera offers no RAW format, autofocus stays on (the lens or body
+            switch is on AF), ``focus = "manual"`` and nothing reports the focus
+            mode, or a setting did not take.
+        """
+        notes: list[str] = []
+        image_format, files = self._prepare_format(setup)
+        target = self._prepare_one(
+            "capture target", ("capturetarget",), lambda c: _target_choice(c, setup.capture_target), notes)
+        drive = self._prepare_one("drive mode", DRIVE_WIDGETS, _single_choice, notes)
+        delay = self._prepare_delay(setup, notes)
+        focus, detail = self._prepare_focus(setup, notes)
+        self._setup, self.files_per_exposure = setup, files
+        # Nikon's plain "On" waits about a second (up to 3 s on recent bodies)
+        self._delay_s = _leading_number(delay) or (3.0 if delay and delay.lower() == "on" else 0.0)
+        for note in notes:
+            log.warning("camera %s: %s", self._model, note)
+        return CameraReady(
+            image_format=image_format, files_per_exposure=files, capture_target=target,
+            focus=focus, focus_detail=detail, exposure_delay=delay, drive_mode=drive,
+            settle_s=float(setup.settle_s), notes=tuple(notes),
+        )
 
     def capture(self, dest: Path) -> list[Path]:
-        """Trigger one exposure and download every file it produced (RAW, RAW+JPEG) into ``dest``."""
+        """One exposure, every file it produced (RAW, RAW+JPEG) downloaded into ``dest``.
+
+        A camera lost on the way (unplugged, switched off, hung in a transfer) is
+        reconnected, prepared again, and the capture retried once.
+        """
         dest = Path(dest)
         dest.mkdir(parents=True, exist_ok=True)
-        paths = self._trigger_and_collect()
+        try:
+            return self._capture_once(dest)
+        except CameraError as exc:
+            if not getattr(exc, "gone", False):
+                raise
+            log.warning("camera %s lost during a capture (%s): reconnecting and retrying once", self._model, exc)
+            try:
+                self.reconnect(reset_usb=True, wait_s=self.reconnect_s)
+            except CameraError as again:
+                raise CameraError(f"{exc}; reconnecting failed: {again}") from None
+            return self._capture_once(dest)
+
+    # ------------------------------------------------------------------ preparation steps
+
+    def _prepare_format(self, setup: CameraSetup) -> tuple[str | None, int | None]:
+        """Set a RAW image format; returns the camera's value and the files one exposure gives."""
+        widget, name = self._first(SETTING_ALIASES["imageformat"])
+        if widget is None:
+            if setup.raw:
+                raise CameraError(f"camera {self._model} has no image format setting, so RAW cannot be set "
+                                  "or verified over USB; refusing before any motion")
+            return None, None
+        current, offered = str(widget.get_value()), _widget_choices(widget)
+        if not setup.raw:
+            return current, _files_of(current)
+        best = raw_choice(current, offered)
+        if best is None:
+            raise CameraError(f"camera {self._model} cannot shoot full-resolution RAW ({name} offers: "
+                              f"{', '.join(offered) or 'nothing'}); refusing before any motion")
+        if best != current:
+            if widget.get_readonly():
+                raise CameraError(f"camera {self._model} is set to {current} and {name} is read-only (an automatic "
+                                  "mode on the dial?): set it to RAW on the body; refusing before any motion")
+            self._apply(name, best)
+        return best, _files_of(best)
+
+    def _prepare_one(self, what: str, names: tuple[str, ...], pick: Callable[[list[str]], str | None],
+                     notes: list[str]) -> str | None:
+        """Set the first of ``names`` the camera has to the choice ``pick`` makes; returns the value."""
+        widget, name = self._first(names)
+        if widget is None:
+            notes.append(f"no {what} setting: the camera's own default applies")
+            return None
+        current, offered = str(widget.get_value()), _widget_choices(widget)
+        wanted = pick(offered)
+        if wanted is None or wanted == current:
+            if wanted is None:
+                notes.append(f"{what} left at {current} (none of {', '.join(offered)} fits)")
+            return current
+        if widget.get_readonly():
+            notes.append(f"{what} is {current} and read-only here (wanted {wanted})")
+            return current
+        self._apply(name, wanted)
+        return wanted
+
+    def _prepare_delay(self, setup: CameraSetup, notes: list[str]) -> str | None:
+        widget, name = self._first(DELAY_WIDGETS)
+        if widget is None:
+            if setup.exposure_delay:
+                notes.append("no exposure delay or mirror lock-up setting over USB: only the settle time "
+                             "damps vibrations (set mirror lock-up on the body if it has one)")
+            return None
+        current = str(widget.get_value())
+        if not setup.exposure_delay or widget.get_readonly():
+            return current
+        wanted = _delay_choice(_widget_choices(widget))
+        if wanted is not None and wanted != current:
+            self._apply(name, wanted)
+            return wanted
+        return current
+
+    def _prepare_focus(self, setup: CameraSetup, notes: list[str]) -> tuple[str, str]:
+        """Turn autofocus off where a widget allows it; returns (state, what the camera reports)."""
+        if setup.focus == "any":
+            reports = self._focus_reports()
+            return ("manual" if any(_is_manual(v) for v in reports.values()) else
+                    "af" if reports else "unknown"), _describe(reports)
+        switched = []
+        for name in AF_SWITCH_WIDGETS:
+            widget, _ = self._first((name,))
+            if widget is None or widget.get_readonly():
+                continue
+            off = _off_choice(_widget_choices(widget))
+            if off is not None:
+                if str(widget.get_value()) != off:
+                    self._apply(name, off)
+                switched.append(f"{name} = {off}")
+        for name in FOCUS_MODE_WIDGETS:
+            widget, _ = self._first((name,))
+            if widget is None or widget.get_readonly() or _is_manual(str(widget.get_value())):
+                continue
+            manual = next((c for c in _widget_choices(widget) if _is_manual(c)), None)
+            if manual is not None:
+                self._apply(name, manual)
+        reports = self._focus_reports()
+        detail = _describe(reports, switched)
+        if any(_is_manual(v) for v in reports.values()):
+            return "manual", detail
+        if reports:
+            raise CameraError(f"camera {self._model} reports autofocus ({detail}) and it cannot be turned off "
+                              "over USB: set the lens (or body) focus switch to M; refusing before any motion")
+        if switched:
+            return "af-off", detail
+        if setup.focus == "manual":
+            raise CameraError(f"camera {self._model} reports no focus mode, so manual focus cannot be confirmed "
+                              "(focus = \"manual\"): check the lens switch and use focus = \"off\" to go on")
+        notes.append("the camera reports no focus mode: make sure the lens is on manual focus")
+        return "unknown", detail
+
+    def _focus_reports(self) -> dict[str, str]:
+        config = self._config()
+        return {n: v for n in FOCUS_MODE_WIDGETS if (v := _widget_value(config, n)) is not None}
+
+    # ------------------------------------------------------------------ capture steps
+
+    def _capture_once(self, dest: Path) -> list[Path]:
+        timeout, bulb_s = self._capture_deadline()
+        self._drain()
+        paths = self._trigger_and_collect(timeout, bulb_s)
         saved = []
         for folder, name in paths:
             saved.append(self._download(folder, name, dest))
             if self.delete_after_download:
-                try:
-                    self._call(f"deleting {name}", self._cam().file_delete, folder, name)
-                except CameraError:
-                    pass  # a read-only card: the frame is downloaded, which is what matters
+                self._delete(folder, name)
         return saved
 
-    # ------------------------------------------------------------------ capture steps
+    def _capture_deadline(self) -> tuple[float, float | None]:
+        """Seconds allowed from the trigger to the last file, and the bulb time if the camera is on bulb."""
+        config = self._config()
+        shutter = next((v for n in SETTING_ALIASES["shutterspeed"] if (v := _widget_value(config, n))), None)
+        seconds = exposure_seconds(shutter) or 0.0
+        bulb_s = None
+        if math.isinf(seconds):
+            bulb_s = self._setup.bulb_s if self._setup is not None else None
+            if bulb_s is None:
+                raise CameraError(f"shutterspeed is {shutter}: give the exposure time (bulb_s) or set a timed "
+                                  "shutter speed")
+            seconds = bulb_s
+        # long-exposure noise reduction takes a dark frame as long as the exposure
+        return self.capture_timeout + 2.0 * seconds + self._delay_s, bulb_s
 
-    def _trigger_and_collect(self) -> list[tuple[str, str]]:
-        """Trigger a capture and gather the (folder, name) of each file added."""
+    def _drain(self) -> None:
+        """Discard events queued before the trigger; a file among them belongs to no capture of ours."""
+        deadline = time.monotonic() + self.drain_s
+        while time.monotonic() < deadline:
+            event, data = self._call("draining camera events", self._cam().wait_for_event, 10,
+                                     timeout=self.timeout)
+            if event == gp.GP_EVENT_TIMEOUT:
+                return
+            if event == gp.GP_EVENT_FILE_ADDED:
+                stray = f"{data.folder}/{data.name}"
+                self.strays.append(stray)
+                log.warning("camera %s: %s was announced after its capture had been collected; not counted",
+                            self._model, stray)
+                if self.delete_after_download:
+                    self._delete(data.folder, data.name)
+
+    def _trigger_and_collect(self, timeout: float, bulb_s: float | None) -> list[tuple[str, str]]:
+        """Trigger one exposure and gather the (folder, name) of each file it adds."""
         files: list[tuple[str, str]] = []
-        try:
-            self._call("triggering a capture", self._cam().trigger_capture)
-        except CameraError as exc:
-            if getattr(exc, "code", None) != gp.GP_ERROR_NOT_SUPPORTED:
-                raise
-            # Cameras without trigger_capture: a blocking capture returns the first file;
-            # any further file of the same exposure still arrives as an event below.
-            path = self._call("capturing", self._cam().capture, gp.GP_CAPTURE_IMAGE, timeout=self.capture_timeout)
-            files.append((path.folder, path.name))
-        start = last_new = time.monotonic()
+        start = time.monotonic()
+        if bulb_s is not None:
+            self._bulb(bulb_s)
+        else:
+            try:
+                self._busy("triggering a capture", self._cam().trigger_capture)
+            except CameraError as exc:
+                if getattr(exc, "code", None) != gp.GP_ERROR_NOT_SUPPORTED:
+                    raise
+                # Cameras without trigger_capture: a blocking capture returns the first file;
+                # any further file of the same exposure still arrives as an event below.
+                path = self._busy("capturing", self._cam().capture, gp.GP_CAPTURE_IMAGE, timeout=timeout)
+                files.append((path.folder, path.name))
+        expected = self.files_per_exposure
+        last_new = time.monotonic()
         while True:
             now = time.monotonic()
-            if files and now - last_new >= self.settle:
+            if expected is not None and len(files) >= expected:
                 return files
-            if not files and now - start > self.capture_timeout:
-                raise CameraError(f"capture produced no file within {self.capture_timeout:g} s")
-            wait_ms = int(1000 * min(self.settle, self.timeout))
+            if expected is None and files and now - last_new >= self.quiet_s:
+                return files
+            if now - start > timeout:
+                if files:
+                    log.warning("camera %s: %d of %d files of the exposure arrived within %g s",
+                                self._model, len(files), expected or len(files), timeout)
+                    return files
+                raise CameraError(f"capture produced no file within {timeout:g} s (exposure, delay and "
+                                  "writing included)")
+            wait_ms = 200 if expected is not None else int(1000 * min(self.quiet_s, self.timeout))
             event, data = self._call(
                 "waiting for the capture", self._cam().wait_for_event, wait_ms, timeout=wait_ms / 1000 + self.timeout
             )
@@ -223,9 +477,17 @@ class GPhotoCamera:
             elif event == gp.GP_EVENT_TIMEOUT and time.monotonic() - now < 0.01:
                 time.sleep(0.02)  # some drivers answer a wait at once: do not spin
 
+    def _bulb(self, seconds: float) -> None:
+        """A bulb exposure of ``seconds``: the shutter is always closed again, whatever happens."""
+        self._apply("bulb", 1, verify=False)
+        try:
+            time.sleep(seconds)
+        finally:
+            self._apply("bulb", 0, verify=False)
+
     def _download(self, folder: str, name: str, dest: Path) -> Path:
         """Copy one file from the camera into ``dest`` under a name not already used there."""
-        camera_file = self._call(
+        camera_file = self._busy(
             f"downloading {name}", self._cam().file_get, folder, name, gp.GP_FILE_TYPE_NORMAL
         )
         target = free_name(dest, name)
@@ -237,10 +499,40 @@ class GPhotoCamera:
             tmp.unlink(missing_ok=True)
         return target
 
+    def _delete(self, folder: str, name: str) -> None:
+        try:
+            self._call(f"deleting {name}", self._cam().file_delete, folder, name)
+        except CameraError as exc:
+            if getattr(exc, "gone", False):
+                raise
+            # a read-only card, or a RAM capture the camera dropped itself: nothing is lost
+
     # ------------------------------------------------------------------ plumbing
 
     def _config(self) -> Any:
         return self._call("reading the configuration", self._cam().get_config)
+
+    def _first(self, names: tuple[str, ...]) -> tuple[Any, str]:
+        """The first widget of ``names`` the camera has, and its name (None, "" if none)."""
+        config = self._config()
+        for name in names:
+            try:
+                return config.get_child_by_name(name), name
+            except gp.GPhoto2Error:
+                continue
+        return None, ""
+
+    def _apply(self, name: str, value: Any, verify: bool = True) -> None:
+        """Set vendor widget ``name`` to ``value`` and check that the camera kept it."""
+        config = self._config()
+        widget = config.get_child_by_name(name)
+        self._call(f"setting {name}", widget.set_value, value)
+        self._busy(f"setting {name}", self._cam().set_config, config)
+        if verify:
+            now = _widget_value(self._config(), name)
+            if now != str(value):
+                raise CameraError(f"camera {self._model} kept {name} = {now} when set to {value} "
+                                  "(the mode dial, a lens switch or a menu may fix it)")
 
     def _find(self, config: Any, name: str) -> tuple[Any, str]:
         """The widget behind one of our setting names (or a vendor widget name given as is)."""
@@ -254,8 +546,26 @@ class GPhotoCamera:
 
     def _cam(self) -> Any:
         if self._camera is None:
-            raise CameraError("camera is not connected (closed, or lost after an earlier failure); reconnect it")
+            error = CameraError("camera is not connected (closed, or lost after an earlier failure); reconnect it")
+            error.gone = True  # type: ignore[attr-defined]
+            raise error
         return self._camera
+
+    def _busy(self, what: str, fn: Callable, *args: Any, timeout: float | None = None) -> Any:
+        """`_call`, retried with backoff while the camera answers busy (gphoto2 -110)."""
+        pause, started = 0.1, time.monotonic()
+        while True:
+            try:
+                return self._call(what, fn, *args, timeout=timeout)
+            except CameraError as exc:
+                if getattr(exc, "code", None) != gp.GP_ERROR_CAMERA_BUSY:
+                    raise
+                if time.monotonic() - started + pause > self.busy_s:
+                    raise CameraError(f"camera stayed busy for {self.busy_s:g} s while {what} (still writing a "
+                                      f"frame, or a menu is open) [gphoto2 {gp.GP_ERROR_CAMERA_BUSY}]") from None
+                log.info("camera busy while %s: retrying in %.1f s", what, pause)
+                time.sleep(pause)
+                pause = min(2.0 * pause, 2.0)
 
     def _call(self, what: str, fn: Callable, *args: Any, timeout: float | None = None) -> Any:
         """Run one libgphoto2 call with a deadline, turning failures into CameraError."""
@@ -265,9 +575,10 @@ class GPhotoCamera:
         except TimeoutError:
             # libgphoto2 is stuck inside the call: abandon this handle, a reconnect makes a new one.
             self._camera = None
-            raise CameraError(
-                f"camera did not answer while {what} within {seconds:g} s (unplugged or hung); reconnect it"
-            ) from None
+            error = CameraError(
+                f"camera did not answer while {what} within {seconds:g} s (unplugged or hung); reconnect it")
+            error.gone = True  # type: ignore[attr-defined]
+            raise error from None
         except gp.GPhoto2Error as exc:
             raise camera_error(what, exc, self.port) from None
 
@@ -291,6 +602,12 @@ class GPhotoCamera:
         return result.get("value")
 
 
+def _detect() -> list[tuple[str, str]]:
+    """(driver model, port) of every camera libgphoto2 finds."""
+    cameras = gp.Camera.autodetect()
+    return [(cameras.get_name(i), cameras.get_value(i)) for i in range(cameras.count())]
+
+
 def _open_camera(model: str, port: str) -> Any:
     """Initialise the camera of driver ``model`` at ``port`` (python-gphoto2's choose-camera example)."""
     camera = gp.Camera()
@@ -305,11 +622,16 @@ def _open_camera(model: str, port: str) -> Any:
 
 
 def camera_error(what: str, exc: gp.GPhoto2Error, port: str = "") -> CameraError:
-    """A one-line CameraError for a libgphoto2 failure, with what it usually means."""
+    """A one-line CameraError for a libgphoto2 failure, with what it usually means.
+
+    The error carries the gphoto2 ``code`` and ``gone`` (True when the camera
+    handle is lost and a reconnect is the way on).
+    """
     where = f" on {port}" if port else ""
     hint = _HINTS.get(exc.code, exc.string)
     error = CameraError(f"camera{where}: {what} failed: {hint} [gphoto2 {exc.code}]")
     error.code = exc.code  # type: ignore[attr-defined]
+    error.gone = exc.code in GONE_CODES  # type: ignore[attr-defined]
     return error
 
 
@@ -338,6 +660,80 @@ def reset_usb_device(port: str) -> bool:
         return True
     except (usb.core.USBError, usb.core.NoBackendError, NotImplementedError, ValueError):
         return False
+
+
+# ---------------------------------------------------------------------- choosing values
+
+# A RAW format's own names; ``nef (raw)`` and ``raw + large fine jpeg`` both contain one.
+_RAW_WORD = re.compile(r"\b(c-?raw|raw|nef|cr2|cr3|arw|raf|orf|rw2|pef|dng|srw|3fr|iiq)\b", re.I)
+# Reduced RAW (Canon sRAW/mRAW, Sony/Nikon RAW M and S): demosaiced or binned, not the sensor mosaic.
+_REDUCED_RAW = re.compile(r"\b[ms]-?raw\b|\braw\s*\(?\s*[ms]\s*\)?(?![a-z])|\b(small|medium)\s+raw\b", re.I)
+
+
+def raw_choice(current: str, offered: list[str]) -> str | None:
+    """The image format to shoot PSFs in, or None when no full-resolution RAW is offered.
+
+    Preference: RAW alone, then compressed RAW alone (Canon C-RAW is lossy),
+    then RAW with a JPEG (two files per exposure); the current value is kept when
+    it is as good as the best offered.
+    """
+    def rank(choice: str) -> int | None:
+        if not _RAW_WORD.search(choice) or _REDUCED_RAW.search(choice):
+            return None
+        lossy = bool(re.search(r"\bc-?raw\b", choice, re.I))
+        return (0 if _files_of(choice) == 1 else 2) + (1 if lossy else 0)
+
+    ranked = [(r, c) for c in offered if (r := rank(c)) is not None]
+    if not ranked:
+        return None
+    best = min(r for r, _ in ranked)
+    if current in offered and rank(current) == best:
+        return current
+    return next(c for r, c in ranked if r == best)
+
+
+def _files_of(image_format: str) -> int | None:
+    """Files one exposure produces in ``image_format``: 1 for RAW or JPEG alone, 2 for RAW plus another."""
+    if not _RAW_WORD.search(image_format):
+        return 1 if image_format else None
+    rest = _RAW_WORD.sub("", image_format)
+    return 1 if not re.search(r"[a-z0-9]", rest, re.I) else 2
+
+
+def _target_choice(offered: list[str], target: str) -> str | None:
+    pattern = r"\bram\b|sdram" if target == "ram" else r"card"
+    return next((c for c in offered if re.search(pattern, c, re.I)), None)
+
+
+def _single_choice(offered: list[str]) -> str | None:
+    singles = [c for c in offered if c.lower().startswith("single")]
+    return min(singles, key=len) if singles else None
+
+
+def _off_choice(offered: list[str]) -> str | None:
+    return next((c for c in offered if c.strip().lower() == "off"), None)
+
+
+def _delay_choice(offered: list[str]) -> str | None:
+    """``On``, or the shortest delay of at least 1 s (mirror vibrations of a DSLR last about that long)."""
+    on = next((c for c in offered if c.strip().lower() == "on"), None)
+    if on is not None:
+        return on
+    delays = [(n, c) for c in offered if (n := _leading_number(c))]
+    long_enough = [d for d in delays if d[0] >= 1.0]
+    if long_enough:
+        return min(long_enough)[1]
+    return max(delays)[1] if delays else None
+
+
+def _is_manual(value: str) -> bool:
+    """``Manual``, ``MF``, ``MF (fixed)``, ``Manual Focus``, ``M`` (not ``DMF``: AF first)."""
+    return bool(re.match(r"\s*(manual|mf\b|m\s*$)", value, re.I))
+
+
+def _describe(reports: dict[str, str], switched: list[str] | None = None) -> str:
+    parts = [f"{k} = {v}" for k, v in reports.items()] + list(switched or [])
+    return ", ".join(parts) or "no focus setting reported"
 
 
 # ---------------------------------------------------------------------- widget helpers
@@ -388,4 +784,3 @@ def _match_choice(name: str, value: str, offered: list[str]) -> str | None:
 def _leading_number(text: str | None) -> float | None:
     match = re.match(r"\s*(\d+(?:\.\d+)?)", text or "")
     return float(match.group(1)) if match else None
-

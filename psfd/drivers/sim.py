@@ -33,10 +33,11 @@ import cv2
 import numpy as np
 from scipy import fft
 
-from psfd.drivers.base import CameraInfo, Position
+from psfd.drivers.base import CameraInfo, CameraReady, CameraSetup, Position, RailInfo
 from psfd.drivers.recording import free_name
 from psfd.errors import CameraError, PsfdError, RailError
 from psfd.estimator import simulate
+from psfd.exif import exposure_seconds
 
 APERTURES = ("2.8", "4", "5.6", "8", "11", "16", "22")
 SHUTTERSPEEDS = ("1/30", "1/60", "1/125", "1/250", "1/500")
@@ -216,16 +217,27 @@ class SimRig:
         if self.scene == "bernoulli":
             truth = simulate.simulate_target(
                 path, psf=psfs, s=self.s, pixels_per_cell=self.pixels_per_cell(), centre=(fx, fy),
-                sensor=self.sensor, seed=seed, exposure=self.exposure,
+                sensor=self.sensor, seed=seed, exposure=self.exposure, exif=self.exif(),
             )
         else:
             truth = simulate.simulate_scene(
                 path, scene=_texture(self.seed), sensor_to_scene=self._sensor_to_texture(), psf=psfs,
-                s=self.s, sensor=self.sensor, seed=seed, exposure=self.exposure,
+                s=self.s, sensor=self.sensor, seed=seed, exposure=self.exposure, exif=self.exif(),
             )
         truth.update(aperture=aperture, field=(fx, fy), distance_mm=self.pos.x,
                      pixels_per_cell=self.pixels_per_cell(), scene=self.scene)
         return truth
+
+    def exif(self) -> dict:
+        """The EXIF a real camera would write with the current settings (keys of `psfd.exif.FrameMetadata`)."""
+        return {
+            "make": "psfd", "model": "psfd simulated camera", "serial": f"SIM-{self.seed}",
+            "lens": f"simulated {self.focal_mm:g} mm", "focal_length_mm": self.focal_mm,
+            "f_number": float(self.settings["aperture"]),
+            "exposure_s": exposure_seconds(self.settings["shutterspeed"]),
+            "iso": float(self.settings["iso"]), "pixel_pitch_um": self.pitch_um,
+            "focus_distance_m": self.pos.x / 1000.0,  # the simulated lens is focused on the target
+        }
 
     def _sensor_to_texture(self):
         """Photosite (x, y) -> texture raster (X, Y) for the current rail position."""
@@ -306,6 +318,20 @@ class SimCamera:
             raise CameraError(f"{name} {value} is not offered by the camera (offered: {', '.join(offered)})")
         self.rig.settings[name] = match[0]
 
+    def prepare(self, setup: CameraSetup) -> CameraReady:
+        """RAW format and capture target as asked; the simulated lens has a fixed focus and no mirror."""
+        self.rig._check_fault("camera")
+        if setup.raw and "RAW" not in self.rig.settings["imageformat"]:
+            self.rig.settings["imageformat"] = "RAW"
+        self.rig.settings["capturetarget"] = CAPTURETARGETS[0 if setup.capture_target == "ram" else 1]
+        image_format = self.rig.settings["imageformat"]
+        return CameraReady(
+            image_format=image_format, files_per_exposure=2 if "JPEG" in image_format else 1,
+            capture_target=self.rig.settings["capturetarget"], focus="manual",
+            focus_detail="simulated lens: fixed focus", exposure_delay=None, drive_mode=None,
+            settle_s=0.0,  # a simulated rail does not shake
+        )
+
     def capture(self, dest: Path) -> list[Path]:
         """Render one exposure into ``dest``: a DNG, plus a JPEG preview in RAW + JPEG mode."""
         self.rig._check_fault("camera")
@@ -363,6 +389,15 @@ class SimRail:
     def position(self) -> Position:
         self.rig._check_fault("rail")
         return self.rig.pos
+
+    def info(self) -> RailInfo:
+        self.rig._check_fault("rail")
+        return RailInfo(controller="psfd simulated rail", axes=tuple(self.rig.limits), travel=dict(self.rig.limits),
+                        units="mm", homing=True, state="Idle")
+
+    def unlock(self) -> Position:
+        self.rig._check_fault("rail")
+        return self.rig.pos  # never locked
 
     def close(self) -> None:
         pass

@@ -10,8 +10,8 @@ the s-times PSF h is the least-squares solution of S_s U h = v (problem (P)),
 well conditioned because the target u is Bernoulli(0.5) white noise
 (IJCV 2012, sec. 3.2). Steps (IJCV 2012, sec. 4, Fig. 7):
 
-1. detection, thin-plate spline D, illumination and response curve
-   (detect.py, register.py, radiometry.py),
+1. detection, the map D (homography plus radial distortion, or the thesis's
+   thin-plate spline), illumination and response curve (detect.py, geometry.py, radiometry.py),
 2. u~_D: the target rasterised, DCT low-passed with the s-grid band pulled
    back through the local linear part of D (`s_band`, `u_tilde`), warped by D
    onto the s-times grid with Keys' bicubic kernel (`u_tilde_d`),
@@ -28,14 +28,17 @@ from numpy.lib.stride_tricks import sliding_window_view
 from scipy import fft, linalg, optimize
 
 from psfd.errors import BadInputError, EstimationError, SaturatedError
-from psfd.estimator import psf as psf_mod
-from psfd.estimator import detect, radiometry, register, resample, target
-from psfd.estimator.psf import PSF
+from psfd.estimator import detect, geometry, kernels, radiometry, resample, target
+from psfd.estimator.kernels import PSF
 from psfd.estimator.raw import Frame
+from psfd.vocabulary import BERNOULLI, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, check_sizes, check_solver
+
+__all__ = [
+    "band_reach", "cross_validated", "estimate_plane", "estimate_target", "estimate_window", "jacobian_of",
+    "nnls_normal", "noise_mask", "normal_equations", "raster_factor", "recentre", "s_band", "solve", "u_tilde", "u_tilde_d"
+]
 
 Map = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
-SOLVERS = ("ls", "ls-threshold", "nnls")
-DEFAULT_SOLVER = "nnls"  # unbiased; `solve` says why, with the numbers
 SCALE_RANGE = (0.7, 2.0)  # s/t range of near-optimal conditioning, IJCV 2012 sec. 3.3, Fig. 4b
 
 
@@ -156,7 +159,7 @@ def u_tilde_d(
     """u~_D on the s-times grid over a window, with ``half`` extra samples on each side.
 
     s-grid sample i lies at channel coordinate i / s (the S_s of IJCV 2012
-    sec. 3.1); each is mapped to the pattern by D (the thin-plate spline) and
+    sec. 3.1); each is mapped to the pattern by D (`geometry.target_maps`) and
     read from the band-limited raster by Keys' bicubic interpolation, a = -0.5
     (Delbracio PhD thesis 2013, App. A.1).
 
@@ -532,7 +535,7 @@ def estimate_plane(
     to_pattern: Map,
     *,
     noise: np.ndarray | None = None,
-    s: int = 4,
+    s: int = DEFAULT_S[BERNOULLI],
     support: int | None = None,
     solver: str = DEFAULT_SOLVER,
     grid: tuple[int, int] = (1, 1),
@@ -565,7 +568,7 @@ def estimate_plane(
         raise EstimationError("no usable pixel in the noise region of the target")
     rows, cols = np.nonzero(mask)
     bounds = (int(cols.min()), int(rows.min()), int(cols.max()) + 1, int(rows.max()) + 1)
-    windows = psf_mod.split_grid(bounds, grid)
+    windows = kernels.split_grid(bounds, grid)
     # The band follows D's linear part at each window's centre (the centroid
     # of its usable pixels): with perspective and lens distortion it changes
     # across the target, and filtering costs ~15 ms per window.
@@ -596,7 +599,7 @@ def _mask_centre(mask: np.ndarray, window: tuple[int, int, int, int]) -> tuple[f
 def estimate_target(
     frame: Frame,
     noise: np.ndarray | None = None,
-    s: int = 4,
+    s: int = DEFAULT_S[BERNOULLI],
     support: int | None = None,
     solver: str = DEFAULT_SOLVER,
     grid: tuple[int, int] = (1, 1),
@@ -630,7 +633,7 @@ def estimate_target(
         Map the target with the thesis's thin-plate spline of this smoothing
         (10 in Delbracio PhD thesis 2013, App. A.2) on top of a homography,
         instead of the default homography plus radial distortion
-        (`register.target_maps` says why the default differs).
+        (`geometry.target_maps` says why the default differs).
 
     Returns
     -------
@@ -651,9 +654,9 @@ def estimate_target(
     noise = _check_noise(noise)
     image = np.asarray(frame.data, dtype=np.float64)
     try:
-        # X-corners and thin-plate spline D (IJCV 2012 sec. 4; Delbracio PhD thesis 2013, App. A.1)
+        # X-corners and the map D (IJCV 2012 sec. 4; Delbracio PhD thesis 2013, App. A.1; geometry.target_maps)
         detection = detect.find_target(image, frame.saturated)
-        to_image, to_pattern = register.target_maps(detection, "auto" if tps is None else float(tps))
+        to_image, to_pattern = geometry.target_maps(detection, "auto" if tps is None else float(tps))
         box = _target_box(to_image, image.shape, margin=(support - 1) // (2 * s) + 2)
         v, alpha = _corrected(frame, image, box, to_image, to_pattern, noise)
         x0, y0 = box[0], box[1]
@@ -676,10 +679,10 @@ def estimate_target(
             PSF(
                 psf=kernel,
                 s=s,
-                method="bernoulli",
+                method=BERNOULLI,
                 channel=frame.channel,
                 sources=[frame.source],
-                field=psf_mod.field_of_window(window, image.shape),
+                field=kernels.field_of_window(window, image.shape),
                 window=window,
                 noise_floor=r["noise_floor"],
                 residual=r["residual"],
@@ -714,10 +717,10 @@ def _recentred(kernel: np.ndarray, solver: str) -> tuple[np.ndarray, tuple[float
     total = np.zeros(2)
     out = kernel
     for _ in range(3):  # the core moves with the shift: a few passes converge
-        total += psf_mod.core_centroid(out)
+        total += kernels.core_centroid(out)
         out = recentre(kernel, (float(total[0]), float(total[1])))
     # the interpolation rings slightly below 0: project back as the solver did
-    out = psf_mod.normalise(out) if solver == "ls" else psf_mod.clip_negatives(out)
+    out = kernels.normalise(out) if solver == "ls" else kernels.clip_negatives(out)
     return out, (float(total[0]), float(total[1]))
 
 
@@ -767,16 +770,9 @@ def _visible_mean(noise: np.ndarray, to_image: Map, box: tuple[int, int, int, in
 
 
 def _check_arguments(s: int, support: int | None, solver: str, grid: tuple[int, int]) -> int:
-    if int(s) != s or s < 1:
-        raise BadInputError(f"s must be a positive integer, got {s}")
-    support = 4 * int(s) + 1 if support is None else support
-    if int(support) != support or support < 3 or support % 2 == 0:
-        raise BadInputError(f"support must be an odd integer >= 3, got {support}")
-    if solver not in SOLVERS:
-        raise BadInputError(f"unknown solver {solver!r}: use one of {', '.join(SOLVERS)}")
-    if len(grid) != 2 or min(grid) < 1:
-        raise BadInputError(f"grid must be two positive integers, got {grid}")
-    return int(support)
+    _, support, _ = check_sizes(s, support, grid)
+    check_solver(solver)
+    return support
 
 
 def _check_noise(noise: np.ndarray | None) -> np.ndarray:

@@ -20,6 +20,11 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from psfd.estimator import resample, target
 
+__all__ = [
+    "band_limited_view", "bernoulli_formula", "bernoulli_view", "bound", "edge_view", "gamma", "pattern_gamma",
+    "view_matrix", "window_view"
+]
+
 RASTER = 5  # raster pixels per s-grid sample; odd so that a sample centre is a raster pixel
 # The thesis's Table 2.2 (s = 4, ~80 x 80 window): support -> gamma
 THESIS_TABLE = {

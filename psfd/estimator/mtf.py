@@ -1,4 +1,4 @@
-"""Modulation transfer function and scalar sharpness figures of a PSF.
+"""Modulation transfer function of a PSF: profiles, scalar sharpness figures, and errors between kernels.
 
 Frequencies are in cycles per channel pixel: 0.5 is the channel's Nyquist
 frequency and a kernel on the s-times grid reaches s/2 (the thesis's MTF
@@ -7,34 +7,14 @@ profiles, Delbracio PhD thesis 2013, sec. 2.5).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 
+__all__ = ["HIGH", "LOW", "band_errors", "error_table", "fwhm", "mtf50", "profiles"]
+
+LOW, HIGH = "low", "high"  # frequency bands of `band_errors`: up to and above the channel Nyquist (0.5)
 PAD = 256  # FFT size for profiles: fine enough to read MTF50 by interpolation
-
-
-def mtf2d(psf: np.ndarray, s: int, size: int = PAD) -> tuple[np.ndarray, np.ndarray]:
-    """2-D MTF of a kernel sampled on the s-times grid.
-
-    Parameters
-    ----------
-    psf : ndarray, 2-D
-    s : int
-        Super-resolution factor of the grid the kernel is sampled on.
-    size : int
-        FFT size (zero padding).
-
-    Returns
-    -------
-    freqs : ndarray
-        Centred frequencies in cycles per channel pixel, from -s/2 to below s/2.
-    mtf : ndarray, (size, size)
-        |OTF| normalised so that MTF(0) = 1, centred (fftshift).
-    """
-    otf = np.fft.fft2(psf, s=(size, size))
-    dc = otf[0, 0]
-    mag = np.abs(otf) / (abs(dc) if abs(dc) > 0 else 1.0)
-    freqs = np.fft.fftshift(np.fft.fftfreq(size, d=1.0 / s))
-    return freqs, np.fft.fftshift(mag)
 
 
 def profiles(psf: np.ndarray, s: int, size: int = PAD) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -52,15 +32,15 @@ def profiles(psf: np.ndarray, s: int, size: int = PAD) -> tuple[np.ndarray, np.n
     return freqs, mag[0, :half].copy(), mag[:half, 0].copy()
 
 
-def mtf50(freqs: np.ndarray, mtf: np.ndarray) -> float:
+def mtf50(freqs: np.ndarray, profile: np.ndarray) -> float:
     """First frequency where a profile falls to 0.5, linearly interpolated (nan if it never does)."""
-    below = np.flatnonzero(mtf < 0.5)
+    below = np.flatnonzero(profile < 0.5)
     if below.size == 0:
         return float("nan")
     i = int(below[0])
     if i == 0:
         return 0.0
-    f0, f1, m0, m1 = freqs[i - 1], freqs[i], mtf[i - 1], mtf[i]
+    f0, f1, m0, m1 = freqs[i - 1], freqs[i], profile[i - 1], profile[i]
     return float(f0 + (m0 - 0.5) * (f1 - f0) / (m0 - m1))
 
 
@@ -83,3 +63,43 @@ def _width(line: np.ndarray) -> float:
     lx = left - (line[left] - half) / (line[left] - line[left - 1]) if left > 0 else float(left)
     rx = right + (line[right] - half) / (line[right] - line[right + 1]) if right < line.size - 1 else float(right)
     return float(rx - lx)
+
+
+def band_errors(psf: np.ndarray, s: int, reference: np.ndarray, s_ref: int) -> dict[str, float]:
+    """RMS difference of the x and y MTF profiles of two kernels, below and above the channel Nyquist.
+
+    The bands are [0, 0.5] (`LOW`) and (0.5, s/2] (`HIGH`) cycles per channel
+    pixel (the second only exists for a sub-pixel kernel; it is the part the
+    thesis shows a gradient penalty removes, Delbracio PhD thesis 2013, Fig. 1.3).
+    The kernels may lie on grids of different ``s``: both are compared up to
+    the lower of their top frequencies.
+    """
+    f, mx, my = profiles(psf, s)
+    fr, rx, ry = profiles(reference, s_ref)
+    top = min(f[-1], fr[-1])
+    grid = f[f <= top]
+    diff = np.concatenate([np.interp(grid, f, mx) - np.interp(grid, fr, rx),
+                           np.interp(grid, f, my) - np.interp(grid, fr, ry)])
+    band = np.concatenate([grid, grid])
+    low = band <= 0.5
+    return {LOW: _rms(diff[low]), HIGH: _rms(diff[~low])}
+
+
+def _rms(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(values * values))) if values.size else float("nan")
+
+
+def error_table(
+    kernels: Mapping[str, tuple[np.ndarray, int]], truth: tuple[np.ndarray, int] | None = None
+) -> dict:
+    """`band_errors` of labelled kernels ``{label: (psf, s)}``.
+
+    Returns ``{label: {LOW, HIGH}}`` against ``truth`` (psf, s) when given, else
+    every kernel against every other, ``{label: {other label: {LOW, HIGH}}}``.
+    """
+    if truth is not None:
+        return {label: band_errors(psf, s, *truth) for label, (psf, s) in kernels.items()}
+    return {
+        a: {b: band_errors(*kernels[a], *kernels[b]) for b in kernels if b != a}
+        for a in kernels
+    }

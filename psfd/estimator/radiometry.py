@@ -36,7 +36,7 @@ def illumination(image: np.ndarray, to_image: Callable) -> tuple[Field, Field]:
     image : ndarray, 2-D
         The photograph (one channel).
     to_image : callable (X, Y) -> (x, y)
-        Pattern cells -> image pixels (register.target_maps).
+        Pattern cells -> image pixels (geometry.target_maps).
 
     Returns
     -------

@@ -14,15 +14,17 @@ import os
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from fractions import Fraction
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from psfd.errors import BadInputError
+from psfd.vocabulary import CHANNELS, MONO
 
-CHANNELS = ("r", "g1", "g2", "b")
-MONO = "mono"
+__all__ = ["CHANNELS", "MONO", "RAW_SUFFIXES", "Frame", "load_frame", "load_frames", "write_dng"]
+
 RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw", ".raw"}
 IMAGE_SUFFIXES = {".pgm", ".pnm", ".png", ".tif", ".tiff"}
 
@@ -231,6 +233,7 @@ def write_dng(
     black: int = 0,
     white: int = 65535,
     model: str = "psfd simulated camera",
+    exif: dict | None = None,
 ) -> None:
     """Write a Bayer mosaic as a minimal uncompressed DNG that LibRaw decodes.
 
@@ -247,6 +250,11 @@ def write_dng(
         Black and white levels of the raw values.
     model : str
         UniqueCameraModel tag.
+    exif : dict, optional
+        Exposure metadata written as TIFF/EP tags in IFD0 (where DNG allows them),
+        keys as `psfd.exif.FrameMetadata`: ``make``, ``model``, ``serial``, ``lens``,
+        ``focal_length_mm``, ``f_number``, ``exposure_s``, ``iso``, ``focus_distance_m``,
+        ``pixel_pitch_um``; None values and absent keys are left out.
     """
     import tifffile
 
@@ -262,7 +270,7 @@ def write_dng(
         (50714, "H", 1, int(black), True),  # BlackLevel
         (50717, "H", 1, int(white), True),  # WhiteLevel
         (50721, "2i", 9, identity, True),  # ColorMatrix1 (identity: values stay raw)
-    ]
+    ] + _exif_tags(exif or {})
     path = Path(path)
     tmp = path.with_name(f".{path.name}.part")
     try:
@@ -270,3 +278,30 @@ def write_dng(
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _exif_tags(exif: dict) -> list[tuple]:
+    """tifffile extratags for the exposure metadata of `write_dng` (tag numbers of EXIF 2.3 / DNG 1.4)."""
+
+    def rational(value: float) -> tuple[int, int]:
+        f = Fraction(float(value)).limit_denominator(100_000)
+        return f.numerator, f.denominator
+
+    tags: list[tuple] = []
+    text = {"make": 271, "model": 272, "serial": 42033, "lens": 42036}  # Make, Model, BodySerialNumber, LensModel
+    for key, code in text.items():
+        if exif.get(key):
+            tags.append((code, "s", 0, str(exif[key]), True))
+    if exif.get("serial"):
+        tags.append((50735, "s", 0, str(exif["serial"]), True))  # DNG CameraSerialNumber
+    rationals = {"exposure_s": 33434, "f_number": 33437, "focus_distance_m": 37382, "focal_length_mm": 37386}
+    for key, code in rationals.items():
+        if exif.get(key):  # ExposureTime, FNumber, SubjectDistance, FocalLength
+            tags.append((code, "2I", 1, rational(exif[key]), True))
+    if exif.get("iso"):
+        tags.append((34855, "H", 1, int(round(float(exif["iso"]))), True))  # ISOSpeedRatings
+    if exif.get("pixel_pitch_um"):
+        per_cm = rational(10_000.0 / float(exif["pixel_pitch_um"]))  # photosites per centimetre
+        tags += [(41486, "2I", 1, per_cm, True), (41487, "2I", 1, per_cm, True),  # FocalPlaneX/YResolution
+                 (41488, "H", 1, 3, True)]  # FocalPlaneResolutionUnit: centimetre
+    return tags

@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft, ndimage
 
+__all__ = ["dct_lowpass", "erode", "keys_bicubic", "keys_weights"]
+
 
 def dct_lowpass(
     image: np.ndarray,

@@ -28,9 +28,16 @@ from scipy import linalg, ndimage, optimize, sparse
 from scipy.spatial import cKDTree
 
 from psfd.errors import BadInputError, EstimationError, TargetNotFoundError
-from psfd.estimator import target as layout  # the Bernoulli target's layout
-from psfd.estimator.psf import PSF, field_of_window, split_grid
+from psfd.vocabulary import DEFAULT_S, SHARP_EDGE, check_sizes
+from psfd.estimator import target
+from psfd.estimator.kernels import PSF, field_of_window, split_grid
 from psfd.estimator.raw import Frame
+
+__all__ = [
+    "SQUARES", "Edgels", "KnownPattern", "TargetView", "bernoulli_marks", "detect_edges", "edge_levels",
+    "edge_pattern", "edge_target", "estimate_edges", "gradient_operator", "locate_pattern", "locate_target",
+    "noise_sigma", "predict_sharp", "render_target", "shade_target", "solve_kernel", "target_edges"
+]
 
 TILE = 2  # squares per tile side of the edge target
 DISK = 0.3  # disk radius of the edge target, in squares
@@ -483,21 +490,21 @@ def _on_print(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def bernoulli_marks(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Reflectance of the Bernoulli target's ring of marks (target.cells without the noise), cell coordinates."""
-    bx, by = np.floor(x / layout.BLOCK), np.floor(y / layout.BLOCK)
-    u, v = x - layout.BLOCK * bx - layout.BLOCK / 2, y - layout.BLOCK * by - layout.BLOCK / 2
+    bx, by = np.floor(x / target.BLOCK), np.floor(y / target.BLOCK)
+    u, v = x - target.BLOCK * bx - target.BLOCK / 2, y - target.BLOCK * by - target.BLOCK / 2
     out = np.ones(np.broadcast(x, y).shape)
-    for cx, cy in layout.BLACK_BLOCKS:
+    for cx, cy in target.BLACK_BLOCKS:
         out[(bx == cx) & (by == cy)] = 0.0
     hourglass = np.abs(u) < np.abs(v)  # black triangles on the top and bottom edges, apexes at the centre
-    for cx, cy in layout.XCORNER_BLOCKS:
+    for cx, cy in target.XCORNER_BLOCKS:
         out[(bx == cx) & (by == cy) & hourglass] = 0.0
     return out
 
 
 def _on_ring(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """The ring of marks: inside the target, outside the noise (whose cells are no step edges at this scale)."""
-    lo, hi = layout.NOISE_START, layout.NOISE_STOP
-    on_target = (x >= 0) & (x < layout.SIZE) & (y >= 0) & (y < layout.SIZE)
+    lo, hi = target.NOISE_START, target.NOISE_STOP
+    on_target = (x >= 0) & (x < target.SIZE) & (y >= 0) & (y < target.SIZE)
     return on_target & ~((x >= lo) & (x < hi) & (y >= lo) & (y < hi))
 
 
@@ -506,7 +513,7 @@ def locate_pattern(image: np.ndarray, saturated: np.ndarray | None = None) -> Kn
 
     The Bernoulli target's black and white squares and X-corner hourglasses
     are step edges of known geometry too, registered by the detection's
-    thin-plate spline; their edges only run at 0, 90 and about +-63 degrees,
+    map (`geometry.target_maps`); their edges only run at 0, 90 and about +-63 degrees,
     which the orientation test (sec. 5.2) reports.
 
     Raises
@@ -518,10 +525,10 @@ def locate_pattern(image: np.ndarray, saturated: np.ndarray | None = None) -> Kn
         return KnownPattern(view.to_pattern, _edge_print, _on_print, "edge target")
     except TargetNotFoundError:
         pass
-    from psfd.estimator import detect, register  # the Bernoulli pipeline's registration steps
+    from psfd.estimator import detect, geometry  # the Bernoulli pipeline's registration steps
 
     try:
-        _, to_pattern = register.target_maps(detect.find_target(image, saturated))
+        _, to_pattern = geometry.target_maps(detect.find_target(image, saturated))
     except TargetNotFoundError:
         raise TargetNotFoundError("no edge target and no Bernoulli target found in the frame") from None
     return KnownPattern(to_pattern, bernoulli_marks, _on_ring, "Bernoulli target marks")
@@ -599,12 +606,12 @@ def shade_target(image: np.ndarray, alpha: np.ndarray, inside: np.ndarray, s: in
 
 def estimate_edges(
     frame: Frame,
-    s: int = 4,
+    s: int = DEFAULT_S[SHARP_EDGE],
     support: int | None = None,
     weight: float | None = None,
     radius: float | None = None,
     grid: tuple[int, int] = (1, 1),
-    target: bool = False,
+    target_form: bool = False,
 ) -> list[PSF]:
     """Sharp-edge prediction PSFs of one channel plane, one per grid window, row-major.
 
@@ -612,7 +619,7 @@ def estimate_edges(
     ----------
     frame : Frame
         A photograph with strong step edges at all orientations (blind), or of
-        a printed target (``target=True``).
+        a printed target (``target_form=True``).
     s : int
         Super-resolution factor of the kernel grid.
     support : int, optional
@@ -624,7 +631,7 @@ def estimate_edges(
         sharp image is predicted within R plus the kernel radius (default: the kernel radius).
     grid : (int, int)
         (nx, ny) local windows.
-    target : bool
+    target_form : bool
         Predict the sharp image from a printed pattern of known geometry: the
         edge target (`edge_target`), or else the marks of the Bernoulli target
         (`locate_pattern`).
@@ -638,25 +645,26 @@ def estimate_edges(
     BadInputError
         Invalid parameters.
     TargetNotFoundError
-        ``target`` and neither target in the frame.
+        ``target_form`` and neither target in the frame.
     EstimationError
         A window has fewer usable pixels near edges than kernel unknowns (sec. 5.2, test (a)).
     """
-    s, support, weight, radius = _check(s, support, weight, radius)
+    s, support, grid = check_sizes(s, support, grid)
+    weight, radius = _check(weight, radius)
     image = np.asarray(frame.data, dtype=np.float64) / float(frame.white)
     sigma = max(noise_sigma(image), 1e-6)
     kernel_radius = (support // 2) / s
     radius = max(kernel_radius, 1.0) if radius is None else radius
     band = radius + kernel_radius
     length = int(np.ceil(2 * kernel_radius)) + 2  # march far enough to leave the blurred ramp
-    known = locate_pattern(image, frame.saturated) if target else None
+    known = locate_pattern(image, frame.saturated) if target_form else None
     rows, cols = image.shape
     out = []
     for window in split_grid((0, 0, cols, rows), grid):
         kernel, info, warnings = _estimate_window(image, frame.saturated, window, s, support, weight, band, length,
                                                   sigma, known)
         out.append(PSF(
-            psf=kernel, s=s, method="sharp-edge", channel=frame.channel, sources=[frame.source],
+            psf=kernel, s=s, method=SHARP_EDGE, channel=frame.channel, sources=[frame.source],
             field=field_of_window(window, (rows, cols)), window=window,
             noise_floor=info.pop("noise_floor"), residual=info.pop("residual"),
             params={"support": support, "weight": weight, "gamma": support**2, "radius": radius, "grid": list(grid),
@@ -666,19 +674,13 @@ def estimate_edges(
     return out
 
 
-def _check(s, support, weight, radius) -> tuple[int, int, float, float | None]:
-    if int(s) != s or s < 1:
-        raise BadInputError(f"s must be a positive integer, got {s}")
-    s = int(s)
-    support = 4 * s + 1 if support is None else support
-    if int(support) != support or support < 3 or support % 2 == 0:
-        raise BadInputError(f"support must be an odd number of s-grid samples >= 3, got {support}")
+def _check(weight, radius) -> tuple[float, float | None]:
     weight = LAMBDA if weight is None else float(weight)
     if not np.isfinite(weight) or weight < 0:
         raise BadInputError(f"weight must be a number >= 0, got {weight}")
     if radius is not None and (not np.isfinite(radius) or radius <= 0):
         raise BadInputError(f"radius must be a positive number of pixels, got {radius}")
-    return s, int(support), weight, radius
+    return weight, radius
 
 
 def _estimate_window(image, saturated, window, s, support, weight, band, length, sigma, known):

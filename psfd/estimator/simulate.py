@@ -27,6 +27,11 @@ from scipy import fft, signal
 
 from psfd.estimator import raw, target
 
+__all__ = [
+    "bandlimit_scene", "diffraction_psf", "expose", "gaussian_psf", "noise_sigma", "render_plane",
+    "simulate_pair", "simulate_scene", "simulate_target", "target_homography", "texture_scene"
+]
+
 Map = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 # RGGB: (row, col) offset of each channel plane on the sensor.
@@ -366,6 +371,7 @@ def simulate_scene(
     gain: float = 2.5,
     black: int = 512,
     white: int = 16383,
+    exif: dict | None = None,
 ) -> dict:
     """Render a planar scene on the four planes of an RGGB sensor and write a DNG.
 
@@ -391,6 +397,8 @@ def simulate_scene(
         ``f(x, y)`` light field at normalised sensor coordinates in [0, 1].
     background : float, optional
         Reflectance outside the raster.
+    exif : dict, optional
+        Exposure metadata for the DNG (see `raw.write_dng`).
 
     Returns
     -------
@@ -426,7 +434,7 @@ def simulate_scene(
             ideal, black=black, white=white, exposure=exposure, illumination=light,
             read_noise=read_noise, gain=gain, rng=rng,
         ).astype(np.uint16)
-    raw.write_dng(path, mosaic, pattern="RGGB", black=black, white=white)
+    raw.write_dng(path, mosaic, pattern="RGGB", black=black, white=white, exif=exif)
     return {
         "path": str(path),
         "psf": {c: np.asarray(psfs[c], dtype=np.float64) for c in RGGB_OFFSETS},
@@ -489,6 +497,7 @@ def simulate_target(
     illumination: float = 0.15,
     read_noise: float = 2.0,
     gain: float = 2.5,
+    exif: dict | None = None,
 ) -> dict:
     """Photograph of the published Bernoulli target (target.cells) written as an RGGB DNG.
 
@@ -525,6 +534,8 @@ def simulate_target(
         Perspective, see `target_homography`.
     illumination : float
         Relative fall-off of the light field.
+    exif : dict, optional
+        Exposure metadata for the DNG (see `raw.write_dng`).
 
     Returns
     -------
@@ -579,7 +590,7 @@ def simulate_target(
     truth = simulate_scene(
         path, scene=scene, sensor_to_scene=sensor_to_scene, psf=psf, s=s, sensor=sensor, seed=seed,
         exposure=exposure, illumination=light if illumination else None, background=1.0,
-        read_noise=read_noise, gain=gain,
+        read_noise=read_noise, gain=gain, exif=exif,
     )
     to_pattern, to_image, corners = {}, {}, {}
     for name, (dy, dx) in RGGB_OFFSETS.items():

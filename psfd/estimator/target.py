@@ -18,6 +18,12 @@ import numpy as np
 
 from psfd.errors import BadInputError
 
+__all__ = [
+    "BLACK_BLOCKS", "BLOCK", "BLOCKS", "NOISE", "NOISE_START", "NOISE_STOP", "ORIENTATION_CORNER", "SIZE",
+    "WHITE_BLOCKS", "XCORNER_BLOCKS", "block_centre", "cells", "default_noise", "load_noise", "save_noise",
+    "seeded_noise", "xcorner_points"
+]
+
 BLOCK = 32  # cells per block side
 BLOCKS = 10  # blocks per target side
 SIZE = BLOCK * BLOCKS  # 320 cells

@@ -3,7 +3,7 @@
 Delbracio, Almansa, Morel, Musé, SIAM J. Imaging Sci. 2012 (theory) and
 Delbracio, Almansa, Musé, IPOL 2013 (the algorithm, sec. 4):
 
-1. register the pair (SIFT + robust homography D: far -> near), `homography`;
+1. register the pair (SIFT + robust homography D: far -> near), `pair_register`;
 2. low-pass the near photo v1 to the band the far photo's s-times grid can
    hold and resample it there through D: H_{lambda/s} v1 (IPOL 2013, sec. 4.2);
 3. solve v2 = S_s C[H_{lambda/s} v1] k for the inter-image kernel k by plain
@@ -26,12 +26,17 @@ from numpy.lib.stride_tricks import sliding_window_view
 from scipy import signal
 
 from psfd.errors import BadInputError, PairError
-from psfd.estimator import homography, resample
-from psfd.estimator.psf import PSF, clip_negatives, core_centroid, field_of_window, normalise, split_grid
+from psfd.vocabulary import DEFAULT_S, TWO_PHOTO, check_sizes
+from psfd.estimator import pair_register, resample
+from psfd.estimator.kernels import PSF, clip_negatives, core_centroid, field_of_window, normalise, split_grid
 from psfd.estimator.raw import Frame
 from psfd.estimator.resample import keys_bicubic
 
-METHOD = "two-photo"
+__all__ = [
+    "band_limited", "estimate_pair", "observation_mask", "psf_from_kernel", "resample_near", "solve_kernel",
+    "texture"
+]
+
 LAMBDA_ADVISED = (2.0, 8.0)  # IPOL 2013, App. 7, tip 2: shoot between 2 and 8 times the distance
 LAMBDA_MAX = 50.0  # IPOL 2013, sec. 4.4: a kernel contracted 50x acts as a Dirac
 N_MAX = 3  # IPOL 2013, sec. 4.4
@@ -46,7 +51,7 @@ OVERSAMPLE = 2.0  # grid of the near photo's band before Keys interpolation, per
 def estimate_pair(
     a: Frame,
     b: Frame,
-    s: int = 3,
+    s: int = DEFAULT_S[TWO_PHOTO],
     support: int | None = None,
     clip: bool = False,
     grid: tuple[int, int] = (1, 1),
@@ -74,21 +79,22 @@ def estimate_pair(
     Raises
     ------
     BadInputError
-        Different channels, inconsistent planes or a bad support.
+        Different channels, inconsistent planes, or s, support or grid out of bounds.
     PairError
         Unrelated photos, lambda not above s, a textureless scene, too large a
         rotation or tilt, too small a common region.
     """
-    p = _check_inputs(a, b, s, support)
+    s, p, grid = check_sizes(s, support, grid)
+    _check_inputs(a, b)
     try:
-        reg = homography.register(a.data, b.data)  # SIFT sees each stretched to 8 bits
+        reg = pair_register.register(a.data, b.data)  # SIFT sees each stretched to 8 bits
     except PairError:
         # a plane showing only noise has no consistent matches either: say why
         for frame in (a, b):
             _check_texture(frame)
         raise
     near, far = (a, b) if reg.near == 0 else (b, a)
-    far_box, _ = homography.common_region(reg.to_near, far.shape, near.shape)
+    far_box, _ = pair_register.common_region(reg.to_near, far.shape, near.shape)
     return [
         _estimate_window(near, far, reg, window, s, p, clip, grid)
         for window in split_grid(far_box, grid)
@@ -98,12 +104,7 @@ def estimate_pair(
 # --------------------------------------------------------------------------- checks
 
 
-def _check_inputs(a: Frame, b: Frame, s: int, support: int | None) -> int:
-    if int(s) != s or s < 1:
-        raise BadInputError(f"super-resolution factor must be a positive integer, got {s}")
-    p = 4 * int(s) + 1 if support is None else int(support)
-    if p < 3 or p % 2 == 0:
-        raise BadInputError(f"support must be an odd number >= 3, got {support}")
+def _check_inputs(a: Frame, b: Frame) -> None:
     for frame in (a, b):
         if frame.data.ndim != 2 or frame.saturated.shape != frame.data.shape:
             raise BadInputError(f"{frame.source}: channel plane and its saturation mask differ in size")
@@ -118,7 +119,6 @@ def _check_inputs(a: Frame, b: Frame, s: int, support: int | None) -> int:
             f"the {a.channel} planes come from sensors of different sizes "
             f"({a.sensor_shape} and {b.sensor_shape}): use two photos of the same camera"
         )
-    return p
 
 
 def texture(image: np.ndarray) -> float:
@@ -148,7 +148,7 @@ def _check_texture(frame: Frame) -> None:
 
 
 def _check_geometry(
-    reg: homography.Registration, window: tuple[int, int, int, int], s: int, warnings: list[str]
+    reg: pair_register.Registration, window: tuple[int, int, int, int], s: int, warnings: list[str]
 ) -> tuple[float, float, float, float]:
     """Zoom, rotation and tilt of the window; PairError when the method cannot apply."""
     x0, y0, x1, y1 = window
@@ -182,7 +182,7 @@ def _check_geometry(
 def _estimate_window(
     near: Frame,
     far: Frame,
-    reg: homography.Registration,
+    reg: pair_register.Registration,
     window: tuple[int, int, int, int],
     s: int,
     p: int,
@@ -238,7 +238,7 @@ def _estimate_window(
     return PSF(
         psf=h,
         s=s,
-        method=METHOD,
+        method=TWO_PHOTO,
         channel=far.channel,
         sources=[near.source, far.source],
         field=field_of_window(window, far.shape),
@@ -253,7 +253,7 @@ def _estimate_window(
 
 def resample_near(
     near: Frame,
-    reg: homography.Registration,
+    reg: pair_register.Registration,
     window: tuple[int, int, int, int],
     s: int,
     lam: tuple[float, float],
@@ -272,7 +272,7 @@ def resample_near(
     gx = x0 + np.arange(s * (x1 - x0 - 1) + 1) / s
     gy = y0 + np.arange(s * (y1 - y0 - 1) + 1) / s
     X, Y = reg.map(gx[None, :], gy[:, None])
-    nx0, ny0, nx1, ny1 = homography.bounding_box(X, Y, near.shape, 3)
+    nx0, ny0, nx1, ny1 = pair_register.bounding_box(X, Y, near.shape, 3)
     crop = near.data[ny0:ny1, nx0:nx1] / near.white
     saturated = near.saturated[ny0:ny1, nx0:nx1]
     if saturated.any():

@@ -22,6 +22,8 @@ import scipy.stats
 
 from psfd.estimator.detect import Detection
 
+__all__ = ["RadialHomography", "ThinPlateSpline", "target_maps"]
+
 # Thesis App. A.2: lambda = 10 for the 12 corners (the distortion over the
 # target is almost affine).
 SMOOTHING = 10.0

@@ -20,6 +20,8 @@ import numpy as np
 
 from psfd.errors import PairError
 
+__all__ = ["Registration", "bounding_box", "common_region", "features", "log10_nfa", "match", "register", "to_uint8"]
+
 RATIO = 0.8  # Lowe's ratio test (IJCV 2004, sec. 7.1)
 PRECISION = 1.5  # inlier threshold in pixels, the IPOL 2013 ORSA precision
 MIN_INLIERS = 5  # IPOL 2013 code: fewer matches cannot define a homography robustly

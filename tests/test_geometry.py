@@ -9,7 +9,7 @@ from scipy.interpolate import RBFInterpolator
 
 from psfd.estimator import target
 from psfd.estimator.detect import Detection
-from psfd.estimator.register import RadialHomography, ThinPlateSpline, target_maps
+from psfd.estimator.geometry import RadialHomography, ThinPlateSpline, target_maps
 
 PATTERN = target.xcorner_points()
 

@@ -1,7 +1,10 @@
-"""The PSF estimate every method returns, and the conventions it keeps.
+"""The PSF record every method returns, and the conventions its kernel keeps.
 
 A PSF is a float64 array on the s-times super-resolved grid of one channel
-plane, odd-sized, centred, summing to 1 (DESIGN.md, "Conventions").
+plane, odd-sized, centred on its core, summing to 1; its field location is the
+normalised position of its window's centre on the plane, (0, 0) top-left and
+(1, 1) bottom-right. `normalise`, `clip_negatives`, `core_centroid`,
+`split_grid` and `field_of_window` keep these conventions for every estimator.
 """
 
 from __future__ import annotations
@@ -12,7 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from psfd.estimator import mtf as mtf_metrics
+from psfd.estimator import mtf
+
+__all__ = ["PSF", "centroid", "clip_negatives", "core_centroid", "field_of_window", "normalise", "split_grid"]
 
 
 @dataclass
@@ -72,11 +77,11 @@ class PSF:
 
     def metrics(self) -> dict[str, float]:
         """MTF50 (cycles per channel pixel) and FWHM (channel pixels) along x and y."""
-        fx, mx, my = mtf_metrics.profiles(self.psf, self.s)
-        fwhm_x, fwhm_y = mtf_metrics.fwhm(self.psf, self.s)
+        fx, mx, my = mtf.profiles(self.psf, self.s)
+        fwhm_x, fwhm_y = mtf.fwhm(self.psf, self.s)
         return {
-            "mtf50_x": mtf_metrics.mtf50(fx, mx),
-            "mtf50_y": mtf_metrics.mtf50(fx, my),
+            "mtf50_x": mtf.mtf50(fx, mx),
+            "mtf50_y": mtf.mtf50(fx, my),
             "fwhm_x": fwhm_x,
             "fwhm_y": fwhm_y,
         }

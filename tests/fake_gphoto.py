@@ -1,0 +1,287 @@
+"""Scripted stand-ins for camera bodies the virtual camera cannot play, at the python-gphoto2 API.
+
+A `Body` answers the calls `GPhotoCamera` makes on a ``gphoto2.Camera``
+(get_config / set_config, trigger_capture, wait_for_event, file_get,
+file_delete, exit) and fails them with real ``gphoto2.GPhoto2Error`` codes
+in the order libgphoto2 reports them:
+
+- a body still writing the previous frame answers ``trigger_capture`` with
+  GP_ERROR_CAMERA_BUSY (-110, "I/O in progress") until it is done;
+- a RAW+JPEG exposure is announced as two GP_EVENT_FILE_ADDED, the JPEG
+  after the RAW (Canon writes the RAW first; on a slow card the second comes
+  seconds later);
+- a cable pulled during a capture: the pending event wait fails with
+  GP_ERROR_IO (-7, the PTP layer's translation of the USB error), every later
+  call on that handle fails the same way, the body is missing from
+  autodetection until it re-enumerates, then comes back at a new address
+  with a fresh USB session (driver-side settings such as the capture target
+  back at their defaults).
+
+Widget trees are modelled on libgphoto2's ptp2 driver (widget names, types,
+choices and read-only flags as ``gphoto2 --list-config`` shows them for a Canon
+EOS body and for a Nikon D5300), with the same ``get_child_by_name`` failure
+(GP_ERROR_BAD_PARAMETERS) for a widget a body does not have.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from types import SimpleNamespace
+
+import gphoto2 as gp
+
+
+class Widget:
+    """The part of ``gphoto2.CameraWidget`` the driver uses."""
+
+    def __init__(self, name: str, kind: int, value=None, choices=(), readonly=False, children=()) -> None:
+        self.name, self.kind, self.value = name, kind, value
+        self.choices, self.readonly = list(choices), readonly
+        self.children = list(children)
+
+    def get_name(self) -> str:
+        return self.name
+
+    def get_type(self) -> int:
+        return self.kind
+
+    def get_value(self):
+        return self.value
+
+    def set_value(self, value) -> None:
+        self.value = value  # libgphoto2 checks nothing here: the body decides at set_config
+
+    def get_readonly(self) -> int:
+        return int(self.readonly)
+
+    def count_choices(self) -> int:
+        return len(self.choices)
+
+    def get_choice(self, i: int) -> str:
+        return self.choices[i]
+
+    def get_child_by_name(self, name: str) -> "Widget":
+        for child in self.children:
+            if child.name == name:
+                return child
+            try:
+                return child.get_child_by_name(name)
+            except gp.GPhoto2Error:
+                continue
+        raise gp.GPhoto2Error(gp.GP_ERROR_BAD_PARAMETERS)
+
+    def walk(self):
+        yield self
+        for child in self.children:
+            yield from child.walk()
+
+
+def radio(name, value, choices, readonly=False) -> Widget:
+    return Widget(name, gp.GP_WIDGET_RADIO, value, choices, readonly)
+
+
+def text(name, value) -> Widget:
+    return Widget(name, gp.GP_WIDGET_TEXT, value, readonly=True)
+
+
+def toggle(name, value=0) -> Widget:
+    return Widget(name, gp.GP_WIDGET_TOGGLE, value)
+
+
+def tree(*widgets: Widget) -> Widget:
+    return Widget("main", gp.GP_WIDGET_WINDOW, children=[Widget("settings", gp.GP_WIDGET_SECTION,
+                                                                  children=list(widgets))])
+
+
+CANON_FORMATS = ["Large Fine JPEG", "Large Normal JPEG", "Medium Fine JPEG", "Small Fine JPEG",
+                 "RAW + Large Fine JPEG", "RAW", "mRAW + Large Fine JPEG", "mRAW", "sRAW + Large Fine JPEG",
+                 "sRAW"]
+CANON_SHUTTER = ["bulb", "30", "15", "8", "4", "2", "1", "0.5", "1/4", "1/15", "1/60", "1/125", "1/250",
+                 "1/1000", "1/4000"]
+
+
+def canon_eos(lens_af: bool = True, image_format: str = "Large Fine JPEG", shutter: str = "1/125") -> Widget:
+    """A Canon EOS DSLR as libgphoto2 shows it: focusmode follows the lens AF/MF switch."""
+    focus = ("One Shot", ["One Shot", "AI Focus", "AI Servo"]) if lens_af else ("Manual", ["Manual"])
+    return tree(
+        text("manufacturer", "Canon Inc."), text("cameramodel", "Canon EOS 5D Mark III"),
+        text("eosserialnumber", "012345678901"), text("lensname", "EF50mm f/1.8 STM"),
+        radio("imageformat", image_format, CANON_FORMATS),
+        radio("capturetarget", "Memory card", ["Internal RAM", "Memory card"]),
+        radio("drivemode", "Continuous high speed", ["Single", "Continuous high speed", "Continuous low speed",
+                                                     "Single silent", "Timer 10 sec", "Timer 2 sec"]),
+        radio("focusmode", focus[0], focus[1]),
+        radio("aperture", "5.6", ["1.8", "2.8", "4", "5.6", "8", "11", "16", "22"]),
+        radio("shutterspeed", shutter, CANON_SHUTTER),
+        radio("iso", "100", ["Auto", "100", "200", "400", "800"]),
+        toggle("bulb"),
+    )
+
+
+def nikon_d5300(focus: str = "Manual", quality: str = "JPEG Fine", shutter: str = "0.5000s") -> Widget:
+    """Nikon D5300 (values from a real ``--list-config``): driver AF switch, exposure delay, SDRAM target."""
+    return tree(
+        text("manufacturer", "Nikon Corporation"), text("cameramodel", "D5300"),
+        text("serialnumber", "00000000000000000000000006909849"),
+        radio("capturetarget", "Internal RAM", ["Internal RAM", "Memory card"]),
+        radio("autofocus", "On", ["On", "Off"]),
+        radio("imagequality", quality, ["JPEG Basic", "JPEG Normal", "JPEG Fine", "NEF (Raw)", "NEF+Basic",
+                                        "NEF+Normal", "NEF+Fine"]),
+        radio("focusmode", focus, ["Manual", "AF-S", "AF-C", "AF-A"], readonly=True),
+        radio("capturemode", "Burst", ["Single Shot", "Burst", "Continuous Low Speed", "Timer",
+                                       "Quick Response Remote", "Delayed Remote", "Quiet Release"]),
+        radio("exposuredelaymode", "Off", ["On", "Off"]),
+        radio("f-number", "f/5.6", ["f/2.8", "f/4", "f/5.6", "f/8", "f/11"]),
+        radio("shutterspeed", shutter, ["0.0010s", "0.0080s", "0.5000s", "1.0000s", "30.0000s"], readonly=True),
+        toggle("bulb"),
+    )
+
+
+def jpeg_compact() -> Widget:
+    """A compact that only shoots JPEG."""
+    return tree(radio("imageformat", "Large Fine JPEG", ["Large Fine JPEG", "Medium Fine JPEG", "Small JPEG"]),
+                radio("capturetarget", "Memory card", ["Internal RAM", "Memory card"]))
+
+
+class Body:
+    """One USB session with a camera body.
+
+    Parameters
+    ----------
+    config : Widget
+        The body's widget tree (its settings persist across sessions as on a real body,
+        except ``capturetarget``, which libgphoto2 sets per session).
+    files : list of (name, delay_s)
+        Files each exposure announces, with their delay after the trigger.
+    script : dict
+        Per method, the errors to raise on successive calls (None: answer normally),
+        e.g. ``{"trigger_capture": [busy, busy]}``.
+    queued : list of str
+        File names already announced before the first trigger (a late file of an earlier exposure).
+    unplug_after_trigger : bool
+        The cable is pulled right after the next trigger.
+    """
+
+    def __init__(self, config: Widget, files=(("IMG_0001.CR2", 0.05),), script=None, queued=(),
+                 unplug_after_trigger=False) -> None:
+        self.config, self.files = config, list(files)
+        self.script = {k: list(v) for k, v in (script or {}).items()}
+        self.calls: list[str] = []
+        self.pending: list[tuple[float, str]] = [(0.0, name) for name in queued]
+        self.store: dict[str, bytes] = {name: b"stale" for name in queued}
+        self.unplugged = False
+        self.unplug_after_trigger = unplug_after_trigger
+        self.shots = 0
+        self.bulb_log: list[tuple[int, float]] = []
+
+    FOLDER = "/store_00020001/DCIM/100CANON"
+
+    def _enter(self, method: str) -> None:
+        self.calls.append(method)
+        if self.unplugged:
+            raise gp.GPhoto2Error(gp.GP_ERROR_IO)
+        errors = self.script.get(method)
+        if errors:
+            error = errors.pop(0)
+            if error is not None:
+                raise error
+
+    def get_config(self):
+        self._enter("get_config")
+        return copy.deepcopy(self.config)
+
+    def set_config(self, config: Widget) -> None:
+        self._enter("set_config")
+        mine = {w.name: w for w in self.config.walk()}
+        for widget in config.walk():
+            target = mine.get(widget.name)
+            if target is None or widget.value == target.value:
+                continue
+            if target.readonly:
+                raise gp.GPhoto2Error(gp.GP_ERROR_NOT_SUPPORTED)
+            if target.choices and widget.value not in target.choices:
+                raise gp.GPhoto2Error(gp.GP_ERROR_BAD_PARAMETERS)
+            target.value = widget.value
+            if target.name == "bulb":
+                self.bulb_log.append((int(widget.value), time.monotonic()))
+                if int(widget.value) == 0:
+                    self._expose()
+
+    def trigger_capture(self) -> None:
+        self._enter("trigger_capture")
+        self._expose()
+        if self.unplug_after_trigger:
+            self.unplugged = True
+
+    def _expose(self) -> None:
+        self.shots += 1
+        now = time.monotonic()
+        for name, delay in self.files:
+            shot_name = name.replace("0001", f"{self.shots:04d}")
+            self.store[shot_name] = f"{shot_name} of shot {self.shots}".encode()
+            self.pending.append((now + delay, shot_name))
+
+    def wait_for_event(self, timeout_ms: int):
+        self._enter("wait_for_event")
+        end = time.monotonic() + timeout_ms / 1000.0
+        while True:
+            due = sorted(p for p in self.pending if p[0] <= time.monotonic())
+            if due:
+                self.pending.remove(due[0])
+                return gp.GP_EVENT_FILE_ADDED, SimpleNamespace(folder=self.FOLDER, name=due[0][1])
+            if time.monotonic() >= end:
+                return gp.GP_EVENT_TIMEOUT, None
+            time.sleep(0.005)
+
+    def file_get(self, folder: str, name: str, kind: int):
+        self._enter("file_get")
+        camera_file = gp.CameraFile()
+        camera_file.set_data_and_size(self.store[name])
+        return camera_file
+
+    def file_delete(self, folder: str, name: str) -> None:
+        self._enter("file_delete")
+        self.store.pop(name, None)
+
+    def exit(self) -> None:
+        self._enter("exit")
+
+
+class Bus:
+    """The USB bus as autodetection sees it: bodies come and go, each at its own port."""
+
+    def __init__(self, model: str, *bodies: Body, absent_scans: int = 0) -> None:
+        self.model, self.bodies = model, list(bodies)
+        self.absent_scans = absent_scans  # scans that miss an unplugged body before it re-enumerates
+        self.opened: list[str] = []
+        self.resets: list[str] = []
+
+    def detect(self) -> list[tuple[str, str]]:
+        if not self.bodies:
+            return []
+        if self.opened and self.absent_scans > 0:
+            self.absent_scans -= 1
+            return []
+        return [(self.model, f"usb:001,{len(self.opened) + 4:03d}")]
+
+    def open(self, model: str, port: str) -> Body:
+        self.opened.append(port)
+        body = self.bodies.pop(0)
+        for widget in body.config.walk():  # a new USB session: libgphoto2's per-session default
+            if widget.name == "capturetarget":
+                widget.value = "Memory card"
+        return body
+
+    def reset(self, port: str) -> bool:
+        self.resets.append(port)
+        return False  # the device is no longer on the bus: nothing to reset
+
+
+def install(monkeypatch, bus: Bus) -> None:
+    """Make `psfd.drivers.gphoto` find and open bodies on ``bus`` instead of USB."""
+    from psfd.drivers import gphoto
+
+    monkeypatch.setattr(gphoto, "_detect", bus.detect)
+    monkeypatch.setattr(gphoto, "_open_camera", bus.open)
+    monkeypatch.setattr(gphoto, "reset_usb_device", bus.reset)
