@@ -108,16 +108,17 @@ def test_whole_pipeline_is_accurate_and_unbiased(fast):
 
 
 def test_no_bias_at_the_noise_of_the_published_photograph(fast):
-    """At 1.2 % noise (floor 0.013 here, img_example.pgm: 0.0098) the default stays unbiased where
-    clipping the negative values makes the PSF too wide (-0.027 on this 25 x 25 support)."""
+    """At 1.2 % noise (floor 0.008-0.016 here, img_example.pgm: 0.0098) the default stays unbiased where
+    clipping the negative values makes the PSF too wide (-0.02 to -0.05 on a 25 x 25 support,
+    bench/bench_accuracy.py; -0.009 at 17 x 17, inside the tolerance, so the contrast is shown at 25)."""
     shot, support, _, _ = fast
-    if support < 25:
-        pytest.skip("the clipping bias grows with the support: shown on the 25 x 25 render")
     noisy = shot.exposed(PHOTO, seed=2)
     (est,) = bernoulli.estimate_target(noisy.frame, support=support)
     assert est.noise_floor <= 0.016
     errors = render.compare(est.psf, shot.kernel, S)
     assert abs(errors.mean_signed) <= MAX_BIAS, errors
+    if support < 25:
+        return
     (clipped,) = bernoulli.estimate_target(noisy.frame, support=support, solver="ls-threshold")
     too_wide = render.compare(clipped.psf, shot.kernel, S)
     assert too_wide.mean_signed < errors.mean_signed - 0.01 and too_wide.width_ratio > 1.2, too_wide

@@ -287,7 +287,7 @@ def solve(
     ``ls``: h = (A^T A)^-1 A^T v, the unbiased estimator h_e = (S_s U)^+ v of
     IJCV 2012 sec. 3.1, with the sensor noise left in the kernel's tails as
     values of both signs; ``ls-threshold``: the same with negative values set
-    to 0 (the papers' alternative projection, the reference code's default);
+    to 0 (the former default, kept for comparison);
     ``nnls``: non-negative least squares min ||A h - v|| s.t. h >= 0
     (problem (P) of IJCV 2012, sec. 4), by `nnls_normal`.
 
