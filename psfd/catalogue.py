@@ -154,8 +154,12 @@ def _v2_query_indexes(db: sqlite_utils.Database) -> None:
 
 
 def _v3_prediction_error(db: sqlite_utils.Database) -> None:
-    """Version 3: the cross-validated prediction error beside the noise floor (NULL for older PSFs)."""
-    db["psfs"].add_column("prediction_error", float)
+    """Version 3: the cross-validated prediction error beside the noise floor (NULL for older PSFs).
+
+    Adds the column only when it is missing, whatever other migrations already ran.
+    """
+    if "prediction_error" not in db["psfs"].columns_dict:
+        db["psfs"].add_column("prediction_error", float)
 
 
 MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [_v1_tables, _v2_query_indexes, _v3_prediction_error]

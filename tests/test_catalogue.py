@@ -105,6 +105,10 @@ def test_migration_to_version_3_adds_the_prediction_error_beside_the_noise_floor
         cat.commit_step(run, "a", [frame(1)], [(estimate, {"aperture": 5.6})])
         new = next(row for row in cat.query().rows if row["id"] != old["id"])
         assert new["prediction_error"] == 1.07 and new["noise_floor"] == 1e-4
+    # the migration checks for its column: running it again (as after another branch's numbering) is harmless
+    db = sqlite_utils.Database(path)
+    MIGRATIONS[2](db)
+    assert list(db["psfs"].columns_dict).count("prediction_error") == 1
 
 
 def test_failed_migration_is_rolled_back(tmp_path, monkeypatch):

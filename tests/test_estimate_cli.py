@@ -317,6 +317,14 @@ def test_target_end_to_end_on_real_photo(capsys, data_dir):
     cx, cy = (float(np.sum(np.arange(17) * psf.sum(axis=a))) - 8 for a in (0, 1))
     assert abs(cx) < 4 and abs(cy) < 4
     assert 0 < record["mtf50_x"] < 2 and 0 < record["mtf50_y"] < 2
+    # reported with the noise floor: the cross-validated prediction error (1.22 on this photo)
+    assert record["noise_floor"] > 0 and 1.0 < record["prediction_error"] < 1.5
+    # the table shows it too
+    code, stdout, stderr = run(capsys, "estimate", "target", data_dir / "img_example.pgm")
+    assert code == 0, stderr
+    header, row = stdout.splitlines()[:2]
+    assert header.split()[-2:] == ["noise", "pred."]
+    assert row.split()[-1] == f"{record['prediction_error']:.2f}"
 
 
 def test_thesis_spline_geometry_is_selectable_and_agrees_on_the_real_photo(capsys, data_dir):
