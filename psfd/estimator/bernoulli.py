@@ -295,17 +295,24 @@ def solve(
     clipping the negative values of the LS kernel keeps the positive half of
     the zero-mean noise in the tails, and the normalisation to unit sum turns
     it into a pedestal, so ``ls-threshold`` makes every PSF too wide. On
-    renders of the target through continuous kernels (Gaussian, anisotropic,
-    diffraction at f/5.6-f/22, defocus; supports 17 and 25) with the noise of
-    the published photograph, its mean signed MTF error is -0.008 to -0.040
-    and its RMS width 8-44 % too large, growing with the support (on
-    img_example.pgm the clipped kernel gains 2.5 % of mass at 17 x 17, 9 %
-    at 25 x 25 and 23 % at 33 x 33). ``ls`` and ``nnls`` are unbiased (mean
-    signed error within +-0.003); ``nnls`` is the projection of the LS
-    solution onto h >= 0 in the metric of A^T A, which holds the true
-    kernel, so it can only come closer to it: its worst MTF error is about
-    half that of ``ls`` (its tails hold no noise below zero), and it is a
-    physical, non-negative PSF. It costs no more than ``ls`` (`nnls_normal`).
+    renders of the target through continuous kernels (Gaussian, rotated
+    anisotropic Gaussian, diffraction at f/5.6, f/11 and f/22, defocus; supports
+    17 and 25; 0.30-0.50 pixel per cell) with the noise of the published
+    photograph (noise floor 0.008-0.028), with the true map and light (means
+    of two seeds), the
+    mean signed MTF error (where the true MTF exceeds 0.05) is -0.001 to
+    -0.013 at 17 x 17 and -0.028 to -0.045 at 25 x 25 for ``ls-threshold``,
+    its RMS width 2-12 % and 22-79 % too large, its worst MTF error up to s x
+    Nyquist 0.017-0.050 and 0.10-0.17; ``ls``: -0.003 to +0.000, worst
+    0.008-0.081; ``nnls``: -0.003 to +0.000, worst 0.006-0.036 (RMS width
+    1-8 % above the truth's: a moment dominated by the outermost samples,
+    where it keeps the positive half of the noise, without the pedestal).
+    On img_example.pgm the clipped kernel gains 2.4 % of mass at 17 x 17 and
+    9.7 % at 25 x 25 over the LS one, ``nnls`` none. ``nnls`` is the
+    projection of the LS solution onto h >= 0 in the metric of A^T A, which
+    holds the true kernel, so it can only come closer to it in that metric;
+    it is a physical, non-negative PSF and costs about as much as ``ls``
+    (`nnls_normal`).
 
     Returns
     -------
