@@ -299,9 +299,8 @@ def solve(
     anisotropic Gaussian, diffraction at f/5.6, f/11 and f/22, defocus; supports
     17 and 25; 0.30-0.50 pixel per cell) with the noise of the published
     photograph (noise floor 0.008-0.028), with the true map and light (means
-    of two seeds), the
-    mean signed MTF error (where the true MTF exceeds 0.05) is -0.001 to
-    -0.013 at 17 x 17 and -0.028 to -0.045 at 25 x 25 for ``ls-threshold``,
+    of two seeds), the mean signed MTF error (where the true MTF exceeds
+    0.05) is -0.001 to -0.013 at 17 x 17 and -0.028 to -0.045 at 25 x 25 for ``ls-threshold``,
     its RMS width 2-12 % and 22-79 % too large, its worst MTF error up to s x
     Nyquist 0.017-0.050 and 0.10-0.17; ``ls``: -0.003 to +0.000, worst
     0.008-0.081; ``nnls``: -0.003 to +0.000, worst 0.006-0.036 (RMS width
