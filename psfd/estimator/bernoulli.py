@@ -35,7 +35,8 @@ from psfd.vocabulary import BERNOULLI, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, check
 
 __all__ = [
     "band_reach", "cross_validated", "estimate_plane", "estimate_target", "estimate_window", "jacobian_of",
-    "nnls_normal", "noise_mask", "normal_equations", "raster_factor", "recentre", "s_band", "solve", "u_tilde", "u_tilde_d"
+    "nnls_normal", "noise_mask", "normal_equations", "raster_factor", "recentre", "s_band", "solve", "u_tilde",
+    "u_tilde_d",
 ]
 
 Map = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
