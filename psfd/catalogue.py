@@ -52,6 +52,7 @@ class FrameRecord:
     settings: dict
     rail: dict
     taken_at: str
+    exif: dict | None = None  # what the RAW says the camera did (`psfd.exif.FrameMetadata.as_dict`)
 
 
 @dataclass
@@ -153,6 +154,24 @@ def _v2_query_indexes(db: sqlite_utils.Database) -> None:
     db["runs"].create_index(["plan_hash"])
 
 
+# A frame's own EXIF beside the requested ``settings``: column -> FrameMetadata field.
+FRAME_EXIF = {
+    "exif_focal_length_mm": "focal_length_mm", "exif_f_number": "f_number", "exif_exposure_s": "exposure_s",
+    "exif_iso": "iso", "exif_lens": "lens", "exif_serial": "serial", "exif_focus_distance_m": "focus_distance_m",
+}
+
+
+def _v4_frame_exif(db: sqlite_utils.Database) -> None:
+    """Version 4: what each frame's RAW says the camera used (NULL for older frames).
+
+    Adds only the columns that are missing, so it holds whichever other migrations ran before it.
+    """
+    have = set(db["frames"].columns_dict)
+    for column in FRAME_EXIF:
+        if column not in have:
+            db["frames"].add_column(column, str if column in ("exif_lens", "exif_serial") else float)
+
+
 def _v3_prediction_error(db: sqlite_utils.Database) -> None:
     """Version 3: the cross-validated prediction error beside the noise floor (NULL for older PSFs).
 
@@ -162,7 +181,11 @@ def _v3_prediction_error(db: sqlite_utils.Database) -> None:
         db["psfs"].add_column("prediction_error", float)
 
 
-MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [_v1_tables, _v2_query_indexes, _v3_prediction_error]
+# In the order they landed (a catalogue's user_version counts the migrations it ran): frame EXIF came
+# first, so it is the third; each checks its columns, so either order gives the same schema.
+MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [
+    _v1_tables, _v2_query_indexes, _v4_frame_exif, _v3_prediction_error
+]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -573,6 +596,7 @@ class Catalogue:
                 "settings": json.dumps(frame.settings, sort_keys=True),
                 "aperture": camera_fnumber(frame.settings.get("aperture")),
                 "rail": json.dumps(frame.rail, sort_keys=True), "taken_at": frame.taken_at,
+                **{column: (frame.exif or {}).get(name) for column, name in FRAME_EXIF.items()},
             },
             ignore=True,  # the same file (same hash) is one frame, whoever uses it
         )
