@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from psfd.cli import options
-from psfd.errors import BadInputError, CatalogueError
+from psfd.errors import BadInputError, NoMatchError
 from psfd.vocabulary import CHANNELS, METHODS, MONO, method_name
 
 EXPORT_FORMATS = ("npy", "tiff", "json")
@@ -52,7 +52,7 @@ def open_catalogue(args: argparse.Namespace):
     """The catalogue named by ``--catalogue`` (default: the user's), which must exist."""
     from psfd.catalogue import Catalogue, default_path
 
-    return Catalogue(args.catalogue or default_path(), create=False)
+    return Catalogue(args.catalogue or default_path(), readonly=True)
 
 
 def query_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -69,11 +69,16 @@ def query_options(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def run_filters(cat, options: dict[str, Any]):
-    """Run a query (`psfd.catalogue.QueryResult`); its note (nearest aperture used) goes to stderr."""
+def run_filters(cat, options: dict[str, Any], nothing: str = ""):
+    """Run a query (`psfd.catalogue.QueryResult`); its note (nearest aperture used) goes to stderr.
+
+    Raises NoMatchError (exit 1, as for every reader) when no PSF matches; ``nothing`` ends its message.
+    """
     result = cat.query(**options)
     if result.note:
         print(f"psfd: note: {result.note}", file=sys.stderr)
+    if not result.rows:
+        raise NoMatchError(f"no PSF matches the query{nothing}")
     return result
 
 
@@ -85,11 +90,8 @@ def run_query(args: argparse.Namespace) -> int:
 
     filters = query_options(args)
     with open_catalogue(args) as cat:
-        result = run_filters(cat, filters)
-        if not result.rows:
-            # on stderr, so that --json output stays empty (zero JSON lines) and parseable
-            print("psfd: no PSF matches the query", file=sys.stderr)
-        elif args.json:
+        result = run_filters(cat, filters)  # none: exit 1, and --json output stays empty (zero lines)
+        if args.json:
             for row in result:
                 array, _ = cat.psf(row["id"])
                 print(json.dumps({**row, "psf": array.tolist()}))
@@ -133,9 +135,7 @@ def run_export(args: argparse.Namespace) -> int:
     out = Path(args.out)
     output.check_out_dir(out)
     with open_catalogue(args) as cat:
-        result = run_filters(cat, filters)
-        if not result.rows:
-            raise CatalogueError("no PSF matches the query; nothing exported")
+        result = run_filters(cat, filters, "; nothing exported")
 
         def write(folder: Path) -> list[str]:
             index = []
@@ -171,9 +171,7 @@ def run_report(args: argparse.Namespace) -> int:
         raise BadInputError(f"cannot write an image named {out} (use .png, .jpg or .tif)")
     filters = query_options(args)
     with open_catalogue(args) as cat:
-        result = run_filters(cat, filters)
-        if not result.rows:
-            raise CatalogueError("no PSF matches the query; nothing to report")
+        result = run_filters(cat, filters, "; nothing to report")
         output.write_report(cat, result.rows, pick_channel(result.rows, args.channel), out)
     print(f"report written to {out}")
     return 0
