@@ -16,7 +16,7 @@ from pathlib import Path
 
 from psfd.cli import options
 from psfd.daemon import client
-from psfd.errors import BadInputError, ServiceError
+from psfd.errors import BadInputError, Interrupted, ServiceError, path_reason
 from psfd.vocabulary import BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, DEFAULT_SOLVER, TWO_PHOTO
 
 
@@ -86,18 +86,24 @@ def run_here(plan, catalogue: Path, frames: Path, **flags):
     from psfd.daemon.runner import Control, run_plan
 
     control = Control()
+    stopped: list[str] = []
 
     def stop(signum, frame):  # first Ctrl-C or SIGTERM: finish the current frame and pause
         signal.signal(signum, signal.default_int_handler)
         print("\npsfd: stopping after the current frame (again to abort)", file=sys.stderr)
+        stopped.append(signal.Signals(signum).name)
         control.request("pause")
 
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        return run_plan(plan, catalogue, frames, control=control, **flags)
+        result = run_plan(plan, catalogue, frames, control=control, **flags)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    if stopped and result.error is None and result.state != "done":  # stopped by the user: exit 130
+        result.error = Interrupted(f"interrupted by {stopped[0]}")
+        result.reason = f"interrupted by {stopped[0]}"
+    return result
 
 
 def plural(n: int, word: str) -> str:
@@ -140,7 +146,7 @@ def writable_folder(path: Path, option: str) -> Path:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise BadInputError(f"{option} {path}: cannot create the folder ({exc.strerror or exc})") from None
+        raise BadInputError(f"{option} {path}: cannot create the folder ({path_reason(path, exc)})") from None
     if not os.access(path, os.W_OK | os.X_OK):
         raise BadInputError(f"{option} {path}: not a writable folder")
     return path
@@ -161,8 +167,6 @@ def run_plan_file(args: argparse.Namespace) -> int:
               f"follow it with: {follow}")
         return 0
     runner = options.runner_options(args)
-    if args.resume and not catalogue.exists():
-        raise BadInputError(f"no unfinished run of plan {args.plan} to resume (no catalogue at {catalogue})")
     result = run_here(plan, catalogue, frames, resume=args.resume, new=args.new, **runner)
     return _report(result.to_dict(), _again(args, "run", args.plan, "--resume"))
 
@@ -262,6 +266,9 @@ def run_status(args: argparse.Namespace) -> int:
             last = answer["last"]
             print(f"  last: {last['plan']} run {last.get('run_id', '-')} {last['state']}"
                   + (f" ({last['reason']})" if last.get("reason") else ""))
+        for run in answer.get("unfinished", []):  # what the service would continue on request
+            print(f"  run {run['id']} of {run['plan_path']} is {run['state']} ({run['done']}/{run['total']} steps "
+                  f"done); continue with: {_again(args, 'run', run['plan_path'], '--resume')}")
         return 0
     from psfd.catalogue import Catalogue
     from psfd.daemon.store import shown_state
@@ -269,7 +276,7 @@ def run_status(args: argparse.Namespace) -> int:
     if not catalogue.exists():
         print(f"no service at {sock}; no catalogue at {catalogue}")
         return 0
-    with Catalogue(catalogue, create=False) as cat:
+    with Catalogue(catalogue, readonly=True) as cat:
         summaries = [cat.run_summary(r["id"]) for r in cat.runs()[:10]]
     for s in summaries:  # a run its process no longer holds was killed: say so, it is resumable
         s["state"] = shown_state(s["state"], frames)
@@ -288,10 +295,7 @@ def run_plan_check(args: argparse.Namespace) -> int:
     from psfd.daemon import plan as plans
 
     path = Path(args.plan)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise BadInputError(f"cannot read plan {path}: {exc}") from None
+    text = plans.read_plan_text(path)
     problems = plans.check_text(text)
     for problem in problems:
         print(f"{path}: {problem}", file=sys.stderr)
@@ -382,7 +386,7 @@ def _demo_outputs(catalogue: Path, workdir: Path) -> None:
     from psfd.catalogue import Catalogue
     from psfd.cli import output
 
-    with Catalogue(catalogue, create=False) as cat:
+    with Catalogue(catalogue, readonly=True) as cat:
         for name, near in (("centre", (0.5, 0.5)), ("corner", (0.0, 0.0))):
             print(f"\n$ psfd query --catalogue {catalogue} --channel g1 --near {near[0]:g},{near[1]:g}   # {name}")
             print(output.format_rows(cat.query(channel="g1", near=near).rows))
