@@ -3,7 +3,8 @@
 The CLI prints ``str(error)`` on one line of stderr and exits with ``error.exit_code``,
 the one table of the README: 0 done, 1 nothing matched, 2 bad input, 3 the
 photographs cannot support an estimate, 4 camera or rail, 5 catalogue or service
-(a full or read-only disk included), 130 interrupted. The service sends an error's
+(a full or read-only disk included), 130 interrupted by Ctrl-C, 143 stopped by SIGTERM
+(128 + the signal, as a shell reports a process the signal ended). The service sends an error's
 type name with its answer (`by_name`), so the same refusal exits with the same code
 whether a command ran here or through the service.
 """
@@ -13,6 +14,7 @@ from __future__ import annotations
 import errno
 import os
 import pwd
+import signal
 from pathlib import Path
 
 
@@ -95,9 +97,13 @@ class ServiceError(PsfdError):
 
 
 class Interrupted(PsfdError):
-    """Stopped by Ctrl-C or SIGTERM; a run stopped so is paused and resumable."""
+    """Stopped by Ctrl-C (exit 130) or SIGTERM (143); a run stopped so is paused and resumable."""
 
-    exit_code = 130
+    exit_code = 128 + signal.SIGINT
+
+    def __init__(self, message: str, signum: int = signal.SIGINT) -> None:
+        super().__init__(message)
+        self.exit_code = 128 + int(signum)
 
 
 # errno values that mean "this storage cannot take more writes now", not a fault of the device or input

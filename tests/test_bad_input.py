@@ -222,8 +222,8 @@ def _wait_for_running(db: Path, proc: subprocess.Popen, timeout: float = 300) ->
     raise AssertionError("the run never started")
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
-def test_interrupting_a_run_exits_130_and_leaves_it_resumable(tmp_path, sig):
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)], ids=["ctrl-c", "sigterm"])
+def test_interrupting_a_run_exits_128_plus_the_signal_and_leaves_it_resumable(tmp_path, sig, code):
     plan = tmp_path / "plan.toml"
     plan.write_text(small_plan())
     db = tmp_path / "cat.sqlite"
@@ -233,13 +233,13 @@ def test_interrupting_a_run_exits_130_and_leaves_it_resumable(tmp_path, sig):
     _wait_for_running(db, proc)
     proc.send_signal(sig)
     out, err = proc.communicate(timeout=300)
-    assert proc.returncode == 130, err
+    assert proc.returncode == code, err
     assert "paused" in err and "--resume" in err and "Traceback" not in err
     with Catalogue(db, readonly=True) as cat:
         assert cat.runs()[0]["state"] == "paused"
 
 
-def test_sigterm_of_another_command_exits_130_in_one_line(tmp_path):
+def test_sigterm_of_another_command_exits_143_in_one_line(tmp_path):
     """SIGTERM while `psfd status` waits for a service that accepted but does not answer."""
     sock = tmp_path / "slow.sock"
     server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -252,7 +252,7 @@ def test_sigterm_of_another_command_exits_130_in_one_line(tmp_path):
     conn.recv(100)  # the request arrived: psfd now waits for the answer
     proc.send_signal(signal.SIGTERM)
     out, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130 and err == "psfd: interrupted\n", err
+    assert proc.returncode == 143 and err == "psfd: terminated\n", err
     conn.close()
     server.close()
 
@@ -262,7 +262,7 @@ def test_the_readme_has_the_one_table_of_exit_codes():
     from psfd import errors
 
     for code, words in ((0, "done"), (1, "nothing matched"), (2, "bad input"), (3, "cannot support"),
-                        (4, "camera or rail"), (5, "catalogue or service"), (130, "interrupted")):
+                        (4, "camera or rail"), (5, "catalogue or service"), (130, "interrupted"), (143, "SIGTERM")):
         assert any(line.startswith(f"| {code} ") and words in line for line in readme.splitlines()), code
     assert {c.exit_code for c in vars(errors).values()
             if isinstance(c, type) and issubclass(c, errors.PsfdError)} == {1, 2, 3, 4, 5, 130}

@@ -216,3 +216,151 @@ def test_simulated_raw_frames(tmp_path):
             errors = np.linalg.norm(found.corners - truth["corners"][channel], axis=1)
             assert errors.max() < TOLERANCE, (case, channel, errors)
             assert found.scale == pytest.approx(case["pixels_per_cell"], rel=0.05)
+
+
+# --------------------------------------------------------------------------- cluttered frames
+#
+# Frames of tests/scenes.py: the target drawn from its vector layout into a
+# busy outdoor scene (foliage against a clipped sky, a chain-link fence,
+# checkerboards, text, dead leaves, shadows), blurred, noisy, quantised. The
+# previous detector, which ranked saddles over the whole frame, found the
+# target in 2 of 20 such frames.
+
+import scenes  # noqa: E402
+
+from psfd.estimator import bernoulli, mtf, raw  # noqa: E402
+
+# Corners against the truth, in pixels: the refinement is the one above, but
+# on 8-bit planes (quantisation 0.4 % of the range, noise 0.5 %) of scenes
+# rendered with 8 x 8 samples per pixel, whose box average of the hourglass
+# diagonals is itself exact only to about 1/64 of a pixel's area: measured
+# 0.03-0.15 px over 30 scenes at 0.3-0.5 px/cell, 0.02-0.06 px on 14-bit planes.
+SCENE_TOLERANCE = 0.2
+# The same PSF from the whole frame as from a crop around the target (issue
+# 10): the refinement reads only the marks' surroundings, so both give the
+# same corners and the same kernel; 0.01 is the bound asked for, measured 1e-4.
+MTF_TOLERANCE = 0.01
+
+
+def _same_psf(full: raw.Frame, box: tuple[int, int, int, int]) -> float:
+    """Largest MTF difference between the estimates from ``full`` and from its crop ``box``."""
+    whole = bernoulli.estimate_target(full)[0]
+    part = bernoulli.estimate_target(scenes.crop_frame(full, box))[0]
+    return float(np.abs(mtf.mtf2d(whole.psf, whole.s)[1] - mtf.mtf2d(part.psf, part.s)[1]).max())
+
+
+def _check_plane_scene(scene: scenes.Scene, psf: bool) -> None:
+    frame = scenes.plane_frame(scene)
+    found = detect.find_target(frame.data, frame.saturated)
+    errors = np.linalg.norm(found.corners - scene.corners(), axis=1)
+    assert errors.max() < SCENE_TOLERANCE, (scene.params, errors)
+    assert found.scale == pytest.approx(scene.scale, rel=0.1)
+    # Detection in the whole frame and in a crop around the target agree.
+    box = scene.box(margin=30)
+    in_crop = detect.find_target(frame.data[box[1] : box[3], box[0] : box[2]])
+    np.testing.assert_allclose(in_crop.corners + box[:2], found.corners, atol=1e-3)
+    if psf:
+        assert _same_psf(frame, box) < MTF_TOLERANCE
+
+
+@pytest.mark.parametrize("seed", [0, 4])
+def test_target_in_a_cluttered_8bit_plane(seed):
+    # 1953 x 1301, the size of the real frames, target at 0.3-0.5 px/cell, any rotation.
+    _check_plane_scene(scenes.plane_scene(seed), psf=seed == 0)
+
+
+@pytest.fixture(scope="module")
+def cluttered_raw(tmp_path_factory):
+    """A 24-megapixel RGGB DNG of a cluttered scene, written by psfd's DNG writer."""
+    path = tmp_path_factory.mktemp("scene") / "cluttered.dng"
+    return scenes.raw_scene(path, seed=101)
+
+
+def test_target_in_every_plane_of_a_cluttered_24mp_raw(cluttered_raw):
+    planes = raw.load_frames(cluttered_raw.path)  # decoded by rawpy
+    assert [p.channel for p in planes] == ["r", "g1", "g2", "b"] and planes[0].shape == (2000, 3000)
+    g1 = next(p for p in planes if p.channel == "g1")
+    once = detect.find_target(g1.data, g1.saturated)
+    for plane in planes:
+        truth = cluttered_raw.corners(plane.channel)
+        found = detect.find_target(plane.data, plane.saturated)
+        assert np.linalg.norm(found.corners - truth, axis=1).max() < SCENE_TOLERANCE, plane.channel
+        # Detected once on g1, refined here: the same corners as a search of this plane.
+        shift = detect.plane_shift(g1.offset, plane.offset)
+        refined = detect.refine_target(plane.data, once, plane.saturated, shift)
+        np.testing.assert_allclose(refined.corners, found.corners, atol=1e-3)
+
+
+def test_same_psf_from_the_raw_frame_as_from_a_crop(cluttered_raw):
+    g1 = raw.load_frame(cluttered_raw.path, "g1")
+    assert _same_psf(g1, cluttered_raw.box("g1", margin=30)) < MTF_TOLERANCE
+
+
+def test_no_target_in_a_cluttered_frame():
+    scene = scenes.plane_scene(7, targets=0)
+    with pytest.raises(TargetNotFoundError, match="no calibration target found in the 1953x1301 image"):
+        detect.find_target(scene.image)
+
+
+def test_two_targets_in_a_cluttered_frame():
+    scene = scenes.plane_scene(8, targets=2)
+    with pytest.raises(MultipleTargetsError, match="2 calibration targets found in the image; frame exactly one"):
+        detect.find_target(scene.image)
+
+
+def test_plane_shift_follows_the_bayer_offsets():
+    # RGGB: r at photosite (0, 0), b at (1, 1): a point of the r plane lies
+    # half a pixel up and left on the b plane.
+    assert detect.plane_shift((0, 0), (1, 1)) == (-0.5, -0.5)
+    assert detect.plane_shift((0, 1), (1, 0)) == (0.5, -0.5)
+    assert detect.plane_shift((0, 0), (0, 0)) == (0.0, 0.0)
+
+
+def test_refining_from_a_start_a_pixel_away_gives_the_same_corners():
+    # The planes of a frame differ by the Bayer half-pixel offsets and the
+    # lens's lateral colour (up to about a pixel).
+    image, _ = render_target(frame_for(0.3), 0.3, angle=140, tilt=0.0003)
+    found = detect.find_target(image)
+    refined = detect.refine_target(image, found, shift=(1.0, -0.8))
+    np.testing.assert_allclose(refined.corners, found.corners, atol=1e-3)
+    assert refined.scale == pytest.approx(found.scale)
+
+
+def test_refining_where_there_is_no_target_is_refused():
+    image, _ = render_target(frame_for(0.4), 0.4, angle=20)
+    found = detect.find_target(image)
+    with pytest.raises(TargetNotFoundError):
+        detect.refine_target(np.full_like(image, 0.5), found)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(30))
+def test_sweep_cluttered_8bit_planes(seed):
+    _check_plane_scene(scenes.plane_scene(seed), psf=seed % 5 == 0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(4))
+def test_sweep_larger_targets(seed):
+    # 0.6-1.1 px/cell: the target covers 1.5-5 % of the frame's area.
+    scale = 0.6 + 0.15 * seed
+    _check_plane_scene(scenes.plane_scene(200 + seed, scale=scale), psf=False)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(100, 106))
+def test_sweep_cluttered_24mp_raws(seed, tmp_path):
+    scene = scenes.raw_scene(tmp_path / "scene.dng", seed=seed)
+    for plane in raw.load_frames(scene.path):
+        found = detect.find_target(plane.data, plane.saturated)
+        errors = np.linalg.norm(found.corners - scene.corners(plane.channel), axis=1)
+        assert errors.max() < SCENE_TOLERANCE, (seed, plane.channel, errors)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(300, 306))
+def test_sweep_frames_without_or_with_two_targets(seed):
+    with pytest.raises(TargetNotFoundError):
+        detect.find_target(scenes.plane_scene(seed, targets=0).image)
+    with pytest.raises(MultipleTargetsError):
+        detect.find_target(scenes.plane_scene(seed, targets=2).image)

@@ -47,16 +47,18 @@ def test_rail_commands_simulated(capsys):
 
 
 def test_rail_commands_on_grbl(capsys):
-    firmware = FakeGrbl()
+    # homing enabled, fast seek; GRBL homes to the + end and backs off 1 mm: machine coordinates are negative
+    firmware = FakeGrbl({22: 1, 24: 600, 25: 3000, 26: 10, 110: 6000, 111: 6000, 120: 200, 121: 200},
+                        homing_cycles=((0,),), start=(-5.0, -5.0, 0.0))
     try:
-        assert run(capsys, "rail", "home", "--rail-port", firmware.port)[:2] == (0, "X=0\n")
-        code, out, _ = run(capsys, "rail", "move", "X=120", "Y=4", "--rail-port", firmware.port,
-                           "--rail-limits", "X=0:500,Y=-10:10")
-        assert (code, out) == (0, "X=120 Y=4\n")
-        assert firmware.position()[:2] == [120.0, 4.0]
-        code, _, err = run(capsys, "rail", "move", "X=120", "Y=40", "--rail-port", firmware.port,
-                           "--rail-limits", "X=0:500,Y=-10:10")
-        assert code == 4 and "Y=40 mm is outside the soft limits [-10, 10]" in err
+        assert run(capsys, "rail", "home", "--rail-port", firmware.port)[:2] == (0, "X=-1\n")
+        code, out, _ = run(capsys, "rail", "move", "X=-120", "Y=-4", "--rail-port", firmware.port,
+                           "--rail-limits", "X=-200:0,Y=-10:10")
+        assert (code, out) == (0, "X=-120 Y=-4\n")
+        assert firmware.machine_position()[:2] == [-120.0, -4.0]
+        code, _, err = run(capsys, "rail", "move", "X=-120", "Y=-40", "--rail-port", firmware.port,
+                           "--rail-limits", "X=-200:0,Y=-10:10")
+        assert code == 4 and "Y=-40 mm is outside the rail's travel [-10, 0]" in err
         code, _, err = run(capsys, "rail", "home", "--rail-port", firmware.port, "--rail-limits", "X=5:1")
         assert code == 2 and "minimum is above its maximum" in err
     finally:

@@ -1,136 +1,445 @@
-"""GrblRail through real pyserial on a pseudo-terminal, with a fake GRBL firmware on the other end.
+"""GrblRail through real pyserial on a pseudo-terminal, against a fake GRBL 1.1h firmware that follows the
+firmware's documented behaviour (tests/fake_grbl.py).
 
-Every scenario ends in a completed move or a typed error within a short timeout, never a hang.
+Every scenario ends in a completed move or a typed error, and never with the carriage still moving.
 """
 
 from __future__ import annotations
 
+import os
+import re
+import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import pytest
+import serial
 
-from fake_grbl import FakeGrbl
-from psfd.drivers.base import Position, Rail
-from psfd.drivers.grbl import GrblRail, parse_status
+from fake_grbl import FakeGrbl, advance
+from psfd.cli import main
+from psfd.drivers import open_rail
+from psfd.drivers.base import Position, Rail, RailInfo
+from psfd.drivers.grbl import GrblRail, PortLock, homing_time, move_time, parse_status
 from psfd.errors import RailAlarm, RailError
 
-LIMITS = {"x": (0, 500), "y": (-50, 50)}
+# A bench rail that moves quickly (100 mm/s, 200 mm/s^2) and homes in about a second; homing off, as grbl ships.
+BENCH = {110: 6000, 111: 6000, 112: 6000, 120: 200, 121: 200, 122: 200, 24: 600, 25: 3000, 26: 10}
+HOMING = {**BENCH, 22: 1}
+SLOW = {**BENCH, 110: 1200}  # 20 mm/s: a 150 mm move lasts 7.5 s, time enough to interrupt it
 
 
 @pytest.fixture
-def fake():
-    firmware = FakeGrbl(speed=500.0)
-    yield firmware
-    firmware.close()
+def make_fake():
+    fakes = []
+
+    def make(settings: dict | None = None, **options) -> FakeGrbl:
+        options.setdefault("homing_cycles", ((0,),))  # a one-axis rail's firmware homes X only
+        fakes.append(FakeGrbl({**BENCH, **(settings or {})}, **options))
+        return fakes[-1]
+
+    yield make
+    for fake in fakes:
+        fake.close()
 
 
 @pytest.fixture
-def rail(fake):
-    driver = GrblRail(fake.port, timeout=0.5, limits=LIMITS, feed=30000, poll=0.01)
-    yield driver
-    driver.close()
+def connect():
+    rails = []
+
+    def open_(fake: FakeGrbl, **options) -> GrblRail:
+        options = {"poll": 0.02, **options}  # the default 2 s exchange timeout: tests run on loaded machines
+        rails.append(GrblRail(fake.port, **options))
+        return rails[-1]
+
+    yield open_
+    for rail in rails:
+        rail.close()
 
 
-def test_banner_home_move_and_status(fake, rail):
-    assert isinstance(rail, Rail)
-    assert rail.banner.startswith("Grbl 1.1")
-    assert rail.home() == Position(0.0, 0.0, None)
-    assert fake.lines[-1] == "$H"
-    pos = rail.move(x=120.0, y=-12.5)
-    assert pos == Position(120.0, -12.5, None)
-    assert fake.lines[-1] == "G90 G21 G1 X120.000 Y-12.500 F30000"
-    assert fake.position()[:2] == [120.0, -12.5]
-    assert rail.position() == Position(120.0, -12.5, None)
-    # only X: Y stays where it was
-    assert rail.move(x=80) == Position(80.0, -12.5, None)
+def run(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
 
 
-def test_move_waits_for_motion_to_finish(fake, rail):
-    fake.speed = 100.0  # 50 mm takes 0.5 s
-    rail.move(x=50)
-    # the fake interpolates its position in time: at the target means the motion had ended
-    assert fake.position()[0] == 50.0 and fake.state == "Idle"
+def psfd_process(*argv: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "psfd", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
 
 
-def test_parse_status_both_versions():
+def settled(fake: FakeGrbl) -> bool:
+    """The carriage stands and stays standing."""
+    first = fake.physical_position()
+    time.sleep(0.2)
+    return not fake.moving and fake.physical_position() == first
+
+
+# ---------------------------------------------------------------------------------------------- parsing, timing
+
+
+def test_parse_status_formats():
     status, wco = parse_status("<Run|MPos:12.000,3.500,0.000|FS:500,0|WCO:2.000,0.500,0.000>")
     assert status.state == "Run" and status.position == (10.0, 3.0, 0.0) and wco == (2.0, 0.5, 0.0)
-    status, _ = parse_status("<Idle|MPos:12.000,3.500,0.000|FS:0,0>", wco)  # WCO is remembered
-    assert status.position == (10.0, 3.0, 0.0)
-    status, _ = parse_status("<Idle,MPos:5.529,0.560,7.000,WPos:1.529,-5.440,-0.000>")
+    assert status.machine == (12.0, 3.5, 0.0) and status.feed == 500.0
+    status, _ = parse_status("<Hold:0|MPos:12.000,3.500,0.000|FS:0,0>", wco)  # WCO is remembered
+    assert status.name == "Hold:0" and status.state == "Hold" and status.position == (10.0, 3.0, 0.0)
+    status, _ = parse_status("<Idle|WPos:-1.000,0.000,0.000|FS:0,0|Pn:XD>", (2.0, 0.0, 0.0))  # $10=0
+    assert status.machine == (1.0, 0.0, 0.0) and status.pins == "XD"
+    status, _ = parse_status("<Idle|MPos:-3.9370,0.0000,0.0000|FS:0.0,0>", scale=25.4)  # $13=1: inches
+    assert status.position[0] == pytest.approx(-100.0, abs=0.003)
+    status, _ = parse_status("<Idle,MPos:5.529,0.560,7.000,WPos:1.529,-5.440,-0.000>")  # GRBL 0.9
     assert status.state == "Idle" and status.position == (1.529, -5.44, 0.0)
     with pytest.raises(RailError, match="unreadable"):
         parse_status("<garbage>")
 
 
-def test_soft_limits_refuse_before_sending(fake, rail):
+@pytest.mark.parametrize("distance, rate, accel", [(100.0, 500.0, 10.0), (2.0, 60.0, 1.0), (0.5, 6000.0, 200.0)])
+def test_move_time_matches_the_firmware_profile(distance, rate, accel):
+    # The driver's closed form against the fake's step-by-step profile (two independent readings of planner.c).
+    s = v = t = 0.0
+    while s < distance:
+        s, v = advance(s, v, distance, rate / 60.0, accel, 0.001, hold=False)
+        t += 0.001
+    assert move_time([distance], [rate], [accel]) == pytest.approx(t, abs=0.002)
+    # a diagonal is held to the slowest axis' share of its rate and acceleration
+    diagonal = move_time([30.0, 40.0], [600.0, 60000.0], [5.0, 500.0])
+    assert diagonal == pytest.approx(move_time([50.0], [1000.0], [25 / 3]))
+
+
+def test_homing_deadline_follows_seek_rate_and_travel():
+    settings = {24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 120: 10.0, 121: 10.0, 122: 10.0, 130: 2000.0, 131: 200.0,
+                132: 200.0}
+    # a 2 m rail at the default seek rate: the search alone may last 1.5 x 2000 mm / (500 mm/min) = 360 s
+    assert homing_time(settings) > 360.0 > 240.0  # the first driver allowed a fixed 120 s
+
+
+# ---------------------------------------------------------------------------------------------- the fake itself
+
+
+def test_fake_follows_the_documented_alarm_behaviour(make_fake):
+    """Boot lock, error:9, $X, the critical soft-limit alarm that only Ctrl-X ends: as interface.md says."""
+    fake = make_fake({22: 1, 20: 1}, time_scale=0.5)  # the firmware's 500 ms alarm delay lasts 1 s here
+    link = serial.Serial(fake.port, 115200, timeout=0.3)
+
+    def say(data: bytes, wait: float = 0.15) -> list[str]:
+        link.write(data)
+        time.sleep(wait)
+        return [ln for ln in link.read(4096).decode().split("\r\n") if ln]
+
+    assert say(b"?")[0].startswith("<Alarm|MPos:0.000,0.000,0.000|FS:0,0|WCO:")
+    assert say(b"G0 X-1\n") == ["error:9"]
+    assert say(b"$X\n") == ["[MSG:Caution: Unlocked]", "ok"]
+    link.write(b"G1 X10 F100\n")
+    assert fake.wait_for(lambda f: 2 in f.alarms())
+    assert say(b"\x18", 1.3) == ["ALARM:2", "[MSG:Reset to continue]"]  # a reset during the delay is forgotten
+    assert say(b"?") == [] and say(b"$$\n") == []  # deaf: not even a status report
+    assert say(b"\x18", 0.3) == ["ok", "Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
+    link.close()
+
+
+# ---------------------------------------------------------------------------------------------- connecting
+
+
+def test_open_reads_the_controller_and_does_not_reset_it(make_fake, connect):
+    fake = make_fake()
+    rail = connect(fake)
+    assert isinstance(rail, Rail)
+    assert fake.resets() == [] and "$$" in fake.lines  # the first driver reset GRBL at every open
+    info = rail.info()
+    assert info == RailInfo(controller="Grbl 1.1h.20190825", axes=("x",), travel={"x": (-200.0, 0.0)}, units="mm",
+                            homing=False, state="Idle")
+    assert rail.position() == Position(0.0, None, None)
+
+
+def test_home_to_the_plus_end_gives_negative_coordinates(make_fake, connect):
+    fake = make_fake({22: 1}, start=(-30.0, 0.0, 0.0))
+    rail = connect(fake, limits={"x": (-200, 0), "y": (-50, 50)})
+    assert rail.info().travel == {"x": (-200.0, 0.0), "y": (-50.0, 0.0)}  # the config narrows, never widens
+    assert rail.home() == Position(-1.0, 0.0, None)  # GRBL homes to + and backs off $27
+    assert fake.physical_position()[0] == pytest.approx(-1.0)  # 1 mm inside the switch
+    assert rail.move(x=-150.0) == Position(-150.0, 0.0, None)
     sent = len(fake.lines)
-    with pytest.raises(RailError, match=r"X=600 mm is outside the soft limits \[0, 500\]"):
-        rail.move(x=600)
-    with pytest.raises(RailError, match="no Z axis"):
-        rail.move(x=10, z=5)
-    assert len(fake.lines) == sent
+    with pytest.raises(RailError, match=r"X=10 mm is outside the rail's travel \[-200, 0\] mm"):
+        rail.move(x=10)
+    with pytest.raises(RailError, match=r"rail has no Z axis"):
+        rail.move(x=-10, z=5)
+    assert len(fake.lines) == sent  # refused before anything was sent
 
 
-def test_error_code_has_its_meaning(fake, rail):
+def test_configured_limits_outside_the_controller_travel_are_refused(make_fake):
+    fake = make_fake()
+    with pytest.raises(RailError, match=r"rail_limits X=\[0, 500\] mm lie outside the controller's travel \[-200, 0\]"):
+        GrblRail(fake.port, limits={"x": (0, 500)})
+    with pytest.raises(RailError, match="min 5 is above max 1"):
+        GrblRail(fake.port, limits={"x": (5, 1)})
+    with pytest.raises(RailError, match="unknown rail axis"):
+        GrblRail(fake.port, limits={"x": (0, 1), "w": (0, 1)})
+
+
+def test_open_rail_config_keys_still_work(make_fake):
+    fake = make_fake()
+    rail = open_rail({"rail_port": fake.port, "rail_limits": {"x": [-100, 0]}, "rail_baudrate": 115200,
+                      "rail_feed": 3000, "rail_timeout": 0.5})
+    try:
+        assert rail.info().travel == {"x": (-100.0, 0.0)}
+        assert rail.move(x=-5).x == -5.0 and fake.lines[-1] == "G90 G21 G1 X-5.0000 F3000"
+    finally:
+        rail.close()
+
+
+def test_second_opener_is_refused_with_the_holder_pid(make_fake, connect):
+    fake = make_fake()
+    rail = connect(fake)
+    with pytest.raises(RailError, match=rf"rail {fake.port} in use by pid {os.getpid()} "):
+        GrblRail(fake.port, timeout=0.5)
+    lock = PortLock(fake.port).path
+    assert lock.read_text().strip() == str(os.getpid())
+    rail.close()
+    assert not lock.exists()
+    connect(fake).close()  # free again
+
+
+def test_without_a_lock_directory_the_device_lock_still_refuses(make_fake, connect, monkeypatch, tmp_path):
+    monkeypatch.setenv("PSFD_LOCK_DIR", str(tmp_path / "absent"))  # e.g. a sandbox without /run/lock
+    fake = make_fake()
+    rail = connect(fake)
+    with pytest.raises(RailError, match=rf"rail {fake.port} in use by pid {os.getpid()} "):
+        GrblRail(fake.port, timeout=0.5)  # pyserial's exclusive flock, holder read from /proc/locks
+    rail.close()
+    connect(fake).close()
+
+
+def test_grblhal_banner_and_boot_alarm(make_fake, connect):
+    fake = make_fake({22: 1}, flavour="grblhal", auto_reset=True, boot_time=0.3, start=(-5.0, 0.0, 0.0))
+    rail = connect(fake)
+    assert rail.banner == "GrblHAL 1.1f ['$' or '$HELP' for help]" and rail.info().controller.startswith("GrblHAL")
+    with pytest.raises(RailAlarm, match="homing needed"):
+        rail.move(x=-10)
+    assert rail.home().x == -1.0 and rail.move(x=-10).x == -10.0
+
+
+def test_fluidnc_subset_of_settings(make_fake, connect):
+    fake = make_fake({130: 800}, flavour="fluidnc")
+    rail = connect(fake)
+    assert rail.info().controller.startswith("FluidNC") and rail.info().travel == {"x": (-800.0, 0.0)}
+    assert rail.move(x=-20).x == -20.0
+
+
+def test_silent_controller_is_probed_not_reset(make_fake, connect):
+    fake = make_fake(wake_on_line=True)  # answers nothing, not even '?', until it receives a whole line
+    rail = connect(fake)
+    assert "$I" in fake.lines and fake.resets() == []
+    assert rail.move(x=-3).x == -3.0
+
+
+def test_arduino_auto_reset_happens_only_at_the_first_open(make_fake, connect):
+    fake = make_fake(auto_reset=True, boot_time=0.3)
+    rail = connect(fake)
+    assert rail.rebooted and rail.move(x=-20).x == -20.0
+    rail.close()
+    assert fake.wait_for(lambda f: not f.peer_open)  # the next command is another process, later
+    rail = connect(fake)  # HUPCL cleared at the first open: DTR stayed up, no edge, no reboot
+    assert not rail.rebooted and rail.position().x == -20.0
+    assert [e for e in fake.events if e[0] == "boot"] == [("boot",)]
+
+
+# ---------------------------------------------------------------------------------------------- settings-derived
+
+
+def test_inch_reports_are_converted(make_fake, connect):
+    fake = make_fake({13: 1})
+    rail = connect(fake)
+    assert rail.units == "inch" and rail.info().travel == {"x": (-200.0, 0.0)}  # settings stay in mm
+    assert rail.move(x=-100.0).x == pytest.approx(-100.0, abs=0.003)
+    assert fake.machine_position()[0] == -100.0
+
+
+def test_slow_rail_completes_within_its_own_deadline(make_fake, connect):
+    fake = make_fake({110: 60, 120: 1})  # 1 mm/s and 1 mm/s^2: 2 mm take 3 s
+    rail = connect(fake)
+    start = time.monotonic()
+    assert rail.move(x=-2.0).x == -2.0
+    assert time.monotonic() - start >= 2.9
+
+
+def test_arrival_tolerance_follows_steps_per_mm(make_fake, connect):
+    fake = make_fake({100: 25})  # 0.04 mm steps: GRBL lands on the nearest step
+    rail = connect(fake)
+    reached = rail.move(x=-10.02).x
+    assert reached == fake.machine_position()[0] and abs(reached + 10.02) <= 0.5 / 25 + 0.001
+
+
+# ---------------------------------------------------------------------------------------------- stopping
+
+
+@pytest.mark.parametrize("sig, code, word", [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")])
+def test_signal_mid_move_stops_the_carriage_and_frees_the_port(make_fake, connect, sig, code, word):
+    fake = make_fake(SLOW)
+    proc = psfd_process("rail", "move", "X=-150", "--rail-port", fake.port)
+    try:
+        assert fake.wait_for(lambda f: f.machine_position()[0] < -20.0, timeout=30)
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        proc.kill()
+    assert proc.returncode == code and err.startswith(f"psfd: {word} (rail stopped at X=-")
+    assert settled(fake) and fake.physical_position()[0] > -100.0
+    assert fake.resets() == ["Hold:0"] and fake.alarms() == []  # held first, reset once standing: position kept
+    assert not fake.peer_open and not PortLock(fake.port).path.exists()
+    assert connect(fake).position().x == fake.machine_position()[0]
+
+
+def test_timeout_is_reported_once_the_carriage_stands(make_fake, connect):
+    # A rail slower than its own settings (a feed override, a stalling motor): the fake runs at 1/4 speed.
+    fake = make_fake(time_scale=0.25)
+    rail = connect(fake)
+    with pytest.raises(RailError, match=r"did not reach X=-150 mm within .* s .*; rail stopped at X=-") as caught:
+        rail.move(x=-150)
+    assert not fake.moving and fake.status() == "Idle"
+    assert fake.resets() == ["Hold:0"] and fake.alarms() == []
+    assert rail.position().x == fake.machine_position()[0] > -150, caught.value
+
+
+def test_second_process_is_refused_and_the_move_goes_on(make_fake, capsys):
+    fake = make_fake(SLOW)
+    proc = psfd_process("rail", "move", "X=-60", "--rail-port", fake.port)
+    try:
+        assert fake.wait_for(lambda f: f.moving, timeout=30)
+        code, _, err = run(capsys, "rail", "position", "--rail-port", fake.port)
+        assert code == 4 and err.startswith(f"psfd: error: rail {fake.port} in use by pid {proc.pid} (")
+        out, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0 and out == "X=-60\n", err
+    assert fake.resets() == [] and fake.alarms() == []
+
+
+def test_reopen_does_not_reset_a_moving_controller(make_fake, connect):
+    fake = make_fake(SLOW)
+    proc = psfd_process("rail", "move", "X=-150", "--rail-port", fake.port)
+    assert fake.wait_for(lambda f: f.machine_position()[0] < -20.0, timeout=30)
+    proc.kill()  # SIGKILL: no chance to stop anything; the controller goes on with the move
+    proc.wait()
+    assert fake.moving
+    rail = connect(fake)  # what `psfd run --resume` does next
+    assert fake.alarms() == [] and fake.resets() == ["Hold:0"]  # held, then reset standing: no ALARM:3
+    assert settled(fake) and rail.position().x == fake.machine_position()[0]
+
+
+def test_silence_mid_move_stops_the_carriage(make_fake, connect):
+    fake = make_fake(SLOW)
+    fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.go_silent)
+    rail = connect(fake, timeout=1.0)
+    with pytest.raises(RailError, match=r"stopped answering.*feed hold and reset sent, position unknown"):
+        rail.move(x=-150)
+    assert settled(fake) and fake.physical_position()[0] > -100.0
+    assert fake.resets() == ["Hold:0"]  # the reset waited for the deceleration: nothing lost
+
+
+def test_operator_feed_hold_is_reported_at_once(make_fake, connect):
+    fake = make_fake(SLOW)
+    held = []
+    fake.when(lambda f: f.machine_position()[0] < -20.0, lambda f: (held.append(time.monotonic()), f.press_feed_hold()))
+    rail = connect(fake)
+    with pytest.raises(RailError, match=r"feed hold \(Hold:\d\) at X=-2\d.* the move is cancelled; rail stopped at X="):
+        rail.move(x=-150)
+    assert time.monotonic() - held[0] < 4.0  # not waited out: the move had more than 6 s to go, its deadline 12 s
+    assert settled(fake) and fake.status() == "Idle" and fake.alarms() == []
+    assert rail.position().x == fake.machine_position()[0]
+
+
+def test_safety_door_is_reported_at_once(make_fake, connect):
+    fake = make_fake(SLOW)
+    fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.open_door)
+    rail = connect(fake)
+    with pytest.raises(RailError, match=r"safety door opened during the move to X=-150 mm"):
+        rail.move(x=-150)
+    assert settled(fake) and fake.alarms() == []
+    with pytest.raises(RailError, match="safety door is open"):
+        rail.move(x=-10)
+    fake.close_door()
+    fake.open_door()  # a door pin change while idle
+    fake.close_door()
+
+
+# ---------------------------------------------------------------------------------------------- alarms
+
+
+def test_boot_alarm_then_unlock(make_fake, capsys):
+    fake = make_fake({22: 1})
+    code, _, err = run(capsys, "rail", "move", "X=-10", "--rail-port", fake.port)
+    assert code == 4 and "locked in ALARM" in err and "homing needed" in err
+    assert run(capsys, "rail", "unlock", "--rail-port", fake.port)[:2] == (0, "X=0\n")
+    assert run(capsys, "rail", "move", "X=-10", "--rail-port", fake.port)[:2] == (0, "X=-10\n")
+    assert "$X" in fake.lines and "$H" not in fake.lines
+
+
+def test_soft_limit_alarm_then_recovery(make_fake, connect):
+    fake = make_fake({20: 1, 22: 1})
+    # Another program drove the controller past its travel and left it deaf (only Ctrl-X is heard).
+    link = serial.Serial(fake.port, 115200, timeout=0.2)
+    link.write(b"$X\nG1 X-20 F3000\n")
+    assert fake.wait_for(lambda f: f.machine_position()[0] == -20.0)
+    link.write(b"G1 X5 F3000\n")
+    assert fake.wait_for(lambda f: 2 in f.alarms() and "Reset to continue" in f.written.decode())
+    link.close()
+    rail = connect(fake, boot_wait=1.0)
+    with pytest.raises(RailAlarm, match="homing needed"):
+        rail.move(x=-10)
+    assert rail.unlock() == Position(-20.0, None, None)  # ALARM:2 keeps the position
+    assert rail.move(x=-10).x == -10.0
+
+
+def test_hard_limit_mid_move_is_reset_and_homing_needed(make_fake, connect):
+    fake = make_fake({21: 1, 22: 1}, start=(-60.0, 0.0, 0.0))
+    rail = connect(fake)
+    rail.unlock()  # unlocked where it stands: the controller believes X=0, the carriage is 60 mm from the + switch
+    with pytest.raises(RailAlarm, match=r"ALARM:1 \(hard limit triggered\) .*homing needed.*switch X still pressed"):
+        rail.move(x=-150)
+    assert fake.resets()[-1] == "Alarm"  # reset after [MSG:Reset to continue]: no longer deaf
+    assert rail.info().state == "Alarm"
+    fake.push(0, 170.0)  # the operator pushes the carriage off the far switch (both switches share one pin)
+    assert rail.home().x == -1.0 and rail.move(x=-50).x == -50.0
+    assert fake.crashes == 0
+
+
+def test_homing_without_a_switch_fails_cleanly(make_fake, connect):
+    fake = make_fake({22: 1, 130: 20}, span=(500.0, 500.0, 500.0), start=(-100.0, 0.0, 0.0))
+    rail = connect(fake)
+    with pytest.raises(RailAlarm, match=r"ALARM:9 \(homing failed: limit switch not found"):
+        rail.home()
+    assert rail.info().state == "Alarm"  # the firmware reset itself; the driver is in step with it again
+    with pytest.raises(RailError, match="homing cycle not enabled"):
+        connect(make_fake()).home()
+
+
+# ---------------------------------------------------------------------------------------------- faults
+
+
+def test_error_code_has_its_meaning(make_fake, connect):
+    fake = make_fake()
+    rail = connect(fake)
     fake.errors["G90"] = 22
     with pytest.raises(RailError, match=r"error:22 \(feed rate not set\)"):
-        rail.move(x=10)
+        rail.move(x=-10)
+    assert fake.resets() == []  # a refused line queued nothing: no stop sequence
 
 
-def test_homing_disabled_error(fake, rail):
-    fake.homing_enabled = False
-    with pytest.raises(RailError, match=r"error:5 \(homing cycle not enabled"):
-        rail.home()
+def test_line_noise_is_skipped(make_fake, connect):
+    fake = make_fake()
+    fake.noise = True
+    rail = connect(fake)
+    assert rail.move(x=-42).x == -42.0
 
 
-def test_alarm_during_move(fake, rail):
-    fake.speed = 100.0
-    fake.alarm_after = (0.1, 1)
-    with pytest.raises(RailAlarm, match=r"ALARM:1 \(hard limit triggered"):
-        rail.move(x=100)
-    # the controller is now locked: a new move is refused with error:9, also an alarm
-    with pytest.raises(RailAlarm, match="error:9"):
-        rail.move(x=10)
-    rail.home()
-    assert rail.move(x=10).x == 10.0
-
-
-def test_garbage_bytes_are_skipped(fake, rail):
-    fake.garbage = True
-    assert rail.move(x=42).x == 42.0
-    assert rail.home().x == 0.0
-
-
-def test_silence_times_out(fake, rail):
-    fake.silent = True
-    start = time.monotonic()
-    with pytest.raises(RailError, match=r"no status report to '\?' from rail on .* within 0.5 s \(nothing received\)"):
-        rail.move(x=10)
-    assert time.monotonic() - start < 3.0
-
-
-def test_missing_ok_times_out(fake, rail):
-    fake.mute_lines = True  # status reports still come, the line is never acknowledged
-    with pytest.raises(RailError, match=r"no 'ok' to 'G90 G21 G1 X10.000 F30000' from rail on .* within 0.5 s"):
-        rail.move(x=10)
-
-
-def test_no_banner_is_an_error():
-    firmware = FakeGrbl()
-    firmware.silent = True
-    try:
-        with pytest.raises(RailError, match="no GRBL banner after a reset from rail on .* within 0.3 s"):
-            GrblRail(firmware.port, timeout=0.3)
-    finally:
-        firmware.close()
-
-
-def test_port_vanishing_mid_move(fake, rail):
-    fake.speed = 100.0
-    fake.vanish_after = 0.1
-    with pytest.raises(RailError, match="is gone|no status report"):
-        rail.move(x=100)
+def test_port_vanishing_mid_move(make_fake, connect):
+    fake = make_fake(SLOW)
+    fake.when(lambda f: f.machine_position()[0] < -10.0, FakeGrbl.unplug)
+    rail = connect(fake)
+    with pytest.raises(RailError, match="is gone"):
+        rail.move(x=-100)
     rail.close()
     rail.close()  # idempotent
 
@@ -140,8 +449,27 @@ def test_missing_port_is_an_error(tmp_path):
         GrblRail(str(tmp_path / "ttyNONE"), timeout=0.2)
 
 
-def test_bad_limits_are_refused(fake):
-    with pytest.raises(RailError, match="min 5 is above max 1"):
-        GrblRail(fake.port, limits={"x": (5, 1)})
-    with pytest.raises(RailError, match="unknown rail axis"):
-        GrblRail(fake.port, limits={"x": (0, 1), "w": (0, 1)})
+def test_unanswering_port_is_an_error(make_fake):
+    fake = make_fake()
+    fake.go_silent()
+    start = time.monotonic()
+    with pytest.raises(RailError, match="no banner from the controller .* after a reset"):
+        GrblRail(fake.port, timeout=0.3, boot_wait=0.5)
+    assert time.monotonic() - start < 3.0
+
+
+def test_udev_rule_and_readme_cover_the_usual_controller_chips():
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "systemd" / "99-psfd.rules").read_text()
+    rules = [ln for ln in text.splitlines() if ln.startswith('SUBSYSTEM=="tty"')]
+    ids = set()
+    for rule in rules:
+        assert 'GROUP="psfd"' in rule and 'ENV{ID_MM_DEVICE_IGNORE}="1"' in rule and 'SYMLINK+="psfd-rail"' in rule
+        vendors = re.search(r'ATTRS\{idVendor\}=="([^"]+)"', rule).group(1).split("|")
+        products = re.search(r'ATTRS\{idProduct\}=="([^"]+)"', rule).group(1).split("|")
+        ids |= {f"{v}:{p}" for v in vendors for p in products}
+    readme = (root / "README.md").read_text()
+    # CH340, FTDI FT232R, CP210x, STM32 CDC (grblHAL), Arduino Uno: in the rule and in the README's table
+    for pair in ("1a86:7523", "0403:6001", "10c4:ea60", "0483:5740", "2341:0043"):
+        assert pair in ids and pair in readme
+

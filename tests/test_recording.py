@@ -129,23 +129,24 @@ def test_bad_recording_folders(tmp_path):
 
 
 def test_grbl_session_keeps_its_serial_exchange(tmp_path):
-    firmware = FakeGrbl()
+    firmware = FakeGrbl({22: 1, 24: 600, 25: 3000, 26: 10, 110: 30000, 120: 3000}, homing_cycles=((0,),),
+                        start=(-5.0, 0.0, 0.0))
     try:
-        rail = GrblRail(firmware.port, timeout=0.5, limits={"x": (0, 500)}, feed=30000, poll=0.01)
+        rail = GrblRail(firmware.port, timeout=0.5, limits={"x": (-200, 0)}, feed=30000, poll=0.01)
         recorder = Recorder(tmp_path / "rec", rail=rail, rig={"rail_port": firmware.port})
-        live = [recorder.rail.home(), recorder.rail.move(x=250.0)]
+        live = [recorder.rail.home(), recorder.rail.move(x=-150.0)]
         firmware.errors["G90"] = 33
         with pytest.raises(RailError, match="error:33"):
-            recorder.rail.move(x=10.0)
+            recorder.rail.move(x=-10.0)
         recorder.close()
     finally:
         firmware.close()
     manifest = json.loads((tmp_path / "rec" / "manifest.json").read_text())
     home, move, refused = manifest["requests"]
-    assert home["serial"][0] == "> $H" and "< ok" in home["serial"]
-    assert "> G90 G21 G1 X250.000 F30000" in move["serial"] and move["serial"][-1].startswith("< <Idle|MPos:250.000")
+    assert "> $H" in home["serial"] and "< ok" in home["serial"]
+    assert "> G90 G21 G1 X-150.0000 F30000" in move["serial"] and move["serial"][-1].startswith("< <Idle|MPos:-150.000")
     assert refused["serial"][-1] == "< error:33"
     replayed = RecordingRail(tmp_path / "rec")
-    assert [replayed.home(), replayed.move(x=250.0)] == live
+    assert [replayed.home(), replayed.move(x=-150.0)] == live
     with pytest.raises(RailError, match=r"error:33 \(motion target is invalid\)"):
-        replayed.move(x=10.0)
+        replayed.move(x=-10.0)

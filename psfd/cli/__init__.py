@@ -15,6 +15,7 @@ import os
 import select
 import signal
 import sys
+import threading
 
 # The estimators solve many small systems (a few hundred unknowns): BLAS threads
 # gain nothing there and, on a loaded 2-core machine, stall them for up to a
@@ -32,7 +33,7 @@ os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_PIXELS))
 
 from psfd import __version__  # noqa: E402 - after the environment above
 from psfd.cli import compare, estimate, hardware, lab, query, target  # noqa: E402
-from psfd.errors import BadInputError, Interrupted, PsfdError, path_reason  # noqa: E402
+from psfd.errors import BadInputError, PsfdError, path_reason  # noqa: E402
 
 COMMAND_MODULES = (target, estimate, compare, hardware, query, lab)
 
@@ -47,13 +48,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the process is, so that a moving rail is stopped and its port released."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one command; the exit code of the README's table (`psfd.errors`): 0 done, 1 nothing
     matched, 2 bad input, 3 the photographs cannot support an estimate, 4 camera or rail, 5
-    catalogue or service, 130 interrupted (Ctrl-C, or SIGTERM outside `psfd serve`)."""
+    catalogue or service, 130 interrupted by Ctrl-C, 143 stopped by SIGTERM (outside `psfd serve`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    previous = signal.signal(signal.SIGTERM, _interrupt)  # a stopped command ends as Ctrl-C does
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     try:
         code = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe shows here, while it can still be handled
@@ -76,15 +86,13 @@ def main(argv: list[str] | None = None) -> int:
         reason = path_reason(exc.filename, exc) if exc.filename else (exc.strerror or str(exc))
         print(f"psfd: error: {where}{reason}", file=sys.stderr)
         return BadInputError.exit_code
-    except KeyboardInterrupt:
-        print("psfd: interrupted", file=sys.stderr)
-        return Interrupted.exit_code
+    except KeyboardInterrupt as exc:
+        stopped = "".join(f" ({note})" for note in getattr(exc, "__notes__", ()))
+        print(f"psfd: {'terminated' if isinstance(exc, Terminated) else 'interrupted'}{stopped}", file=sys.stderr)
+        return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
     finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
-def _interrupt(signum: int, frame: object) -> None:
-    raise KeyboardInterrupt
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def _stdout_closed() -> bool:

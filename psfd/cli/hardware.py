@@ -42,6 +42,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = rail_sub.add_parser("position", help="print the current position")
     options.add_rig_options(p)
     p.set_defaults(func=rail_position)
+    p = rail_sub.add_parser("unlock", help="clear an alarm lock without homing ($X on GRBL)",
+                            description="Clears the controller's alarm lock without homing, e.g. on a rail without "
+                                        "homing switches or after a soft-limit alarm; positions are then what the "
+                                        "controller believes. Prefer `psfd rail home` when it has switches.")
+    _rig_options(p)
+    p.set_defaults(func=rail_unlock)
 
     p = subparsers.add_parser(
         "record",
@@ -135,6 +141,10 @@ def rail_move(args: argparse.Namespace) -> int:
 
 def rail_position(args: argparse.Namespace) -> int:
     return _with_rail(args, lambda rail: rail.position())
+
+
+def rail_unlock(args: argparse.Namespace) -> int:
+    return _with_rail(args, lambda rail: rail.unlock())
 
 
 def record(args: argparse.Namespace) -> int:

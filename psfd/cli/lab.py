@@ -86,12 +86,12 @@ def run_here(plan, catalogue: Path, frames: Path, **flags):
     from psfd.daemon.runner import Control, run_plan
 
     control = Control()
-    stopped: list[str] = []
+    stopped: list[int] = []
 
     def stop(signum, frame):  # first Ctrl-C or SIGTERM: finish the current frame and pause
-        signal.signal(signum, signal.default_int_handler)
+        signal.signal(signum, previous[signum])  # the second one stops the command where it is
         print("\npsfd: stopping after the current frame (again to abort)", file=sys.stderr)
-        stopped.append(signal.Signals(signum).name)
+        stopped.append(signum)
         control.request("pause")
 
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -100,9 +100,9 @@ def run_here(plan, catalogue: Path, frames: Path, **flags):
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    if stopped and result.error is None and result.state != "done":  # stopped by the user: exit 130
-        result.error = Interrupted(f"interrupted by {stopped[0]}")
-        result.reason = f"interrupted by {stopped[0]}"
+    if stopped and result.error is None and result.state != "done":  # stopped by the user: exit 130 or 143
+        result.reason = f"interrupted by {signal.Signals(stopped[0]).name}"
+        result.error = Interrupted(result.reason, stopped[0])
     return result
 
 

@@ -23,7 +23,8 @@ def open_rig(config: dict) -> tuple[Camera, Rail]:
         ``{"simulate": true, "scene": "bernoulli", "seed": 0, ...}`` (the simulated rig, sharing one state),
         ``{"recording": "DIR"}`` (replay of a recorded session, in its recorded order),
         ``{"camera_port": "usb:001,005" or absent (auto-detect), "rail_port": "/dev/ttyUSB0",
-        "rail_limits": {"x": [0, 500]}, "rail_baudrate": 115200, "rail_feed": 1000, "timeout": 10}``.
+        "rail_limits": {"x": [-1500, 0]} (optional: the controller's travel), "rail_baudrate": 115200,
+        "rail_feed": 1000 (optional: rapids at the controller's $110), "timeout": 10}``.
 
     Returns
     -------
@@ -80,7 +81,7 @@ def open_rail(config: dict) -> Rail:
         baudrate=int(config.get("rail_baudrate", 115200)),
         timeout=float(config.get("rail_timeout", 2.0)),
         limits=config.get("rail_limits"),
-        feed=float(config.get("rail_feed", 1000.0)),
+        feed=float(config["rail_feed"]) if config.get("rail_feed") else None,  # default: the controller's rapids
     )
 
 

@@ -144,6 +144,23 @@ class Position:
     z: float | None = None
 
 
+@dataclass(frozen=True)
+class RailInfo:
+    """What a rail controller says about itself.
+
+    ``travel`` is the reachable span per axis in mm, in the coordinates `Rail.move` takes (for a GRBL
+    controller: its machine travel [-$130, 0] shifted by the work offset, narrowed by the rig's limits).
+    Positions are always mm; ``units`` is what the controller itself reports in ("mm" or "inch").
+    """
+
+    controller: str
+    axes: tuple[str, ...]
+    travel: dict[str, tuple[float, float]]
+    units: str = "mm"
+    homing: bool = False
+    state: str = ""
+
+
 @runtime_checkable
 class Camera(Protocol):
     """A camera that captures RAW frames to files."""
@@ -197,6 +214,14 @@ class Rail(Protocol):
         """Current position."""
         ...
 
+    def info(self) -> RailInfo:
+        """Controller, axes, travel per axis, units, whether it homes, current state."""
+        ...
+
+    def unlock(self) -> Position:
+        """Clear an alarm lock without homing (the position is what the controller believes)."""
+        ...
+
     def close(self) -> None:
-        """Release the port."""
+        """Release the port (a rail is never left moving: moves return only once motion has stopped)."""
         ...

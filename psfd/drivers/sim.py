@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from scipy import fft
 
-from psfd.drivers.base import CameraInfo, CameraReady, CameraSetup, Position
+from psfd.drivers.base import CameraInfo, CameraReady, CameraSetup, Position, RailInfo
 from psfd.drivers.recording import free_name
 from psfd.errors import CameraError, PsfdError, RailError
 from psfd.estimator import simulate
@@ -389,6 +389,15 @@ class SimRail:
     def position(self) -> Position:
         self.rig._check_fault("rail")
         return self.rig.pos
+
+    def info(self) -> RailInfo:
+        self.rig._check_fault("rail")
+        return RailInfo(controller="psfd simulated rail", axes=tuple(self.rig.limits), travel=dict(self.rig.limits),
+                        units="mm", homing=True, state="Idle")
+
+    def unlock(self) -> Position:
+        self.rig._check_fault("rail")
+        return self.rig.pos  # never locked
 
     def close(self) -> None:
         pass

@@ -11,12 +11,19 @@ the shape of the marks: here the X-corners are found directly as saddle
 points of the smoothed image, which needs no segment model of the marks and
 works at any rotation and at 0.2 to 2 px/cell alike. At a smoothing of
 several cells the Bernoulli noise averages out while each hourglass mark stays
-a perfect saddle, so the 12 marks are among the strongest saddles of the image
-at the octave of the target's scale. Candidates are grouped by hypothesising
-that two of them are adjacent marks of the ring (a similarity), collecting the
-other ten, and refitting a homography; the flat black and white squares then
-fix the orientation (only corner (9, 9) is flanked by two black squares) and
-reject anything that is not the target.
+a perfect saddle. A real scene has many more saddles than the target (foliage
+against the sky, fences, letters), often stronger ones, so nothing is ranked
+over the whole frame. Each saddle is judged by its own surroundings, an
+X-corner at any contrast or not (`_x_shape`), and only the best few of every
+small tile are kept. Two candidates become a hypothesis when they could be
+neighbouring marks of a row of the ring: similar, their dark axes across the
+row, and a flat black and a flat white square between them. Every such
+hypothesis (a similarity) is ranked by how many of the other ten marks it
+predicts where the layout puts them, grown into a homography, and accepted
+only if the 24 flat squares read as the layout says, with the orientation
+fixed by corner (9, 9), the only one flanked by two black squares.
+Detection and refinement are separate (`refine_target`), so that a frame's
+planes can share one search.
 """
 
 from __future__ import annotations
@@ -36,19 +43,42 @@ from psfd.estimator import target
 # the hourglass is an exact saddle out to 16 cells while the noise averages out.
 _SIGMA = 1.0
 _MAX_LEVEL = 3
-_MAX_CANDIDATES = 250
-_MAX_SEEDS = 120  # strongest candidates tried as seed pairs
-_MAX_HYPOTHESES = 40  # seed hypotheses grown per level, most promising first
 _MIN_SEED_HITS = 7  # marks a seed similarity must already explain to be grown
 _STRENGTH_RATIO = 0.4  # weakest mark / strongest mark accepted in one target
 _REFINE_CELLS = 8.0  # half-size of the sub-pixel refinement window, in cells
 _AXIS_TOL = np.deg2rad(20.0)  # dark axis of a mark vs the pattern's y axis (perspective, noise)
 # Saddle strength (see _saddles) below which a point is not a candidate, as a
-# fraction of the strength of an ideal contrast-1 X-corner.
-_MIN_STRENGTH = 0.12
-# Spacing of adjacent ring marks (3 blocks) in level pixels: 96 cells at
-# 2**L / 8 .. 2**L / 3 px/cell is 12 .. 32 px; the bounds leave room for perspective.
-_SPACING = (8.0, 60.0)
+# fraction of the strength of an ideal contrast-1 X-corner: low, so that a
+# dim target is not lost; the shape test below does the selection.
+_MIN_STRENGTH = 0.03
+# The X-corner test (_x_shape): 12 samples on circles of 1.25 and 2 level
+# pixels, read on the finer level: 4-10 and 6-16 cells at the level's 1/8 to
+# 1/3 px/cell, inside the 16 cells where a mark is a perfect X-corner and
+# clear of its blurred apex.
+_RING_RADII = (1.25, 2.0)
+_RING_SAMPLES = 12
+# Share of the second angular harmonic: centred marks measure 0.91-0.99 on
+# rendered and simulated frames (0.2-2 px/cell, blur, perspective, noise);
+# about half of a cluttered scene's X-like saddles are below 0.8.
+_MIN_SHAPE = 0.8
+_OUTER_SHAPE = 0.6  # the same on the outer circle alone, a cheaper first pass
+_MIN_CONTRAST = 0.02  # of the image's range: the marks' black on white is 10 times more
+# Local choice: the best two candidates (contrast times shape) of every 8 x 8
+# tile, under the spacing of adjacent marks (12-32 level px).
+_TILE = 8.0
+_PER_TILE = 2
+# Seed pairs: the two flat squares between neighbouring marks must lie
+# beyond this fraction of the marks' contrast from their mean level, one
+# dark, one light (measured 0.5-1.3) ...
+_SQUARE_TOL = 0.35
+# ... and be flat: values within a quarter block of their centres within
+# this fraction of the contrast (measured up to 0.37 at a level's smallest scale).
+_FLAT_TOL = 0.5
+# Spacing of adjacent ring marks (3 blocks) in level pixels: 96 cells at the
+# 1/6 .. 1/3 px/cell where a level sees the marks best is 16 .. 32 px (below
+# that, the finer level takes over; level 0 reaches 1/8, 12 px); the bounds
+# leave room for perspective.
+_SPACING = (9.0, 40.0)
 # Adjacent ring marks used to seed hypotheses: the three edges of the top row.
 _SEED_EDGES = ((6, 5), (5, 4), (4, 3))  # indices into target.XCORNER_BLOCKS
 _RING_CORNERS = ((0, 0), (9, 0), (9, 9), (0, 9))
@@ -101,6 +131,11 @@ def find_target(image: np.ndarray, saturated: np.ndarray | None = None) -> Detec
     target) the blurred neighbouring squares reach the refinement window and
     the error grows to 0.15-0.5 px: place the target closer for such apertures.
 
+    Nothing is ranked over the whole frame, so a busy scene around the
+    target (foliage against a clipped sky, fences, signs) does not hide it;
+    the search's cost grows with the frame's area and clutter
+    (bench/bench_detect.py times it).
+
     Raises
     ------
     TargetNotFoundError
@@ -108,6 +143,10 @@ def find_target(image: np.ndarray, saturated: np.ndarray | None = None) -> Detec
         blurred to be located.
     MultipleTargetsError
         More than one target in the image.
+
+    See Also
+    --------
+    refine_target : the corners of this detection on another plane of the frame.
     """
     norm = _normalise(image, saturated)
     found = _search(norm)
@@ -115,11 +154,70 @@ def find_target(image: np.ndarray, saturated: np.ndarray | None = None) -> Detec
         raise TargetNotFoundError(f"no calibration target found in the {norm.shape[1]}x{norm.shape[0]} image")
     if len(found) > 1:
         raise MultipleTargetsError(f"{len(found)} calibration targets found in the image; frame exactly one")
-    homography = found[0]
-    corners = _apply(homography, target.xcorner_points())
-    scale = _scale(corners)
-    corners = _refine(norm, corners, scale)
-    return Detection(corners=corners, pattern_points=target.xcorner_points(), scale=scale)
+    corners = _apply(found[0], target.xcorner_points())
+    return refine_target(image, Detection(corners=corners, scale=_scale(corners)), saturated)
+
+
+def refine_target(
+    image: np.ndarray,
+    detection: Detection,
+    saturated: np.ndarray | None = None,
+    shift: tuple[float, float] = (0.0, 0.0),
+) -> Detection:
+    """The X-corners of a detection refined at sub-pixel precision on ``image``.
+
+    Detect once per frame, refine per plane: the planes of one RAW frame see
+    the target at the same place, up to the half-pixel offsets of the Bayer
+    mosaic (`plane_shift`) and the lens's lateral colour (about a pixel at
+    most). The refinement reaches the same corners from starts up to 1.5 px
+    away (measured at 0.25-0.5 px/cell). It costs about a millisecond, where
+    `find_target` searches the whole plane.
+
+    Parameters
+    ----------
+    image : ndarray, 2-D
+        The plane to refine on, any numeric type.
+    detection : Detection
+        Found on this plane or on another plane of the same frame.
+    saturated : ndarray of bool, optional
+        Clipped pixels of ``image``, read as white (see `find_target`).
+    shift : (float, float)
+        (dx, dy) in pixels from the plane of ``detection`` to ``image``.
+
+    Returns
+    -------
+    Detection
+
+    Raises
+    ------
+    TargetNotFoundError
+        A mark that cannot be located on this plane (too blurred, too dark,
+        or outside the image).
+
+    Examples
+    --------
+    >>> g1 = raw.load_frame(path, "g1")                                # doctest: +SKIP
+    >>> found = find_target(g1.data, g1.saturated)                     # doctest: +SKIP
+    >>> r = raw.load_frame(path, "r")                                  # doctest: +SKIP
+    >>> refine_target(r.data, found, r.saturated, plane_shift(g1.offset, r.offset))  # doctest: +SKIP
+    """
+    data = np.asarray(image)
+    if data.ndim != 2 or min(data.shape) < 16:
+        raise BadInputError(f"expected a 2-D image of at least 16x16 pixels, got shape {data.shape}")
+    corners = np.asarray(detection.corners, dtype=np.float64) + np.asarray(shift, dtype=np.float64)
+    refined = _refine(data, saturated, corners, detection.scale)
+    return Detection(corners=refined, pattern_points=np.array(detection.pattern_points), scale=_scale(refined))
+
+
+def plane_shift(source_offset: tuple[int, int], dest_offset: tuple[int, int]) -> tuple[float, float]:
+    """(dx, dy) in plane pixels from one Bayer plane to another of the same frame.
+
+    A plane with sensor offset (row, col) (`psfd.estimator.raw.Frame.offset`)
+    holds photosite (2 i + row, 2 j + col) at its pixel (i, j), so one scene
+    point lies half the offset difference apart on two planes. Planes that do
+    not come from a 2 x 2 mosaic have offset (0, 0): no shift.
+    """
+    return (0.5 * (source_offset[1] - dest_offset[1]), 0.5 * (source_offset[0] - dest_offset[0]))
 
 
 def _normalise(image: np.ndarray, saturated: np.ndarray | None) -> np.ndarray:
@@ -132,80 +230,230 @@ def _normalise(image: np.ndarray, saturated: np.ndarray | None) -> np.ndarray:
     data = np.asarray(image)
     if data.ndim != 2 or min(data.shape) < 16:
         raise BadInputError(f"expected a 2-D image of at least 16x16 pixels, got shape {data.shape}")
-    data = np.nan_to_num(data.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    floating = data.dtype.kind == "f"
+    data = data.astype(np.float32)  # a copy, changed in place below
+    if floating:
+        bad = ~np.isfinite(data)
+        if bad.any():
+            data[bad] = 0.0
     if saturated is not None:
-        data[np.asarray(saturated, dtype=bool)] = data.max()
+        np.copyto(data, data.max(), where=np.asarray(saturated, dtype=bool))
     small = cv2.resize(data, (max(1, data.shape[1] // 4), max(1, data.shape[0] // 4)), interpolation=cv2.INTER_AREA)
     lo, hi = np.percentile(small, (0.05, 99.95))
     if hi - lo <= 0:
         return np.zeros_like(data)
-    # No clipping: the sub-pixel refinement needs the linear data.
-    return ((data - lo) / (hi - lo)).astype(np.float32)
+    # No clipping: the saddle positions need the linear data.
+    data -= lo
+    data *= 1.0 / (hi - lo)
+    return data
 
 
 def _search(norm: np.ndarray) -> list[np.ndarray]:
-    """Homographies (pattern cells -> image px, correct orientation) of every target found."""
+    """Homographies (pattern cells -> image px, correct orientation) of every target found.
+
+    The pyramid levels are searched from the finest; a target already found
+    on a finer level is not grown again on a coarser one.
+    """
     found: list[np.ndarray] = []
-    level_img = norm
+    lv, finer = _Level.of(norm), None
     for level in range(_MAX_LEVEL + 1):
-        if min(level_img.shape) < 24:
+        if min(lv.image.shape) < 24:
             break
         to_full = np.diag([2.0**level, 2.0**level, 1.0])  # pyrDown keeps pixel i at 2i
-        for h in _find_at_level(level_img):
-            h_full = _orient(norm, to_full @ h)
-            if h_full is not None and not any(_same_target(h_full, g) for g in found):
-                found.append(h_full)
-        level_img = cv2.pyrDown(level_img)
+
+        def verify(h: np.ndarray, to_full=to_full) -> np.ndarray | None:
+            return _orient(norm, to_full @ h)
+
+        def known(h: np.ndarray, to_full=to_full) -> bool:
+            return any(_same_target(to_full @ h, g) for g in found)
+
+        for h in _find_at_level(lv, finer, verify, known):
+            if not known(h, np.eye(3)):  # grown from a seed that did not look like it
+                found.append(h)
+        finer, lv = lv, _Level.of(cv2.pyrDown(lv.image))
     return found
 
 
 @dataclass
-class _Saddles:
-    """Saddle points of one pyramid level, strongest first."""
+class _Level:
+    """One pyramid level: the image, smoothed by _SIGMA, and its second derivatives."""
 
-    points: np.ndarray  # (n, 2) level pixels
-    strength: np.ndarray  # (n,) scale-normalised, proportional to contrast
-    axis: np.ndarray  # (n,) angle of the dark axis (negative curvature), radians mod pi
+    image: np.ndarray
+    smooth: np.ndarray
+    ixx: np.ndarray
+    iyy: np.ndarray
+    ixy: np.ndarray
+
+    @classmethod
+    def of(cls, image: np.ndarray) -> "_Level":
+        smooth = cv2.GaussianBlur(image, (0, 0), _SIGMA)
+        return cls(image, smooth, *_hessian(smooth))
+
+
+@dataclass
+class _Saddles:
+    """X-corner candidates of one pyramid level."""
+
+    points: np.ndarray  # (n, 2) level pixels, sub-pixel
+    strength: np.ndarray  # (n,) contrast between the light and the dark sectors
+    level: np.ndarray  # (n,) mean of the surroundings, halfway between dark and light
+    axis: np.ndarray  # (n,) angle of the dark axis (the bisector of the dark sectors), radians mod pi
+    shape: np.ndarray  # (n,) how X-like the surroundings are, in [0, 1] (see _x_shape)
+    smooth: np.ndarray  # the smoothed level image
 
     def __post_init__(self) -> None:
         self.tree = cKDTree(self.points)
 
 
-def _saddles(img: np.ndarray) -> _Saddles:
-    """Saddle points of the smoothed image.
+def _saddles(lv: _Level, finer: _Level | None) -> _Saddles:
+    """X-corner candidates of one pyramid level, chosen locally.
 
-    The strength sigma^2 sqrt(-det Hess) is scale-normalised and proportional
-    to contrast (an ideal contrast-1 hourglass scores _IDEAL); smooth edges and
-    blobs do not score (det Hess >= 0). The dark axis of an hourglass mark is
-    the pattern's y axis, which later tells marks from look-alike junctions.
+    Saddle points of the smoothed image (sigma^2 sqrt(-det Hess), scale
+    normalised; smooth edges and blobs do not score, det Hess >= 0) are
+    centred to sub-pixel precision and then judged by their own surroundings
+    (`_x_shape`, on the finer level where there is one): an hourglass mark is
+    an X-corner out to half its block, two opposite dark sectors and two
+    opposite light ones, point-symmetric; foliage, letters and edges are not.
+    Of the candidates that pass, only the best few of every small tile are
+    kept: a busy region elsewhere in the frame never pushes a mark out.
     """
-    smooth = cv2.GaussianBlur(img, (0, 0), _SIGMA)
-    ixx, iyy, ixy = _hessian(smooth)
+    ixx, iyy, ixy = lv.ixx, lv.iyy, lv.ixy
     neg_det = cv2.subtract(cv2.multiply(ixy, ixy), cv2.multiply(ixx, iyy))
-    border = int(3 * _SIGMA)
+    border = int(np.ceil(max(3 * _SIGMA, _RING_RADII[-1] + 2)))
     neg_det[:border] = neg_det[-border:] = 0.0
     neg_det[:, :border] = neg_det[:, -border:] = 0.0
     floor = (_MIN_STRENGTH * _IDEAL / _SIGMA**2) ** 2
-    peaks = (neg_det >= cv2.dilate(neg_det, np.ones((5, 5), np.uint8))) & (neg_det > floor)
-    ys, xs = np.nonzero(peaks)
+    peaks = cv2.compare(neg_det, cv2.dilate(neg_det, np.ones((3, 3), np.uint8)), cv2.CMP_GE)
+    peaks &= cv2.compare(neg_det, floor, cv2.CMP_GT)
+    nonzero = cv2.findNonZero(peaks)  # a few times faster than np.nonzero
+    xs, ys = np.reshape(nonzero, (-1, 2)).T if nonzero is not None else (np.zeros(0, np.intp),) * 2
     xx, yy, xy = ixx[ys, xs], iyy[ys, xs], ixy[ys, xs]
-    strength = _SIGMA**2 * np.sqrt(neg_det[ys, xs])
     # A saddle of an X-corner has opposite curvatures of similar size; an edge
     # crossing texture does not. Perspective skews the sectors, hence the slack.
-    keep = np.abs(xx + yy) * _SIGMA**2 <= strength
-    order = np.nonzero(keep)[0][np.argsort(strength[keep])[::-1][:_MAX_CANDIDATES]]
-    # Direction of positive curvature (the bright sectors), plus a quarter turn.
-    axis = 0.5 * np.arctan2(2 * xy[order], xx[order] - yy[order]) + np.pi / 2
-    points = np.column_stack([xs[order], ys[order]]).astype(np.float64)
-    return _Saddles(points, strength[order], np.mod(axis, np.pi))
+    keep = np.abs(xx + yy) <= 2.0 * np.sqrt(neg_det[ys, xs])
+    points = np.column_stack([xs[keep], ys[keep]]).astype(np.float32)
+    # Centre on the saddle (gradient zero) of the finer level, where the
+    # smoothing is half as wide and the neighbouring blocks do not pull it;
+    # where the finer level shows no saddle at the peak, start from this
+    # level's saddle instead. One Newton step, then the outer circle alone
+    # (it keeps every point that passes the full test and a third of the
+    # others, measured), then a second step and the full test.
+    centring = lv if finer is None else finer
+    zoom = 1.0 if finer is None else 2.0
+    points, found = _newton(centring, zoom * points)
+    if finer is not None:
+        points[~found] = _newton(finer, 2.0 * _newton(lv, 0.5 * points[~found])[0])[0]
+    outer = _x_shape(centring.image, points, (zoom * _RING_RADII[-1],))[0]
+    points = _newton(centring, points[outer >= _OUTER_SHAPE])[0]
+    shape, contrast, level, axis = _x_shape(centring.image, points, zoom * np.asarray(_RING_RADII))
+    points = points / zoom
+    keep = np.flatnonzero((shape >= _MIN_SHAPE) & (contrast >= _MIN_CONTRAST))
+    best = keep[_best_per_tile(points[keep], (shape * contrast)[keep], _TILE, _PER_TILE)]
+    return _Saddles(points[best].astype(np.float64), contrast[best], level[best], axis[best], shape[best], lv.smooth)
+
+
+def _newton(lv: _Level, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One Newton step from ``points`` toward the saddle of the smoothed image (at most a pixel).
+
+    Returns the points and whether there was a saddle (det Hess < 0) to move to.
+    """
+    if np.all(points == np.rint(points)):  # on the pixel grid: no interpolation
+        xs, ys = points[:, 0].astype(np.intp), points[:, 1].astype(np.intp)
+        gx = 0.5 * (lv.smooth[ys, xs + 1] - lv.smooth[ys, xs - 1])
+        gy = 0.5 * (lv.smooth[ys + 1, xs] - lv.smooth[ys - 1, xs])
+        xx, yy, xy = lv.ixx[ys, xs], lv.iyy[ys, xs], lv.ixy[ys, xs]
+    else:
+        xs, ys = points[:, 0], points[:, 1]
+        gx = 0.5 * (_remap(lv.smooth, xs + 1, ys) - _remap(lv.smooth, xs - 1, ys))
+        gy = 0.5 * (_remap(lv.smooth, xs, ys + 1) - _remap(lv.smooth, xs, ys - 1))
+        xx, yy, xy = (_remap(d, xs, ys) for d in (lv.ixx, lv.iyy, lv.ixy))
+    det = xx * yy - xy * xy
+    found = det < 0
+    det = np.where(found, det, -np.inf)  # not a saddle there: stay
+    step = np.column_stack([(xy * gy - yy * gx) / det, (xy * gx - xx * gy) / det])
+    return points + np.clip(step, -1.0, 1.0).astype(np.float32), found
+
+
+def _x_shape(img: np.ndarray, points: np.ndarray, radii) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """How much the surroundings of each point look like an X-corner.
+
+    The image is read on circles of the given radii around each point. The
+    angular profile of an X-corner is a square wave of period pi (light,
+    dark, light, dark sectors, opposite sectors alike): 81 % of its variance
+    lies in the second angular harmonic, and more once blurred (a sinusoid
+    has all of it). An edge puts its variance in the first harmonic, a line
+    crossing in the fourth, a T-junction or texture spreads it. Reading two
+    radii at once also asks the corner to be the same at both, as a corner
+    is and a curved structure is not.
+
+    Returns
+    -------
+    shape : (n,) fraction of the variance in the second harmonic, in [0, 1]
+    contrast : (n,) light minus dark of the square wave with that harmonic
+    level : (n,) mean of the circles, halfway between dark and light
+    axis : (n,) angle of the dark axis, radians mod pi
+    """
+    angles = 2 * np.pi * np.arange(_RING_SAMPLES) / _RING_SAMPLES
+    theta = np.tile(angles, len(radii))
+    radius = np.repeat(np.asarray(radii, dtype=np.float64), _RING_SAMPLES)
+    dx, dy = (radius * np.cos(theta)).astype(np.float32), (radius * np.sin(theta)).astype(np.float32)
+    ring = _remap(img, points[:, 0], points[:, 1], dx, dy)
+    level = ring.mean(axis=1)
+    ring -= level[:, None]
+    re = ring @ np.cos(2 * theta).astype(np.float32)
+    im = ring @ np.sin(2 * theta).astype(np.float32)
+    power = re * re + im * im
+    shape = 2.0 * power / (len(theta) * np.einsum("ij,ij->i", ring, ring) + 1e-30)
+    # Profile ~ a cos(2 (theta - light)): a = 2 |harmonic| / n, and a square
+    # wave of contrast c has a = 2 c / pi.
+    contrast = np.pi / len(theta) * np.sqrt(power)
+    light = 0.5 * np.arctan2(im, re)  # direction of the light sectors
+    return shape, contrast, level, np.mod(light + np.pi / 2, np.pi)
+
+
+def _remap(img: np.ndarray, xs: np.ndarray, ys: np.ndarray, dx: np.ndarray | None = None, dy: np.ndarray | None = None) -> np.ndarray:
+    """Bilinear samples of ``img`` (edge pixels repeated outside).
+
+    At the points (``xs``, ``ys``) of any shape or, given offsets ``dx``,
+    ``dy`` of shape (k,), at each of the (n,) points plus each offset: (n, k).
+    """
+    xs, ys = np.asarray(xs, dtype=np.float32), np.asarray(ys, dtype=np.float32)
+    shape = xs.shape if dx is None else (xs.size, len(dx))
+    count = int(np.prod(shape))
+    # cv2.remap takes maps of under 32767 rows and columns: lay them out in
+    # rows of 4096 (padded), which also keeps each point's samples together.
+    width = 4096
+    rows = max(1, -(-count // width))
+    maps = np.zeros((2, rows * width), dtype=np.float32)
+    if dx is None:
+        maps[0, :count], maps[1, :count] = xs.ravel(), ys.ravel()
+    else:
+        np.add(xs.reshape(-1, 1), dx, out=maps[0, :count].reshape(shape))
+        np.add(ys.reshape(-1, 1), dy, out=maps[1, :count].reshape(shape))
+    out = cv2.remap(img, maps[0].reshape(rows, width), maps[1].reshape(rows, width), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1)[:count].reshape(shape)
+
+
+def _best_per_tile(points: np.ndarray, score: np.ndarray, tile: float, count: int) -> np.ndarray:
+    """Indices of the ``count`` best-scoring points of every ``tile`` x ``tile`` square."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    cells = np.floor(points / tile).astype(np.int64)
+    key = cells[:, 1] * (cells[:, 0].max() + 1) + cells[:, 0]
+    order = np.lexsort((-score, key))
+    ranked = key[order]
+    first = np.concatenate([[0], np.flatnonzero(np.diff(ranked)) + 1])
+    rank = np.arange(len(order)) - np.repeat(first, np.diff(np.concatenate([first, [len(order)]])))
+    return np.sort(order[rank < count])
 
 
 def _hessian(smooth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Second derivatives (xx, yy, xy) by 3 x 3 Sobel kernels (each has weight 4)."""
     return (
-        cv2.Sobel(smooth, cv2.CV_32F, 2, 0, ksize=3) / 4.0,
-        cv2.Sobel(smooth, cv2.CV_32F, 0, 2, ksize=3) / 4.0,
-        cv2.Sobel(smooth, cv2.CV_32F, 1, 1, ksize=3) / 4.0,
+        cv2.Sobel(smooth, cv2.CV_32F, 2, 0, ksize=3, scale=0.25),
+        cv2.Sobel(smooth, cv2.CV_32F, 0, 2, ksize=3, scale=0.25),
+        cv2.Sobel(smooth, cv2.CV_32F, 1, 1, ksize=3, scale=0.25),
     )
 
 
@@ -228,30 +476,23 @@ def _angle_gap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.minimum(d, np.pi - d)
 
 
-def _find_at_level(img: np.ndarray) -> list[np.ndarray]:
-    """Homographies (pattern -> level px, orientation up to a half turn) of ring-shaped sets of marks."""
-    sad = _saddles(img)
+def _find_at_level(lv: _Level, finer: _Level | None, verify, known) -> list[np.ndarray]:
+    """Homographies (pattern -> full image) of the targets found on one level.
+
+    Every pair of candidates that could be two neighbouring marks of a row of
+    the ring (a similarity) is scored by how many of the other ten marks it
+    predicts where the layout puts them; hypotheses are grown and checked in
+    that order, with no cap on their number. ``verify(h)`` (h: pattern ->
+    level px) returns the full-image homography of a genuine target, or None;
+    ``known(h)`` tells a target already found, which is not grown again.
+    """
+    sad = _saddles(lv, finer)
     if len(sad.points) < len(target.XCORNER_BLOCKS):
         return []
-    pts = sad.points
-    seeds = cKDTree(pts[:_MAX_SEEDS])
-    pairs = np.array(sorted(seeds.query_pairs(_SPACING[1])), dtype=np.int64).reshape(-1, 2)
-    pairs = np.concatenate([pairs, pairs[:, ::-1]])  # both orders: no mirror images needed
-    step = pts[pairs[:, 1]] - pts[pairs[:, 0]]
-    gaps = np.linalg.norm(step, axis=1)
-    # Seeds are two neighbours on a row of the ring: as strong as each other,
-    # with their dark axes across the row (the hourglasses stand on the rows).
-    across = np.arctan2(step[:, 1], step[:, 0]) + np.pi / 2
-    first, second = sad.strength[pairs[:, 0]], sad.strength[pairs[:, 1]]
-    keep = (
-        (gaps >= _SPACING[0])
-        & (np.minimum(first, second) > _STRENGTH_RATIO * np.maximum(first, second))
-        & (_angle_gap(sad.axis[pairs[:, 0]], across) < _AXIS_TOL)
-        & (_angle_gap(sad.axis[pairs[:, 1]], across) < _AXIS_TOL)
-    )
-    pairs = pairs[keep]
+    pairs = _seed_pairs(sad)
     if len(pairs) == 0:
         return []
+    pts = sad.points
     pattern = target.xcorner_points()
     zpat = pattern[:, 0] + 1j * pattern[:, 1]
     zimg = pts[:, 0] + 1j * pts[:, 1]
@@ -271,19 +512,63 @@ def _find_at_level(img: np.ndarray) -> list[np.ndarray]:
     scores, candidates = np.stack(scores), np.stack(candidates)
     best = np.argmax(scores, axis=0)
     hits = scores[best, np.arange(len(pairs))]
-    order = [k for k in np.argsort(-hits, kind="stable") if hits[k] >= _MIN_SEED_HITS][:_MAX_HYPOTHESES]
+    quality = hits + sad.shape[pairs].mean(axis=1)  # ties: the more X-like seeds first
+    order = [k for k in np.argsort(-quality, kind="stable") if hits[k] >= _MIN_SEED_HITS]
     results: list[np.ndarray] = []
     used: set[int] = set()
     for k in order:
         seed = tuple(pairs[k])
-        if used.intersection(seed):
+        model = candidates[best[k], k]
+        if used.intersection(seed) or known(model):
             continue
-        grown = _grow(sad, pattern, candidates[best[k], k], weakest[k])
-        if grown is not None:
-            h, members = grown
+        grown = _grow(sad, pattern, model, weakest[k])
+        if grown is None:
+            continue
+        h, members = grown
+        verified = verify(h)
+        if verified is not None:
             used.update(members)
-            results.append(h)
+            results.append(verified)
     return results
+
+
+def _seed_pairs(sad: _Saddles) -> np.ndarray:
+    """(m, 2) ordered pairs of candidates that may be neighbouring marks on a row of the ring.
+
+    Two neighbours on a row are about as strong as each other, with their
+    dark axes across the row (the hourglasses stand on the rows), and
+    between them lie a flat black and a flat white square, one third and two
+    thirds of the way (their order depends on the row), each read at its
+    centre and a quarter block to either side, along and across. Every test
+    is symmetric, so each pair that passes is returned in both orders.
+    """
+    pairs = sad.tree.query_pairs(_SPACING[1], output_type="ndarray").reshape(-1, 2)
+    a, b = pairs[:, 0], pairs[:, 1]
+    x, y = sad.points[:, 0].astype(np.float32), sad.points[:, 1].astype(np.float32)
+    cos, sin = np.cos(sad.axis).astype(np.float32), np.sin(sad.axis).astype(np.float32)
+    dx, dy = x[b] - x[a], y[b] - y[a]
+    # Each axis across the step: its component along the step under sin(tol) (squared here).
+    length = dx * dx + dy * dy
+    limit = np.float32(np.sin(_AXIS_TOL) ** 2) * length
+    keep = np.square(cos[a] * dx + sin[a] * dy) < limit
+    keep &= np.square(cos[b] * dx + sin[b] * dy) < limit
+    keep &= length >= np.float32(_SPACING[0] ** 2)
+    keep &= np.minimum(sad.strength[a], sad.strength[b]) > _STRENGTH_RATIO * np.maximum(sad.strength[a], sad.strength[b])
+    pairs = pairs[keep]
+    a, b = pairs[:, 0], pairs[:, 1]
+    start, step = sad.points[a], sad.points[b] - sad.points[a]
+    # Sample points start + along * step + aside * (step turned a quarter).
+    along = np.repeat(np.float32([1 / 3, 2 / 3]), 5) + np.tile(np.float32([0, 1, -1, 0, 0]), 2) / 12
+    aside = np.tile(np.float32([0, 0, 0, 1, -1]), 2) / 12
+    squares = _remap(sad.smooth, start[:, :1] + step[:, :1] * along - step[:, 1:] * aside,
+                     start[:, 1:] + step[:, 1:] * along + step[:, :1] * aside).reshape(-1, 2, 5)
+    mid = 0.5 * (sad.level[a] + sad.level[b])
+    contrast = 0.5 * (sad.strength[a] + sad.strength[b])
+    flat = np.ptp(squares, axis=2).max(axis=1) < _FLAT_TOL * contrast
+    means = squares.mean(axis=2)
+    keep = flat & (means.min(axis=1) < mid - _SQUARE_TOL * contrast) & (means.max(axis=1) > mid + _SQUARE_TOL * contrast)
+    pairs = pairs[keep]
+    return np.concatenate([pairs, pairs[:, ::-1]])  # both orders: no mirror images needed
 
 
 def _match(sad: _Saddles, models: np.ndarray, pattern: np.ndarray, seed_strength, tol: float) -> np.ndarray:
@@ -447,7 +732,7 @@ def _same_target(h1: np.ndarray, h2: np.ndarray) -> bool:
     return bool(gap < _scale(_apply(h1, target.xcorner_points())) * target.BLOCK)
 
 
-def _refine(norm: np.ndarray, corners: np.ndarray, scale: float) -> np.ndarray:
+def _refine(data: np.ndarray, saturated: np.ndarray | None, corners: np.ndarray, scale: float) -> np.ndarray:
     """Sub-pixel saddle points by gradient orthogonality (cv2.cornerSubPix).
 
     Thesis App. A.1: window 7 x 7 (R = 3), tol 1e-5, 200 iterations, for a
@@ -457,12 +742,14 @@ def _refine(norm: np.ndarray, corners: np.ndarray, scale: float) -> np.ndarray:
     0.375 px/cell that is under 3 pixels, too few for the gradient
     estimate, so the patch is first resampled (bicubic) on a u-times finer
     grid; the resampling is symmetric about every pixel, so it adds no bias.
+    Only the crops around the marks are read: the solution does not depend
+    on the image's gain or offset, so no normalisation is needed.
     """
     upsample = max(1, int(np.ceil(3.0 / (_REFINE_CELLS * scale))))
     radius = int(round(_REFINE_CELLS * scale * upsample))
     half = (radius + 4) // upsample + 2  # crop half-size in image pixels
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-5)
-    rows, cols = norm.shape
+    rows, cols = data.shape
     refined = corners.copy()
     lost = np.zeros(len(corners), dtype=bool)
     for k, (x, y) in enumerate(corners):
@@ -472,23 +759,47 @@ def _refine(norm: np.ndarray, corners: np.ndarray, scale: float) -> np.ndarray:
         if not (half <= cx < cols - half and half <= cy < rows - half):
             lost[k] = True
             continue
-        crop = norm[cy - half : cy + half + 1, cx - half : cx + half + 1]
+        crop = _crop(data, saturated, cx, cy, half)
         if upsample > 1:
             crop = cv2.resize(crop, None, fx=upsample, fy=upsample, interpolation=cv2.INTER_CUBIC)
         # Patch pixel p sits at crop coordinate (p + 0.5) / u - 0.5.
         start = ((np.array([x - cx + half, y - cy + half]) + 0.5) * upsample - 0.5).astype(np.float32)
-        point = start.reshape(1, 1, 2).copy()
-        cv2.cornerSubPix(crop, point, (radius, radius), (-1, -1), criteria)
-        # cornerSubPix puts a point back where it started when the iteration
-        # leaves the window: such a mark cannot be located.
-        step = np.linalg.norm(point[0, 0] - start)
-        lost[k] = step == 0 or step >= radius
-        refined[k] = (point[0, 0] + 0.5) / upsample - 0.5 + [cx - half, cy - half]
+        point = _subpix(crop, start, radius, criteria)
+        if point is None:  # already the saddle, or put back: try again from a little aside
+            again = _subpix(crop, start + np.float32(0.25 * upsample), radius, criteria)
+            point = again if again is not None and np.linalg.norm(again - start) < 0.05 * upsample else None
+        lost[k] = point is None
+        if point is not None:
+            refined[k] = (point + 0.5) / upsample - 0.5 + [cx - half, cy - half]
     if np.any(lost):
         raise TargetNotFoundError(
             f"calibration target found at {scale:.2f} px/cell but its marks are too blurred to locate precisely"
         )
     return refined
+
+
+def _subpix(crop: np.ndarray, start: np.ndarray, radius: int, criteria) -> np.ndarray | None:
+    """cv2.cornerSubPix from ``start``, or None where it puts the point back where it started.
+
+    It does so when the iteration leaves the window: such a mark cannot be
+    located. A start that already is the saddle also stays put, which the
+    caller tells apart by starting again from a little aside.
+    """
+    point = start.reshape(1, 1, 2).copy()
+    cv2.cornerSubPix(crop, point, (radius, radius), (-1, -1), criteria)
+    step = np.linalg.norm(point[0, 0] - start)
+    return None if step == 0 or step >= radius else point[0, 0].astype(np.float64)
+
+
+def _crop(data: np.ndarray, saturated: np.ndarray | None, cx: int, cy: int, half: int) -> np.ndarray:
+    """float32 square around (cx, cy), NaN read as black and clipped pixels as the brightest there."""
+    window = (slice(cy - half, cy + half + 1), slice(cx - half, cx + half + 1))
+    crop = np.nan_to_num(data[window].astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    if saturated is not None:
+        clipped = np.asarray(saturated[window], dtype=bool)
+        if clipped.any():
+            crop[clipped] = crop.max()
+    return crop
 
 
 def _scale(corners: np.ndarray) -> float:
