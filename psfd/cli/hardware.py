@@ -46,7 +46,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                             description="Clears the controller's alarm lock without homing, e.g. on a rail without "
                                         "homing switches or after a soft-limit alarm; positions are then what the "
                                         "controller believes. Prefer `psfd rail home` when it has switches.")
-    _rig_options(p)
+    options.add_rig_options(p)
     p.set_defaults(func=rail_unlock)
 
     p = subparsers.add_parser(
