@@ -169,6 +169,29 @@ def test_deeply_nested_json_gets_an_answer_and_the_service_lives(served):  # noq
     assert client.request(sock, {"cmd": "status"})["state"] == "idle" and proc.poll() is None
 
 
+def test_an_over_long_request_line_gets_an_answer_and_the_service_lives(served):  # noqa: F811
+    """A line past the request bound is refused after the bound is read, not buffered whole."""
+    proc, sock, db, notes = served
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.settimeout(30)
+        s.connect(str(sock))
+        line = b'{"cmd": "status", "x": "' + b"a" * (2 * client.MAX_REQUEST) + b'"}\n'
+        sender = threading.Thread(target=_send, args=(s, line))
+        sender.start()
+        answer = json.loads(s.makefile("rb").readline())
+        sender.join(timeout=30)
+    assert answer["ok"] is False and "longer than" in answer["error"] and answer["exit_code"] == 2
+    assert client.request(sock, {"cmd": "status"})["state"] == "idle" and proc.poll() is None
+
+
+def _send(s: socket.socket, data: bytes) -> None:
+    """Send what the peer takes: the service stops reading (and closes) once the line is past the bound."""
+    try:
+        s.sendall(data)
+    except OSError:
+        pass
+
+
 # -- the service's own files and socket folder ------------------------------------------------------------
 
 

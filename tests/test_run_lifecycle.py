@@ -89,6 +89,26 @@ def test_a_killed_capture_is_not_left_interrupted(tmp_path, capsys):
     assert "interrupted" not in out
 
 
+@pytest.mark.parametrize("request_", ["pause", "cancel"])
+def test_a_stop_that_comes_after_the_last_commit_leaves_the_run_done(tmp_path, request_):
+    """Ctrl-C or `systemctl stop` once every step is committed: nothing is left to resume, so the run is done
+    (not paused, which a plain `psfd run` would then refuse and only --new would get past)."""
+    plan = parse_plan(TWO_STEPS, "two.toml")
+    keys = [s.key for s in plan.steps()]
+    control = Control()
+
+    def on_step(key, state, reason):
+        if state == "done" and key == keys[-1]:
+            control.request(request_)
+
+    camera, rail = open_rig(plan.rig_config())
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        result = Runner(cat, tmp_path / "frames", workers=1, progress=None, control=control,
+                        on_step=on_step).run(plan, camera, rail)
+        assert (result.state, result.steps_done) == ("done", 2), result.reason
+        assert [r["state"] for r in cat.runs()] == ["done"]
+
+
 # -- 5. refusing writes nothing -------------------------------------------------------------------------
 
 

@@ -317,7 +317,9 @@ class Runner:
                     self._commit_first(run_id, focal, inflight, result, bar)
         bar.close()
         result.elapsed_s = time.monotonic() - started
-        requested = self.control.requested
+        # a stop that came after the last commit has nothing left to pause or cancel: the run is done
+        finished = result.error is None and not self.catalogue.steps(run_id, ("pending", "running", "failed"))
+        requested = None if finished else self.control.requested
         if requested == "cancel" or (requested and result.error is None):
             result.state, result.reason = ("cancelled" if requested == "cancel" else "paused"), f"{requested} requested"
         elif result.error is not None:
