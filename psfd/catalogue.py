@@ -169,10 +169,8 @@ def check_owner(path: Path, what: str) -> None:
     not write, move or remove them."""
     try:
         owner = path.stat().st_uid
-    except FileNotFoundError:
+    except OSError:  # missing, or not reachable: the write itself says what is wrong
         return
-    except OSError as exc:
-        raise CatalogueError(f"cannot use {path} as {what}: {path_reason(path, exc)}") from None
     if owner != os.geteuid():
         me, them = user_name(os.geteuid()), user_name(owner)
         raise StorageError(f"{what} {path} belongs to {them}: writing to it as {me} would leave files {them} "

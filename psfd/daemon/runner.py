@@ -477,10 +477,13 @@ def preflight(plan: Plan, catalogue_path: str | os.PathLike, frames_dir: str | o
 
     The catalogue (when it exists) is opened read-only: one this psfd cannot use (a newer
     schema, not a catalogue) is refused untouched, and so is a plan `start_check` refuses;
-    a catalogue or frame store of another user is refused (`check_owner`); ``resume``
-    without a catalogue has nothing to resume.
+    a catalogue or frame store of another user is refused (`check_owner`), and so is a
+    path where a file stands in place of a folder; ``resume`` without a catalogue has
+    nothing to resume.
     """
     catalogue_path, frames_dir = Path(catalogue_path), Path(frames_dir)
+    _check_folder(catalogue_path.parent, "the catalogue's folder")
+    _check_folder(frames_dir, "the frame store")
     if catalogue_path.exists():
         with Catalogue(catalogue_path, readonly=True) as catalogue:
             check_owner(catalogue_path, "the catalogue")
@@ -488,6 +491,15 @@ def preflight(plan: Plan, catalogue_path: str | os.PathLike, frames_dir: str | o
     elif resume:
         raise BadInputError(f"no unfinished run of plan {plan.path} to resume (no catalogue at {catalogue_path})")
     check_owner(frames_dir, "the frame store")
+
+
+def _check_folder(folder: Path, what: str) -> None:
+    """Refuse a folder that cannot exist because a file stands where it, or one of its parents, should be."""
+    for part in (folder, *folder.parents):
+        if part.exists():
+            if not part.is_dir():
+                raise BadInputError(f"cannot use {folder} as {what}: {part} is a file, not a folder")
+            return
 
 
 def unfinished_runs(catalogue_path: str | os.PathLike, frames_dir: str | os.PathLike) -> list[dict]:
