@@ -54,6 +54,7 @@ class FrameRecord:
     settings: dict
     rail: dict
     taken_at: str
+    exif: dict | None = None  # what the RAW says the camera did (`psfd.exif.FrameMetadata.as_dict`)
 
 
 @dataclass
@@ -155,7 +156,26 @@ def _v2_query_indexes(db: sqlite_utils.Database) -> None:
     db["runs"].create_index(["plan_hash"])
 
 
-MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [_v1_tables, _v2_query_indexes]
+# A frame's own EXIF beside the requested ``settings``: column -> FrameMetadata field.
+FRAME_EXIF = {
+    "exif_focal_length_mm": "focal_length_mm", "exif_f_number": "f_number", "exif_exposure_s": "exposure_s",
+    "exif_iso": "iso", "exif_lens": "lens", "exif_serial": "serial", "exif_focus_distance_m": "focus_distance_m",
+}
+
+
+def _v4_frame_exif(db: sqlite_utils.Database) -> None:
+    """Version 4: what each frame's RAW says the camera used (NULL for older frames).
+
+    Adds only the columns that are missing, so it holds whichever other migrations ran before it.
+    """
+    have = set(db["frames"].columns_dict)
+    for column in FRAME_EXIF:
+        if column not in have:
+            db["frames"].add_column(column, str if column in ("exif_lens", "exif_serial") else float)
+
+
+# Schema version 3 is another change; frame EXIF is version 4 whatever lands first.
+MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [_v1_tables, _v2_query_indexes, _v4_frame_exif]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -694,6 +714,7 @@ class Catalogue:
                 "settings": json.dumps(frame.settings, sort_keys=True),
                 "aperture": camera_fnumber(frame.settings.get("aperture")),
                 "rail": json.dumps(frame.rail, sort_keys=True), "taken_at": frame.taken_at,
+                **{column: (frame.exif or {}).get(name) for column, name in FRAME_EXIF.items()},
             },
             ignore=True,  # the same file (same hash) is one frame, whoever uses it
         )

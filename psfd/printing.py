@@ -124,6 +124,25 @@ def pdf_bytes(noise: np.ndarray, size_mm: float = 700.0, caption: str = "") -> b
     return pdf_document(ops, (page, page), caption, margin)
 
 
+def printed_cell_mm(path: str | os.PathLike) -> float:
+    """Side of one cell (mm) of a Bernoulli target PDF written by `pdf_bytes`, from its page size.
+
+    The page is the 320-cell target plus MARGIN_BLOCKS blocks of white on each side, so the cell is the
+    page width over 320 + 2 * 32 * MARGIN_BLOCKS cells. That is the cell as drawn: a print scaled to fit
+    the paper is smaller, so measure the print and give ``cell_mm`` when it was scaled.
+    """
+    import re
+
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise BadInputError(f"{path}: cannot read the printed target ({exc.strerror or exc})") from None
+    match = re.search(rb"/MediaBox \[0 0 ([0-9.]+) [0-9.]+\]", data)
+    if not data.startswith(b"%PDF") or match is None:
+        raise BadInputError(f"{path}: not a target PDF written by psfd target (no page size)")
+    return float(match.group(1)) * MM_PER_POINT / (target.SIZE + 2 * MARGIN_BLOCKS * target.BLOCK)
+
+
 def pdf_document(ops: list[str], page: tuple[float, float], caption: str = "", margin: float = 0.0) -> bytes:
     """A one-page PDF 1.4 file around a content stream.
 

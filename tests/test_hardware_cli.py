@@ -70,7 +70,7 @@ def test_record_then_replay(capsys, tmp_path):
     code, out, err = run(capsys, "record", "--simulate", "--out", str(out_dir), "--home",
                          "--at", "X=1300", "--at", "X=900,Y=5", "--aperture", "4,8", "--seed", "3")
     assert code == 0, err
-    assert out == f"recorded 12 requests and 4 frames into {out_dir}\n"
+    assert out == f"recorded 15 requests and 4 frames into {out_dir}\n"
     manifest = json.loads((out_dir / "manifest.json").read_text())
     assert manifest["rig"] == {"simulate": True, "seed": 3}
     captures = [r for r in manifest["requests"] if r["call"] == "capture"]

@@ -116,8 +116,10 @@ def test_recorded_errors_replay_and_end_of_recording(tmp_path):
     with pytest.raises(RailAlarm, match="ALARM:9"):
         rail.home()
     assert rail.home() == Position(200.0, 0.0, 0.0)
-    with pytest.raises(ReplayError, match=r"request 3 rail\.position\(\) is past the end of the recording \(2"):
-        rail.position()
+    assert rail.position() == Position(200.0, 0.0, 0.0)  # a query: answered from where the replay stands
+    assert rail.move(x=200.0) == Position(200.0, 0.0, 0.0)  # a move that changes nothing needs no recording
+    with pytest.raises(ReplayError, match=r"rail\.move\(x=300\) is past the end of the recording \(2 requests"):
+        rail.move(x=300)
 
 
 def test_bad_recording_folders(tmp_path):

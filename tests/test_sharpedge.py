@@ -15,6 +15,8 @@ from psfd.estimator import gamma, mtf, sharpedge, simulate
 from psfd.estimator.kernels import centroid
 from psfd.estimator.raw import Frame
 
+from conftest import DATA
+
 S = 4
 SUPPORT = 17
 WHITE = 16383.0
@@ -235,3 +237,42 @@ def test_target_cli_writes_the_edge_target(tmp_path, capsys):
     assert main(["target", "--kind", "edges", "--seed", "3", "--out", str(tmp_path / "x.png")]) == 2
     assert not (tmp_path / "x.png").exists()
     capsys.readouterr()
+
+
+def _equations_both_ways(frame, window, known):
+    """A window's normal equations by the tiled path and by the dense one (tests/sharpedge_dense.py)."""
+    import sharpedge_dense
+
+    image = np.asarray(frame.data, dtype=np.float64) / float(frame.white)
+    sigma = sharpedge.noise_sigma(image)
+    kernel_radius = (SUPPORT // 2) / S
+    band, length = 2 * kernel_radius, int(np.ceil(2 * kernel_radius)) + 2  # estimate_edges's defaults
+    args = (image, frame.saturated, window, S, SUPPORT, band, length, sigma, known)
+    tiled = sharpedge._window_equations(*args)
+    return tiled[:5], sharpedge_dense.window_equations(*args)
+
+
+@pytest.mark.parametrize("form", ["blind", "edge target", "Bernoulli marks"])
+def test_tiled_prediction_gives_the_dense_normal_equations(smooth_frame, form):
+    """Evaluating the s-grid only on qualifying footprints, tile by tile, leaves eq. (5) as the whole grid gives it.
+
+    Blind: the same pixels and bit-for-bit the same sums up to their order. Target forms: the coverage is
+    taken from the nearest pixel centre away from the pattern's changes, so a sample may differ from the
+    dense rendering where a change falls between pixel centres; the sums agree to 1e-6 of their size.
+    """
+    from psfd.estimator import raw
+
+    frame = smooth_frame if form != "Bernoulli marks" else raw.load_frame(DATA / "img_example.pgm", "g1")
+    known = None if form == "blind" else sharpedge.locate_pattern(
+        np.asarray(frame.data, dtype=np.float64) / float(frame.white), frame.saturated)
+    rows, cols = frame.data.shape
+    window = (cols // 5, rows // 6, cols - cols // 4, rows - rows // 7)  # margins cut on all four sides
+    (ata, atb, btb, used, edges), (d_ata, d_atb, d_btb, d_used, d_edges) = _equations_both_ways(frame, window, known)
+    assert used == d_used > SUPPORT * SUPPORT
+    assert len(edges) == len(d_edges)
+    np.testing.assert_allclose(np.column_stack([edges.x, edges.y, edges.lo, edges.hi]),
+                               np.column_stack([d_edges.x, d_edges.y, d_edges.lo, d_edges.hi]), rtol=0, atol=1e-9)
+    tol = 1e-12 if form == "blind" else 1e-6
+    np.testing.assert_allclose(ata, d_ata, rtol=0, atol=tol * np.abs(d_ata).max())
+    np.testing.assert_allclose(atb, d_atb, rtol=0, atol=tol * np.abs(d_atb).max())
+    assert btb == pytest.approx(d_btb, rel=tol)

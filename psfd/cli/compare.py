@@ -15,18 +15,19 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 from psfd.cli import options
 from psfd.errors import BadInputError, EstimationError, PsfdError
 from psfd.vocabulary import BERNOULLI, DEFAULT_S, SHARP_EDGE, TWO_PHOTO
 
 
-@dataclass
-class Estimate:
-    """One line of the comparison: a method's PSF (`psfd.estimator.kernels.PSF`), or why it could not run."""
+class Estimate(NamedTuple):
+    """One line of the comparison: a method's PSF (`psfd.estimator.kernels.PSF`), or why it could not run.
+
+    A named tuple rather than a dataclass: `dataclasses` would add its import time to every `psfd --help`.
+    """
 
     label: str
     psf: Any

@@ -9,10 +9,12 @@ import argparse
 import json
 import os
 import shutil
+import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from psfd.cli import options
-from psfd.errors import PsfdError
+from psfd.errors import BadInputError, CameraError, PsfdError
 
 SETTINGS = ("aperture", "shutterspeed", "iso", "imageformat", "capturetarget")
 
@@ -53,11 +55,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "record",
         help="capture at rail positions and apertures, writing a replayable recording",
         description="Every request made to the rig is written to DIR/manifest.json in order, with the "
-        "frames it produced (sha256) in DIR/frames; `open_rig({'recording': DIR})` replays it.",
+        "frames it produced (sha256) in DIR/frames. With --plan the rig, camera settings and setup, positions "
+        "and apertures are the plan's, and `psfd run` of that plan with `recording = \"DIR\"` in its [rig] "
+        "table replays it. A session that fails after the rig moved keeps what it recorded up to the failure.",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="new (or empty) recording folder")
-    p.add_argument("--at", action="append", required=True, metavar="X=MM[,Y=MM,Z=MM]",
-                   help="a rail position to capture at (repeat for several)")
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--plan", metavar="PLAN", help="record the captures of this plan, on its rig")
+    what.add_argument("--at", action="append", metavar="X=MM[,Y=MM,Z=MM]",
+                      help="a rail position to capture at (repeat for several)")
     p.add_argument("--aperture", action="append", metavar="F[,F...]",
                    help="apertures to capture at each position (repeat or comma-separate; default: as set)")
     p.add_argument("--home", action="store_true", help="home the rail first")
@@ -148,47 +154,102 @@ def rail_unlock(args: argparse.Namespace) -> int:
 
 
 def record(args: argparse.Namespace) -> int:
-    """Capture at every --at position and --aperture, recording every request; DIR appears only when complete."""
+    """Capture at every shot of the session, recording every request; DIR appears only when the rig acted."""
     from psfd.cli.output import check_out_dir, staging_dir
     from psfd.drivers import open_rig
     from psfd.drivers.recording import Recorder
 
-    positions = [options.parse_axes([at], "--at") for at in args.at]
-    apertures = options.parse_fnumbers(args.aperture)
+    session = _record_plan(args) if args.plan else _record_options(args)
     out = check_out_dir(args.out)
-    config = options.rig_config(args)
-    if args.simulate:
-        config.update({"scene": args.scene} if args.scene else {})
-        config.update({"seed": options.parse_int(args.seed, "--seed", minimum=0)} if args.seed is not None else {})
     work = staging_dir(out)
-    frames = 0
+    frames, failure = 0, None
     try:
-        camera, rail = open_rig(config)
-        recorder = Recorder(work / "recording", camera, rail, rig=config)
+        camera, rail = open_rig(session.rig)
+        recorder = Recorder(work / "recording", camera, rail, rig=session.rig)
         try:
-            frames = _record_session(recorder, positions, apertures, args.home, work / "downloads")
+            frames = _record_session(recorder, session, work / "downloads")
+        except BaseException as exc:  # a failure, or Ctrl-C: what the rig did up to it is worth keeping
+            failure = exc
         finally:
             recorder.close()
-        shutil.rmtree(work / "downloads", ignore_errors=True)
+        if failure is not None and not recorder.acted:
+            raise failure  # refused before the rig did anything: nothing to keep
         if out.exists():
             out.rmdir()
         os.replace(work / "recording", out)
     finally:
         shutil.rmtree(work, ignore_errors=True)
+    if failure is not None:
+        print(f"psfd: kept the {len(recorder.requests)} requests recorded up to the failure in {out}", file=sys.stderr)
+        raise failure
     print(f"recorded {len(recorder.requests)} requests and {frames} frames into {out}")
     return 0
 
 
-def _record_session(recorder, positions: list[dict], apertures: list[str], home: bool, downloads: Path) -> int:
+@dataclass
+class Session:
+    """What `psfd record` does: the rig, settings and setup applied first, then the shots in order.
+
+    Each shot is (aperture or None: as set, [rail positions]); the rail moves only when the position changes.
+    """
+
+    rig: dict
+    settings: dict = field(default_factory=dict)
+    setup: dict = field(default_factory=dict)
+    home: bool = False
+    shots: list[tuple[str | None, list[dict]]] = field(default_factory=list)
+
+
+def _record_options(args: argparse.Namespace) -> Session:
+    positions = [options.parse_axes([at], "--at") for at in args.at]
+    apertures = options.parse_fnumbers(args.aperture)
+    config = options.rig_config(args)
+    if args.simulate:
+        config.update({"scene": args.scene} if args.scene else {})
+        config.update({"seed": options.parse_int(args.seed, "--seed", minimum=0)} if args.seed is not None else {})
+    shots = [(aperture, [position]) for position in positions for aperture in apertures or [None]]
+    return Session(config, home=args.home, shots=shots)
+
+
+def _record_plan(args: argparse.Namespace) -> Session:
+    """The plan's rig and steps, in the order `psfd run` takes them."""
+    from psfd.daemon.plan import fmt, load_plan
+
+    if args.aperture or args.scene or args.seed is not None or args.simulate:
+        raise BadInputError("--plan gives the rig and apertures: drop --aperture, --scene, --seed and --simulate")
+    plan = load_plan(args.plan)
+    shots = []
+    for step in plan.steps():
+        distances = step.x if isinstance(step.x, tuple) else (step.x,)
+        shots.append((fmt(step.aperture), [{"x": x, "y": step.y, "z": step.z} for x in distances]))
+    return Session(plan.rig_config(), settings=dict(plan.rig.get("settings", {})),
+                   setup=dict(plan.rig.get("camera", {})), home=args.home, shots=shots)
+
+
+def _record_session(recorder, session: Session, downloads: Path) -> int:
+    """The camera and the rail described (so a replay can answer `plan check`), set up, then the shots."""
+    from psfd.drivers.base import CameraSetup
+    from psfd.vocabulary import camera_fnumber
+
     camera, rail = recorder.camera, recorder.rail
     camera.info()
-    if home:
+    rail.info()
+    offered = camera.choices("aperture")
+    for aperture, _ in session.shots:  # refused before any motion; the camera's own spelling is recorded
+        if aperture is not None and not any(camera_fnumber(c) == camera_fnumber(aperture) for c in offered):
+            raise CameraError(f"aperture {aperture} is not offered by the camera (offered: {', '.join(offered)})")
+    for name, value in session.settings.items():
+        camera.set(name, str(value))
+    camera.prepare(CameraSetup.from_mapping(session.setup))
+    if session.home:
         rail.home()
-    frames = 0
-    for position in positions:
-        rail.move(**position)
-        for aperture in apertures or [None]:
-            if aperture is not None:
-                camera.set("aperture", aperture)
+    frames, at = 0, None
+    for aperture, positions in session.shots:
+        if aperture is not None:
+            camera.set("aperture", next(c for c in offered if camera_fnumber(c) == camera_fnumber(aperture)))
+        for position in positions:
+            if position != at:
+                rail.move(**position)
+                at = position
             frames += len(camera.capture(downloads))
     return frames

@@ -302,11 +302,42 @@ def run_plan_check(args: argparse.Namespace) -> int:
     if problems:
         raise BadInputError(f"{path}: {len(problems)} problem{'s' * (len(problems) > 1)} found")
     plan = plans.parse_plan(text, str(path))
+    problems, rail = _ask_rail(plan)
+    for problem in problems:
+        print(f"{path}: {problem}", file=sys.stderr)
+    if problems:
+        raise BadInputError(f"{path}: {len(problems)} problem{'s' * (len(problems) > 1)} found on the rail")
     steps = len(plan.steps())
     nx, ny = plan.estimator_options().get("grid", (1, 1))
     print(f"{path}: ok, {plural(steps, 'step')}, {plural(steps * (2 if plan.kind == TWO_PHOTO else 1), 'frame')}, "
-          f"{plural(steps * len(plan.channels) * nx * ny, 'PSF')}")
+          f"{plural(steps * len(plan.channels) * nx * ny, 'PSF')}" + (f"; {rail}" if rail else ""))
     return 0
+
+
+def _ask_rail(plan) -> tuple[list[str], str | None]:
+    """The plan against the axes and travel its rail (the controller, or the recording) reports.
+
+    Returns the problems and what was asked; a rail that cannot be asked now (unplugged, in use by a
+    run) is noted on stderr and the plan is judged on its own limits. The simulated rail is what
+    `check_text` already knows.
+    """
+    from psfd.daemon.plan import check_rail
+    from psfd.drivers import open_rail
+    from psfd.errors import PsfdError
+
+    if plan.rig.get("simulate") is True:
+        return [], None
+    try:
+        rail = open_rail(plan.rig_config())
+        try:
+            info = rail.info()
+        finally:
+            rail.close()
+    except PsfdError as exc:
+        print(f"psfd: note: rail not asked for its travel ({exc})", file=sys.stderr)
+        return [], None
+    travel = ", ".join(f"{axis.upper()} [{lo:g}, {hi:g}]" for axis, (lo, hi) in info.travel.items())
+    return check_rail(plan, info), f"rail {info.controller}: {travel}"
 
 
 def run_serve(args: argparse.Namespace) -> int:

@@ -34,6 +34,13 @@ number of steps, counted before the plan is expanded, against `psfd.vocabulary.P
 `check_text` returns every problem found, one sentence each, so that
 ``psfd plan check`` can list them all at once; `load_plan` raises one
 BadInputError naming the first and counting the rest.
+
+Optics (a bernoulli target only): ``[capture] scale = [0.25]`` (Bayer-channel pixels per target
+cell) instead of ``x`` puts the rail where one cell images to that many pixels, from ``focal_mm``
+and ``pitch_um`` in [rig] and the cell in [target] (``cell_mm``, or ``printed = "target.pdf"``);
+``x_at_lens`` and ``x_away`` map the lens-to-target distance to rail X (`scale_distances`).
+``[rig] rail`` names the rail driver (`psfd.drivers.RAIL_DRIVERS`). ``[rig.camera]`` holds the
+camera's setup for PSF work (`psfd.drivers.base.CameraSetup`: ``focus``, ``settle_s``, ``capture_target``...).
 """
 
 from __future__ import annotations
@@ -46,18 +53,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from psfd.drivers import REAL_KEYS, SIM_KEYS
+from psfd.drivers import RAIL_DRIVERS, REAL_KEYS, SIM_KEYS
+from psfd.drivers.base import CameraSetup, RailInfo, target_distance
 from psfd.errors import BadInputError
 from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, PLAN_BYTES_MAX, TWO_PHOTO,
                              check_grid, check_s, check_solver, check_steps, check_support)
 
-# [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys) and our
-# camera settings, applied once before the first step.
-RIG_KEYS = {"simulate", "recording", "settings", *SIM_KEYS, *REAL_KEYS}
+# [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys), our
+# camera settings, applied once before the first step, and the camera's setup for PSF work
+# ([rig.camera], `psfd.drivers.base.CameraSetup`), applied after them and before any motion.
+RUNNER_KEYS = ("settings", "camera")
+RIG_KEYS = {"simulate", "recording", *RUNNER_KEYS, *SIM_KEYS, *REAL_KEYS}
 TABLES = {
     "rig": RIG_KEYS,
-    "target": {"kind", "near", "far"},
-    "capture": {"apertures", "x", "y", "z", "channels", "repeats"},
+    "target": {"kind", "near", "far", "cell_mm", "printed"},
+    "capture": {"apertures", "x", "scale", "y", "z", "channels", "repeats"},
     "estimator": {"s", "support", "solver", "grid"},
 }
 
@@ -131,8 +141,8 @@ class Plan:
         return out
 
     def rig_config(self) -> dict[str, Any]:
-        """The [rig] table as `psfd.drivers.open_rig` takes it (camera settings are the runner's)."""
-        return {k: v for k, v in self.rig.items() if k != "settings"}
+        """The [rig] table as `psfd.drivers.open_rig` takes it (camera settings and setup are the runner's)."""
+        return {k: v for k, v in self.rig.items() if k not in RUNNER_KEYS}
 
     def estimator_options(self) -> dict[str, Any]:
         """Keyword arguments for the estimator of this plan's target kind."""
@@ -208,7 +218,8 @@ def parse_plan(text: str, path: str = "<plan>") -> Plan:
         rig=rig,
         kind=kind_name(target["kind"]),
         apertures=[float(a) for a in capture["apertures"]],
-        x=[float(v) for v in capture.get("x", [])],
+        x=([float(v) for v in capture["x"]] if "x" in capture
+           else scale_distances(rig, target, capture.get("scale", []))),
         y=[float(v) for v in capture["y"]] if "y" in capture else None,
         z=[float(v) for v in capture["z"]] if "z" in capture else None,
         channels=list(CHANNELS) if channels == "all" else list(channels),
@@ -251,6 +262,7 @@ def check_text(text: str) -> list[str]:
             problems.append('[rig] a simulated bernoulli target needs scene = "bernoulli" (the default)')
     problems += _check_capture(tables["capture"], kind, "capture" in data)
     problems += _check_count(tables["capture"], kind)
+    problems += _check_optics(tables["rig"], tables["target"], tables["capture"])
     problems += _check_limits(tables["rig"], tables["target"], tables["capture"], kind)
     problems += _check_estimator(tables["estimator"], kind)
     problems += _check_ratio(tables["target"], tables["estimator"], kind)
@@ -282,8 +294,17 @@ def _check_rig(rig: dict) -> list[str]:
     for key in ("camera_port", "rail_port"):
         if key in rig and not isinstance(rig[key], str):
             problems.append(f"[rig] {key} must be a string")
-    if simulate is not True and "rail_port" not in rig and "recording" not in rig:
+    rail = rig.get("rail", "simulated" if simulate is True else "grbl")
+    if rail not in RAIL_DRIVERS:
+        problems.append(f"[rig] rail must be one of {', '.join(map(repr, RAIL_DRIVERS))}, got {rail!r}")
+    elif simulate is True and rail != "simulated":
+        problems.append(f"[rig] rail = {rail!r} does not go with simulate = true (the simulated rig's rail)")
+    elif rail == "grbl" and "rail_port" not in rig and "recording" not in rig:
         problems.append("[rig] needs rail_port (or simulate = true, or recording = DIR)")
+    if "x_at_lens" in rig and not _is_number(rig["x_at_lens"]):
+        problems.append("[rig] x_at_lens must be a number (the rail X, in mm, of a target at the lens)")
+    if rig.get("x_away", 1) not in (1, -1) or isinstance(rig.get("x_away"), bool):
+        problems.append("[rig] x_away must be 1 (the target goes away from the lens as X grows) or -1")
     if "seed" in rig and not isinstance(rig["seed"], int):
         problems.append("[rig] seed must be an integer")
     if "scene" in rig and rig["scene"] not in ("bernoulli", "texture"):
@@ -291,6 +312,14 @@ def _check_rig(rig: dict) -> list[str]:
     settings = rig.get("settings", {})
     if not isinstance(settings, dict) or not all(isinstance(v, (str, int, float)) for v in settings.values()):
         problems.append("[rig] settings must be a table of camera setting names to values")
+    camera = rig.get("camera", {})
+    if not isinstance(camera, dict):
+        problems.append("[rig] camera must be a table [rig.camera] (keys of the camera setup)")
+    else:
+        try:
+            CameraSetup.from_mapping(camera)
+        except BadInputError as exc:
+            problems.append(f"[rig.camera] {exc}")
     limits = rig.get("rail_limits", {})
     if not isinstance(limits, dict):
         return problems + ["[rig] rail_limits must be a table such as { x = [0, 2000] }"]
@@ -329,10 +358,14 @@ def _check_capture(capture: dict, kind: Any, present: bool) -> list[str]:
         problems.append("[capture] needs apertures, e.g. apertures = [5.6, 8]")
     else:
         problems += _number_list(capture, "apertures", "[capture]", positive=True)
-    if kind == BERNOULLI and "x" not in capture:
-        problems.append("[capture] needs x (rail distances in mm) for a bernoulli target")
-    if kind == TWO_PHOTO and "x" in capture:
-        problems.append("[capture] x does not apply to a pair target: set near and far in [target]")
+    if kind == BERNOULLI and ("x" in capture) == ("scale" in capture):
+        problems.append("[capture] needs x (rail distances in mm) or scale (channel pixels per target cell) "
+                        "for a bernoulli target, not both")
+    for key in ("x", "scale"):
+        if kind == TWO_PHOTO and key in capture:
+            problems.append(f"[capture] {key} does not apply to a pair target: set near and far in [target]")
+    if "scale" in capture:
+        problems += _number_list(capture, "scale", "[capture]", positive=True)
     for axis in AXES:
         if axis in capture:
             problems += _number_list(capture, axis, "[capture]")
@@ -361,7 +394,8 @@ def _check_count(capture: dict, kind: Any) -> list[str]:
 
     repeats = capture.get("repeats", 1)
     repeats = repeats if isinstance(repeats, int) and repeats > 0 else 1
-    count = length("apertures") * (1 if kind == TWO_PHOTO else length("x")) * length("y") * length("z") * repeats
+    distances = length("x") * length("scale")  # a plan gives one of them (the other counts 1)
+    count = length("apertures") * (1 if kind == TWO_PHOTO else distances) * length("y") * length("z") * repeats
     try:
         check_steps(count, "[capture]")
     except BadInputError as exc:
@@ -384,6 +418,11 @@ def _check_limits(rig: dict, target: dict, capture: dict, kind: Any) -> list[str
     if not isinstance(limits, dict):
         return []
     values: dict[str, list] = {axis: capture.get(axis) for axis in AXES}
+    if kind == BERNOULLI and "scale" in capture:
+        try:
+            values["x"] = scale_distances(rig, target, capture["scale"])
+        except (BadInputError, TypeError, ValueError):
+            values["x"] = []  # the scale's own problem is reported by _check_optics
     if kind == TWO_PHOTO:
         values["x"] = [target.get("near"), target.get("far")]
     problems = []
@@ -395,6 +434,93 @@ def _check_limits(rig: dict, target: dict, capture: dict, kind: Any) -> list[str
             where = "rail_limits" if "rail_limits" in rig or "limits" in rig else "the simulated rail's limits"
             problems.append(f"{axis} = {', '.join(fmt(v) for v in outside)} outside {where}.{axis} "
                             f"[{fmt(pair[0])}, {fmt(pair[1])}]")
+    return problems
+
+
+# ---------------------------------------------------------------------- optics and the rail
+
+
+def optics(rig: dict, target: dict) -> dict[str, float]:
+    """Focal length, photosite pitch and printed cell size (mm, um, mm) that turn a scale into distances.
+
+    ``focal_mm`` and ``pitch_um`` come from [rig], the cell from [target] (``cell_mm``, or the page size
+    of the ``printed`` target PDF); on the simulated rig each defaults to the simulated camera's own.
+
+    Raises
+    ------
+    BadInputError
+        One of the three is missing or not a positive number.
+    """
+    values: dict[str, Any] = {"focal_mm": rig.get("focal_mm"), "pitch_um": rig.get("pitch_um")}
+    values["cell_mm"] = target.get("cell_mm")
+    if values["cell_mm"] is None and isinstance(target.get("printed"), str):
+        from psfd.printing import printed_cell_mm
+
+        values["cell_mm"] = printed_cell_mm(target["printed"])
+    if rig.get("simulate") is True:
+        from psfd.drivers.sim import SimRig
+
+        defaults = SimRig.__dataclass_fields__
+        values = {k: v if v is not None else rig.get(k, defaults[k].default) for k, v in values.items()}
+    missing = [k for k, v in values.items() if v is None]
+    if missing:
+        raise BadInputError(f"a scale needs {', '.join(missing)} (focal_mm and pitch_um in [rig], cell_mm or "
+                            "printed = \"TARGET.pdf\" in [target])")
+    bad = [k for k, v in values.items() if not (_is_number(v) and v > 0)]
+    if bad:
+        raise BadInputError(f"{', '.join(bad)} must be positive numbers")
+    return {k: float(v) for k, v in values.items()}
+
+
+def scale_distances(rig: dict, target: dict, scales: list[float]) -> list[float]:
+    """Rail X (mm) of each wanted scale (channel pixels per target cell), from the plan's optics.
+
+    The lens-to-target distance (`psfd.drivers.base.target_distance`) becomes a rail coordinate through
+    ``x_at_lens`` (the rail X of a target at the lens, default 0) and ``x_away`` (1: the target goes away
+    as X grows, the default; -1: it comes closer, as on a rail homed at the far end), to 0.01 mm.
+    """
+    o = optics(rig, target)
+    x0, sign = float(rig.get("x_at_lens", 0.0)), int(rig.get("x_away", 1))
+    return [round(x0 + sign * target_distance(float(p), o["focal_mm"], o["pitch_um"], o["cell_mm"]), 2)
+            for p in scales]
+
+
+def _check_optics(rig: dict, target: dict, capture: dict) -> list[str]:
+    problems = [f"[target] {k} must be a positive size in mm, got {target[k]!r}"
+                for k in ("cell_mm",) if k in target and not (_is_number(target[k]) and target[k] > 0)]
+    problems += [f"[rig] {k} must be a positive number, got {rig[k]!r}"
+                 for k in ("focal_mm", "pitch_um") if k in rig and not (_is_number(rig[k]) and rig[k] > 0)]
+    if "printed" in target and not isinstance(target["printed"], str):
+        problems.append("[target] printed must be the path of the target PDF (psfd target)")
+    if "scale" in capture and not problems:
+        try:
+            optics(rig, target)
+        except BadInputError as exc:
+            problems.append(f"[capture] {exc}")
+    return problems
+
+
+def check_rail(plan: Plan, info: RailInfo) -> list[str]:
+    """Every position of the plan the rail cannot reach: an axis it does not have, or outside its travel.
+
+    ``info`` is what the rail (a controller, or a recording of one) says of itself (`Rail.info`).
+    """
+    values: dict[str, list[float]] = {"x": [plan.near, plan.far] if plan.kind == TWO_PHOTO else plan.x,
+                                      "y": plan.y or [], "z": plan.z or []}
+    problems = []
+    for axis, wanted in values.items():
+        wanted = [v for v in wanted if v is not None]
+        if not wanted:
+            continue
+        if axis not in info.axes or axis not in info.travel:
+            problems.append(f"{axis} = {', '.join(fmt(v) for v in wanted)}: the rail ({info.controller}) has no "
+                            f"{axis.upper()} axis (axes: {', '.join(a.upper() for a in info.axes) or 'none'})")
+            continue
+        lo, hi = info.travel[axis]
+        outside = [v for v in wanted if not lo <= v <= hi]
+        if outside:
+            problems.append(f"{axis} = {', '.join(fmt(v) for v in outside)} outside the travel of the rail "
+                            f"({info.controller}) {axis}: [{fmt(lo)}, {fmt(hi)}]")
     return problems
 
 

@@ -57,9 +57,10 @@ from psfd.daemon.plan import Plan, Step
 from psfd.daemon.store import (INCOMING, check_room, shown_state, storage_error, store_frame, store_lock,
                                sweep_frames)
 from psfd.drivers import open_rig
-from psfd.drivers.base import Camera, Rail
+from psfd.drivers.base import Camera, CameraReady, CameraSetup, Rail, settle
 from psfd.errors import BadInputError, CameraError, EstimationError, HardwareError, PsfdError, StorageError
 from psfd.estimator.raw import RAW_SUFFIXES
+from psfd.exif import check_settings, read_metadata
 from psfd.vocabulary import BACKLOG_MAX, WORKERS_MAX, camera_fnumber, check_count
 
 # Below this much free space, a failed download is put down to the storage: no RAW file is smaller.
@@ -207,6 +208,7 @@ class Runner:
         self.estimate = estimate
         self.backlog = 4 * self.workers if backlog is None else check_count(backlog, "backlog", BACKLOG_MAX)
         self._frame_bytes = 0  # the largest frame this run stored: the room the store needs for the next
+        self.ready: CameraReady | None = None  # what `Camera.prepare` did for the current run
 
     # -- public -------------------------------------------------------------------------------
 
@@ -288,6 +290,12 @@ class Runner:
                 except PsfdError as exc:
                     result.error, result.reason = exc, f"camera settings: {exc}"
                     todo = []
+                if result.error is None:
+                    try:
+                        self.ready = prepare_camera(camera, plan)
+                    except PsfdError as exc:  # no RAW, autofocus on: refused before the rail moves
+                        result.error, result.reason = exc, f"camera setup: {exc}"
+                        todo = []
                 for row in todo:
                     if self.control.requested:
                         break
@@ -357,11 +365,13 @@ class Runner:
         try:
             for x in distances:
                 at = rail.move(x=x, y=step.y, z=step.z)
+                settle(self.ready.settle_s, since=time.monotonic())  # the rig's vibrations die out
                 path, sha = self._expose(camera)
                 records.append(FrameRecord(
                     path=str(path), sha256=sha, settings=settings, rail={"x": at.x, "y": at.y, "z": at.z},
                     taken_at=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                ))
+                ))  # listed first, so that a frame refused for its settings is discarded with the step
+                records[-1].exif = frame_exif(path, settings, plan.rig.get("focal_mm"), step.key)
         except BaseException:
             self._discard(records)  # the near frame of a pair whose far frame failed
             raise
@@ -414,11 +424,11 @@ class Runner:
             self._discard(records)
             bar.show(step.key, f"failed: {error}")
             return
-        distance = step.x[1] if isinstance(step.x, tuple) else step.x
+        exif = records[-1].exif or {}  # a pair's PSF is the far frame's (its focus and focal length)
         meta = {
             "aperture": step.aperture,
-            "focal_length_mm": focal,
-            "focus_distance_m": distance / 1000.0,
+            "focal_length_mm": exif.get("focal_length_mm") or focal,
+            "focus_distance_m": exif.get("focus_distance_m"),  # what the lens reports, else unknown
             "frame_indices": list(range(len(records))),
         }
         try:
@@ -441,6 +451,25 @@ def _step_error(exc: PsfdError | OSError) -> PsfdError:
     if isinstance(exc, PsfdError):
         return exc
     return storage_error(exc, "storing the frame") or HardwareError(f"storing the frame: {exc}")
+
+
+def prepare_camera(camera: Camera, plan: Plan) -> CameraReady:
+    """Set the camera up for PSF work as the plan's ``[rig.camera]`` table asks (`CameraSetup`), before any motion."""
+    return camera.prepare(CameraSetup.from_mapping(plan.rig.get("camera", {})))
+
+
+def frame_exif(path: Path, settings: dict, focal_mm: float | None, key: str) -> dict:
+    """What the RAW at ``path`` says the camera did; a setting other than the one asked fails the step.
+
+    Raises
+    ------
+    SettingsMismatch
+        The f-number, exposure time, ISO or focal length (the plan's ``focal_mm``) differs (`check_settings`).
+    """
+    meta = read_metadata(path)
+    check_settings(meta, aperture=settings.get("aperture"), shutterspeed=settings.get("shutterspeed"),
+                   iso=settings.get("iso"), focal_length_mm=focal_mm, frame=f"step {key}")
+    return meta.as_dict()
 
 
 def start_check(catalogue: Catalogue, plan: Plan, resume: bool, new: bool,

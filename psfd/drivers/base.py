@@ -135,6 +135,17 @@ def settle(seconds: float, since: float | None = None, *, sleep: Callable[[float
     return 0.0
 
 
+def target_distance(pixels_per_cell: float, focal_mm: float, pitch_um: float, cell_mm: float) -> float:
+    """Lens-to-target distance (mm) at which one printed cell images to ``pixels_per_cell`` Bayer-channel pixels.
+
+    Thin lens: magnification m = f / (d - f), and a cell of ``cell_mm`` covers m * cell / (2 pitch) channel
+    pixels (a channel samples every other photosite), so d = f (1 + cell / (p * 2 pitch)).
+    """
+    if not pixels_per_cell > 0:
+        raise BadInputError(f"scale {pixels_per_cell}: pixels per cell must be positive")
+    return focal_mm * (1.0 + cell_mm / (pixels_per_cell * 2.0 * pitch_um / 1000.0))
+
+
 @dataclass(frozen=True)
 class Position:
     """Rail position in millimetres (None for an axis the rail does not have)."""

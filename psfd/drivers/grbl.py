@@ -1021,6 +1021,17 @@ class GrblRail:
 _SETTING = re.compile(r"^\$(\d+)=([-+]?\d*\.?\d+)")
 
 
+def open_rail(config: dict) -> GrblRail:
+    """The GRBL rail of a plan's [rig] table (``rail = "grbl"``, the default; see `psfd.drivers.open_rig`)."""
+    return GrblRail(
+        config["rail_port"],
+        baudrate=int(config.get("rail_baudrate", 115200)),
+        timeout=float(config.get("rail_timeout", 2.0)),
+        limits=config.get("rail_limits"),
+        feed=float(config["rail_feed"]) if config.get("rail_feed") else None,  # default: the controller's rapids
+    )
+
+
 def _open_port(port: str, baudrate: int, timeout: float) -> serial.Serial:
     """Open without resetting the controller, exclusively (flock), and keep DTR up after close."""
     link = serial.Serial()

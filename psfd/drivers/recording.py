@@ -12,9 +12,21 @@ their sha256; a rail request's result is the position it reported (with the
 serial lines exchanged, ``serial``, when the rail keeps them); a request
 that failed keeps ``{"error": {"type": "RailAlarm", "message": ...}}`` instead.
 
-`RecordingCamera` and `RecordingRail` answer the same requests in the same
-order with the recorded results (frames byte for byte), so tests and
-benchmarks run the daemon against real hardware sessions without hardware.
+`RecordingCamera` and `RecordingRail` behave as the recorded rig did (frames
+byte for byte), so tests and benchmarks run the daemon against real hardware
+sessions without hardware. The replay follows what the rig *did*, not the
+exact sequence of calls, so that a recording made with ``psfd record`` at a
+plan's positions and apertures replays under ``psfd run`` of that plan:
+
+- queries (camera ``info``, ``get``, ``choices``; rail ``info``, ``position``)
+  are answered from the recording and never consume it;
+- the actions between two captures (``set``, ``move``, ``home``, ``unlock``,
+  ``prepare``) may come in any order, and an action that changes nothing (a
+  move to where the rail already is, a setting already in effect) is answered
+  without being recorded;
+- each capture must find the rig where the recording's capture found it (rail
+  position and every setting the replay set): its frames are then the recorded ones;
+- a recorded failure is raised again when the replay makes the request that failed.
 """
 
 from __future__ import annotations
@@ -28,8 +40,9 @@ from pathlib import Path
 from typing import Any, Callable
 
 from psfd import errors
-from psfd.drivers.base import Camera, CameraInfo, Position, Rail
+from psfd.drivers.base import Camera, CameraInfo, CameraReady, CameraSetup, Position, Rail, RailInfo
 from psfd.errors import HardwareError, PsfdError
+from psfd.vocabulary import camera_fnumber
 
 MANIFEST = "manifest.json"
 FRAMES = "frames"
@@ -128,6 +141,11 @@ class Recorder:
             files.append({"name": path.name, "file": stored.as_posix(), "sha256": sha256(self.folder / stored)})
         return {"files": files}
 
+    @property
+    def acted(self) -> bool:
+        """Whether the rig did anything yet (moved, homed, unlocked, captured): the recording is then worth keeping."""
+        return any(r["call"] in ("move", "home", "unlock", "capture") for r in self.requests)
+
     def close(self) -> None:
         """Release the wrapped devices."""
         for device in (self.camera, self.rail):
@@ -164,6 +182,9 @@ class _RecordedCamera:
         args = {"name": name, "value": str(value)}
         self._rec.call("camera", "set", args, lambda: self._camera.set(name, str(value)))
 
+    def prepare(self, setup: CameraSetup) -> CameraReady:
+        return self._rec.call("camera", "prepare", dataclasses.asdict(setup), lambda: self._camera.prepare(setup))
+
     def capture(self, dest: Path) -> list[Path]:
         return self._rec.call("camera", "capture", {}, lambda: self._camera.capture(Path(dest)),
                               encode=self._rec.keep_frames)
@@ -186,18 +207,74 @@ class _RecordedRail:
     def position(self) -> Position:
         return self._rec.call("rail", "position", {}, self._rail.position, wrapped=self._rail)
 
+    def info(self) -> RailInfo:
+        return self._rec.call("rail", "info", {}, self._rail.info, wrapped=self._rail)
+
+    def unlock(self) -> Position:
+        return self._rec.call("rail", "unlock", {}, self._rail.unlock, wrapped=self._rail)
+
     def close(self) -> None:
         self._rail.close()
 
 
 # ---------------------------------------------------------------------- replay
 
+QUERIES = {("camera", "info"), ("camera", "get"), ("camera", "choices"), ("rail", "info"), ("rail", "position")}
+AXIS_TOLERANCE = 1e-6  # mm: the same requested coordinate, as a float read back from JSON
+
+
+def _same_value(a: Any, b: Any) -> bool:
+    """Two values of a setting mean the same: equal text, or the same f-number (``5.6``, ``f/5.6``)."""
+    if str(a) == str(b):
+        return True
+    fa, fb = camera_fnumber(a), camera_fnumber(b)
+    return fa is not None and fb is not None and abs(fa - fb) < 1e-6
+
+
+def _same_request(entry: dict, device: str, call: str, args: dict) -> bool:
+    if (entry["device"], entry["call"]) != (device, call) or set(entry["args"]) != set(args):
+        return False
+    if call == "set":
+        return entry["args"]["name"] == args["name"] and _same_value(entry["args"]["value"], args["value"])
+    if call == "move":
+        return all((a is None and b is None) or (a is not None and b is not None and abs(a - b) <= AXIS_TOLERANCE)
+                   for a, b in ((entry["args"][k], args[k]) for k in args))
+    return entry["args"] == args
+
+
+class _RigState:
+    """Where the rail was sent and what the camera was set to, as a sequence of actions leaves them."""
+
+    def __init__(self) -> None:
+        self.target: dict[str, float] | None = None
+        self.settings: dict[str, str] = {}
+        self.setup: dict | None = None
+
+    def apply(self, call: str, args: dict, result: Any) -> None:
+        if call == "move":
+            self.target = {**(self.target or {}), **{k: v for k, v in args.items() if v is not None}}
+        elif call in ("home", "unlock") and isinstance(result, dict):
+            self.target = {k: v for k, v in result.items() if v is not None}
+        elif call == "set":
+            self.settings[args["name"]] = args["value"]
+        elif call == "prepare":
+            self.setup = args
+
+    def changes_nothing(self, call: str, args: dict) -> bool:
+        if call == "move":
+            given = {k: v for k, v in args.items() if v is not None}
+            return self.target is not None and all(
+                k in self.target and abs(self.target[k] - v) <= AXIS_TOLERANCE for k, v in given.items())
+        if call == "set":
+            return args["name"] in self.settings and _same_value(self.settings[args["name"]], args["value"])
+        return call == "prepare" and self.setup == args
+
 
 class Replay:
-    """A cursor over a recording's requests.
+    """The recorded rig, replayed (see the module's docstring for the rules).
 
-    Shared by a `RecordingCamera` and a `RecordingRail` it checks the order of
-    all requests; given a ``device`` it follows that device's requests only.
+    Shared by a `RecordingCamera` and a `RecordingRail` it replays the whole rig;
+    given a ``device`` it follows that device's requests only.
     """
 
     def __init__(self, folder: str | os.PathLike, device: str | None = None) -> None:
@@ -212,23 +289,80 @@ class Replay:
             raise errors.BadInputError(f"{path}: unsupported recording version {manifest.get('version')!r}")
         self.rig = manifest.get("rig", {})
         self.requests = [r for r in requests if device is None or r["device"] == device]
-        self.cursor = 0
+        self.start = 0  # the first entry after the last replayed capture
+        self.used: set[int] = set()
+        self.state = _RigState()  # what the replay asked for
 
     def answer(self, device: str, call: str, args: dict) -> Any:
-        """The recorded result of the next request, which must be this one; recorded errors are raised."""
-        asked = _describe(device, call, _plain(args))
-        if self.cursor >= len(self.requests):
-            raise ReplayError(
-                f"{self.folder}: request {self.cursor + 1} {asked} is past the end of the recording "
-                f"({len(self.requests)} requests)"
-            )
-        entry = self.requests[self.cursor]
-        expected = _describe(entry["device"], entry["call"], entry["args"])
-        if (entry["device"], entry["call"], entry["args"]) != (device, call, _plain(args)):
-            raise ReplayError(
-                f"{self.folder}: request {self.cursor + 1} is {asked} but the recording has {expected}"
-            )
-        self.cursor += 1
+        """The recorded result of a request (recorded errors are raised); `ReplayError` when the recording
+        cannot answer it."""
+        args = _plain(args)
+        if (device, call) in QUERIES:
+            return self._query(device, call, args)
+        asked = _describe(device, call, args)
+        end = next((i for i in range(self.start, len(self.requests)) if self.requests[i]["call"] == "capture"),
+                   len(self.requests))
+        if call == "capture":
+            if end == len(self.requests):
+                raise ReplayError(f"{self.folder}: {asked} is past the end of the recording "
+                                  f"({len(self.requests)} requests)")
+            self._check_state(end)
+            self.start = end + 1
+            return self._result(self.requests[end])
+        index = next((i for i in range(self.start, end) if i not in self.used
+                      and _same_request(self.requests[i], device, call, args)), None)
+        if index is None:
+            if self.state.changes_nothing(call, args):
+                return dataclasses.asdict(Position(**self._position())) if call == "move" else None
+            pending = next((i for i in range(self.start, end) if i not in self.used
+                            and (self.requests[i]["device"], self.requests[i]["call"]) not in QUERIES), end)
+            if pending == len(self.requests):
+                raise ReplayError(f"{self.folder}: {asked} is past the end of the recording "
+                                  f"({len(self.requests)} requests)")
+            entry = self.requests[pending]
+            raise ReplayError(f"{self.folder}: request {pending + 1} is {asked} but the recording has "
+                              f"{_describe(entry['device'], entry['call'], entry['args'])}")
+        self.used.add(index)
+        result = self._result(self.requests[index])  # a recorded failure changed nothing
+        self.state.apply(call, args, result)
+        return result
+
+    def _query(self, device: str, call: str, args: dict) -> Any:
+        """A query's recorded answer: the one nearest after the last capture, else the latest before it."""
+        if call == "position" and self.state.target is not None:
+            return self._position()
+        asked = (device, call, args)
+        matches = [i for i, r in enumerate(self.requests) if (r["device"], r["call"], r["args"]) == asked]
+        if call == "get" and args["name"] in self.state.settings:
+            matches = [i for i in matches if i >= self.start and "result" in self.requests[i]]
+            if not matches:  # the value the replay set, as the camera would read it back
+                return self.state.settings[args["name"]]
+        if not matches:
+            raise ReplayError(f"{self.folder}: the recording never asked {_describe(device, call, args)}")
+        after = [i for i in matches if i >= self.start]
+        return self._result(self.requests[after[0] if after else matches[-1]])
+
+    def _position(self) -> dict:
+        target = self.state.target or {}
+        return {axis: target.get(axis) for axis in ("x", "y", "z")}
+
+    def _check_state(self, capture: int) -> None:
+        """The replayed rig must stand where the recorded one stood for this capture."""
+        recorded = _RigState()
+        for entry in self.requests[:capture]:
+            if "result" in entry:
+                recorded.apply(entry["call"], entry["args"], entry["result"])
+        differences = [f"{name} {value} (recorded: {recorded.settings[name]})"
+                       for name, value in self.state.settings.items()
+                       if name in recorded.settings and not _same_value(value, recorded.settings[name])]
+        if recorded.target is not None and not self.state.changes_nothing("move", recorded.target):
+            differences.append(f"rail at {self._position()} (recorded: {recorded.target})")
+        if differences:
+            raise ReplayError(f"{self.folder}: capture {capture + 1} was recorded with the rig set otherwise: "
+                              + ", ".join(differences))
+
+    @staticmethod
+    def _result(entry: dict) -> Any:
         if "error" in entry:
             cls = getattr(errors, entry["error"]["type"], None)
             if not (isinstance(cls, type) and issubclass(cls, PsfdError)):
@@ -274,6 +408,11 @@ class RecordingCamera:
     def set(self, name: str, value: str) -> None:
         self._replay.answer("camera", "set", {"name": name, "value": str(value)})
 
+    def prepare(self, setup: CameraSetup) -> CameraReady:
+        """The recorded preparation; no settle time (a replayed rail does not shake)."""
+        ready = dict(self._replay.answer("camera", "prepare", dataclasses.asdict(setup)))
+        return CameraReady(**{**ready, "notes": tuple(ready.get("notes", ())), "settle_s": 0.0})
+
     def capture(self, dest: Path) -> list[Path]:
         return self._replay.copy_frames(self._replay.answer("camera", "capture", {}), Path(dest))
 
@@ -296,11 +435,19 @@ class RecordingRail:
     def position(self) -> Position:
         return Position(**self._replay.answer("rail", "position", {}))
 
+    def info(self) -> RailInfo:
+        info = dict(self._replay.answer("rail", "info", {}))
+        return RailInfo(**{**info, "axes": tuple(info["axes"]),
+                           "travel": {axis: tuple(span) for axis, span in info["travel"].items()}})
+
+    def unlock(self) -> Position:
+        return Position(**self._replay.answer("rail", "unlock", {}))
+
     def close(self) -> None:
         pass
 
 
 def open_replay(folder: str | os.PathLike) -> tuple[RecordingCamera, RecordingRail]:
-    """Camera and rail sharing one cursor: the whole session must be replayed in its recorded order."""
+    """Camera and rail sharing one replay: the whole rig's session, captures in their recorded order."""
     replay = Replay(folder)
     return RecordingCamera(replay), RecordingRail(replay)

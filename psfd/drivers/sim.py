@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from scipy import fft
 
-from psfd.drivers.base import CameraInfo, CameraReady, CameraSetup, Position, RailInfo
+from psfd.drivers.base import CameraInfo, CameraReady, CameraSetup, Position, RailInfo, target_distance
 from psfd.drivers.recording import free_name
 from psfd.errors import CameraError, PsfdError, RailError
 from psfd.estimator import simulate
@@ -144,7 +144,7 @@ class SimRig:
         """
         if pixels_per_cell <= 0:
             raise ValueError("pixels_per_cell must be positive")
-        return self.focal_mm * (1.0 + self.cell_mm / (pixels_per_cell * self.channel_pitch_mm))
+        return target_distance(pixels_per_cell, self.focal_mm, self.pitch_um, self.cell_mm)
 
     def field(self, position: Position | None = None) -> tuple[float, float]:
         """Normalised image (x, y) of the target centre for a rail position (default: the current one)."""
@@ -288,6 +288,12 @@ def _texture(seed: int) -> np.ndarray:
     texture = np.clip(0.5 + texture, 0.05, 0.95).astype(np.float32)
     texture.flags.writeable = False  # shared by the cache
     return texture
+
+
+def open_rail(config: dict) -> "SimRail":
+    """A simulated rail alone (``rail = "simulated"`` beside a real camera): instant moves within ``rail_limits``."""
+    limits = config.get("rail_limits")
+    return SimRig(**({"limits": limits} if limits else {})).rail
 
 
 class SimCamera:

@@ -14,6 +14,13 @@ Target form (sec. 4.2): the printed edge target (`edge_target`) located by
 its checkerboard corners, rendered at s times through the fitted
 homography and radial distortion, and shaded from the photograph; a frame
 of the Bernoulli target instead offers the step edges of its marks.
+
+Only the observed pixels whose whole kernel footprint is predicted enter the
+normal equations, a small share of a photograph: the work is cut into tiles
+of TILE_PX pixels and the s-grid is evaluated only on the footprints of
+pixels that may qualify, coarse to fine, never whole. Memory stays bounded
+and the time follows the edges, not the area, with the same estimate as
+predicting every sample of the s-grid.
 """
 
 from __future__ import annotations
@@ -34,9 +41,9 @@ from psfd.estimator.kernels import PSF, field_of_window, split_grid
 from psfd.estimator.raw import Frame
 
 __all__ = [
-    "SQUARES", "Edgels", "KnownPattern", "TargetView", "bernoulli_marks", "detect_edges", "edge_levels",
-    "edge_pattern", "edge_target", "estimate_edges", "gradient_operator", "locate_pattern", "locate_target",
-    "noise_sigma", "predict_sharp", "render_target", "shade_target", "solve_kernel", "target_edges"
+    "SQUARES", "Edgels", "KnownPattern", "TargetView", "bernoulli_marks", "bernoulli_pattern", "detect_edges",
+    "edge_levels", "edge_pattern", "edge_target", "estimate_edges", "gradient_operator", "locate_pattern",
+    "locate_target", "noise_sigma", "solve_kernel"
 ]
 
 TILE = 2  # squares per tile side of the edge target
@@ -151,6 +158,36 @@ def noise_sigma(image: np.ndarray) -> float:
     return float(np.median(np.abs(hh)) / 0.6745)
 
 
+TILE_PX = 128  # channel pixels per side of the tiles the work is cut into: memory stays bounded on any frame
+
+
+def _tiles(rows: tuple[int, int], cols: tuple[int, int], size: int = TILE_PX):
+    """Row-major tiles (y0, y1, x0, x1) covering ``rows[0]:rows[1]`` x ``cols[0]:cols[1]``."""
+    for y0 in range(rows[0], rows[1], size):
+        for x0 in range(cols[0], cols[1], size):
+            yield y0, min(y0 + size, rows[1]), x0, min(x0 + size, cols[1])
+
+
+def _gauss_radius(sd: float) -> int:
+    """Half-width of scipy.ndimage.gaussian_filter's kernel (its default truncate is 4)."""
+    return int(4.0 * sd + 0.5)
+
+
+def _edge_maps(image: np.ndarray, tile: tuple[int, int, int, int], sigma: float, halo: int):
+    """DoG, smoothed gradient and its magnitude on a tile and ``halo`` pixels around it (within the image).
+
+    Returns the region's first (row, col) and the four maps; inside the tile they are the
+    whole image's values, as the filters reach less than ``halo`` pixels.
+    """
+    y0, y1, x0, x1 = tile
+    oy, ox = max(0, y0 - halo), max(0, x0 - halo)
+    region = image[oy : min(image.shape[0], y1 + halo), ox : min(image.shape[1], x1 + halo)]
+    g1 = ndimage.gaussian_filter(region, sigma)
+    dog = g1 - ndimage.gaussian_filter(region, DOG_RATIO * sigma)
+    gy, gx = np.gradient(g1)
+    return (oy, ox), dog, gx, gy, np.hypot(gx, gy)
+
+
 def detect_edges(image: np.ndarray, sigma: float = 1.0, threshold: float | None = None,
                  noise: float | None = None) -> Edgels:
     """Sub-pixel difference-of-Gaussians edges (sec. 4.1).
@@ -159,6 +196,10 @@ def detect_edges(image: np.ndarray, sigma: float = 1.0, threshold: float | None 
     followed from a pixel one step along the smoothed gradient, where DoG
     passes from negative (dark side) to positive (bright side); its position
     is the linear interpolation of the crossing.
+
+    The maps are computed tile by tile with a margin wider than the filters,
+    so that memory stays bounded on any frame and every value is the one the
+    whole image would give; edge points come out in raster order of their pixel.
 
     Parameters
     ----------
@@ -176,31 +217,52 @@ def detect_edges(image: np.ndarray, sigma: float = 1.0, threshold: float | None 
     Edgels
     """
     image = np.asarray(image, dtype=np.float64)
-    g1 = ndimage.gaussian_filter(image, sigma)
-    dog = g1 - ndimage.gaussian_filter(image, DOG_RATIO * sigma)
-    gy, gx = np.gradient(g1)
-    mag = np.hypot(gx, gy)
+    rows, cols = image.shape
+    # both Gaussians, the gradient, and the interpolations up to one pixel along the normal
+    halo = _gauss_radius(DOG_RATIO * sigma) + 3
+    tiles = list(_tiles((0, rows), (0, cols)))
     if threshold is None:
         noise = noise_sigma(image) if noise is None else noise
+        mag = np.empty((rows, cols))
+        for y0, y1, x0, x1 in tiles:
+            (oy, ox), _, _, _, m = _edge_maps(image, (y0, y1, x0, x1), sigma, halo)
+            mag[y0:y1, x0:x1] = m[y0 - oy : y1 - oy, x0 - ox : x1 - ox]
         # std of a derivative of Gaussian-smoothed white noise: sigma_n / sqrt(8 pi) / sigma^2
-        threshold = max(10.0 * noise / np.sqrt(8 * np.pi) / sigma**2, 0.25 * float(np.percentile(mag, 99.5)))
+        threshold = max(10.0 * noise / np.sqrt(8 * np.pi) / sigma**2,
+                        0.25 * float(np.percentile(mag, 99.5, overwrite_input=True)))
+        del mag
     border = int(np.ceil(3 * DOG_RATIO * sigma)) + 1
-    cand = mag >= threshold
-    cand[:border] = cand[-border:] = False
-    cand[:, :border] = cand[:, -border:] = False
-    cand &= dog < 0
-    py, px = np.nonzero(cand)
-    nx, ny = gx[py, px] / mag[py, px], gy[py, px] / mag[py, px]
-    d0 = dog[py, px]
-    d1 = ndimage.map_coordinates(dog, [py + ny, px + nx], order=1)
-    hit = d1 >= 0
-    t = d0[hit] / (d0[hit] - d1[hit])
-    x = px[hit] + t * nx[hit]
-    y = py[hit] + t * ny[hit]
-    strength = ndimage.map_coordinates(mag, [y, x], order=1)
-    keep = strength >= threshold
-    nan = np.full(int(keep.sum()), np.nan)
-    return Edgels(x[keep], y[keep], nx[hit][keep], ny[hit][keep], strength[keep], nan, nan.copy())
+    parts = []
+    for y0, y1, x0, x1 in tiles:
+        ty0, ty1, tx0, tx1 = max(y0, border), min(y1, rows - border), max(x0, border), min(x1, cols - border)
+        if ty0 >= ty1 or tx0 >= tx1:
+            continue
+        (oy, ox), dog, gx, gy, mag = _edge_maps(image, (y0, y1, x0, x1), sigma, halo)
+        cand = mag[ty0 - oy : ty1 - oy, tx0 - ox : tx1 - ox] >= threshold
+        cand &= dog[ty0 - oy : ty1 - oy, tx0 - ox : tx1 - ox] < 0
+        ly, lx = np.nonzero(cand)
+        ly, lx = ly + (ty0 - oy), lx + (tx0 - ox)
+        py, px = ly + oy, lx + ox
+        m = mag[ly, lx]
+        nx, ny = gx[ly, lx] / m, gy[ly, lx] / m
+        d0 = dog[ly, lx]
+        # image coordinates moved by whole pixels into the region: exactly, so the interpolation weights are the same
+        d1 = ndimage.map_coordinates(dog, [(py + ny) - oy, (px + nx) - ox], order=1)
+        hit = d1 >= 0
+        t = d0[hit] / (d0[hit] - d1[hit])
+        x = px[hit] + t * nx[hit]
+        y = py[hit] + t * ny[hit]
+        strength = ndimage.map_coordinates(mag, [y - oy, x - ox], order=1)
+        keep = strength >= threshold
+        parts.append((py[hit][keep] * cols + px[hit][keep], x[keep], y[keep], nx[hit][keep], ny[hit][keep],
+                      strength[keep]))
+    if not parts:
+        empty = np.zeros(0)
+        return Edgels(empty, empty.copy(), empty.copy(), empty.copy(), empty.copy(), empty.copy(), empty.copy())
+    key, x, y, nx, ny, strength = (np.concatenate(column) for column in zip(*parts))
+    order = np.argsort(key, kind="stable")
+    nan = np.full(key.size, np.nan)
+    return Edgels(x[order], y[order], nx[order], ny[order], strength[order], nan, nan.copy())
 
 
 def _plateau_max(profile: np.ndarray) -> np.ndarray:
@@ -250,55 +312,95 @@ def edge_levels(image: np.ndarray, edges: Edgels, length: int) -> Edgels:
     return out.subset(hi > lo)
 
 
-def predict_sharp(edges: Edgels, shape: tuple[int, int], s: int, band: float) -> tuple[np.ndarray, np.ndarray]:
-    """Rasterise the predicted step edges on the s-times grid (secs. 4.1, 5.1).
+# --------------------------------------------------------------------------- predicted image, normal equations (sec. 5.1)
+
+
+class _BlindPrediction:
+    """The blind prediction of the sharp image (secs. 4.1, 5.1), sample by sample of a crop's s-grid.
 
     Each s-grid sample takes the levels of its nearest edge point: the bright
     level on the bright side, the dark level on the other, and in between
     along the normal a linear ramp one s-grid sample wide centred on the
-    sub-pixel edge, the paper's "simple form of anti-aliasing".
-
-    Parameters
-    ----------
-    edges : Edgels
-        With levels (`edge_levels`).
-    shape : (int, int)
-        (rows, cols) of the s-grid; sample (i, j) sits at pixel (j / s, i / s).
-    s : int
-    band : float
-        Only samples within ``band`` pixels of an edge (along its normal) are predicted.
-
-    Returns
-    -------
-    sharp : ndarray of float64
-        The predicted image (0 where not predicted).
-    known : ndarray of bool
-        Where the prediction holds.
+    sub-pixel edge, the paper's "simple form of anti-aliasing". Samples more
+    than ``band`` pixels from the edge along its normal, or beyond the end of
+    an edge, are not predicted.
     """
-    sharp = np.zeros(shape, dtype=np.float64)
-    known = np.zeros(shape, dtype=bool)
-    if len(edges) == 0:
-        return sharp, known
-    tree = cKDTree(np.column_stack([edges.x, edges.y]))
-    iy, ix = np.mgrid[0 : shape[0], 0 : shape[1]]
-    px, py = ix.ravel() / s, iy.ravel() / s
-    dist, idx = tree.query(np.column_stack([px, py]), distance_upper_bound=band * np.sqrt(2) + 1.0, workers=-1)
-    found = np.isfinite(dist)
-    i = idx[found]
-    dx, dy = px[found] - edges.x[i], py[found] - edges.y[i]
-    d = dx * edges.nx[i] + dy * edges.ny[i]  # signed distance along the normal, bright side > 0
-    along = np.abs(dx * edges.ny[i] - dy * edges.nx[i])
-    # along the edge the nearest point is at most half the spacing of edge points (~1 pixel) away;
-    # more means the sample lies beyond the end of an edge
-    ok = (np.abs(d) <= band) & (along <= 1.0)
-    alpha = np.clip(0.5 + d[ok] * s, 0.0, 1.0)
-    flat = np.flatnonzero(found)[ok]
-    sharp.ravel()[flat] = edges.lo[i[ok]] + (edges.hi[i[ok]] - edges.lo[i[ok]]) * alpha
-    known.ravel()[flat] = True
-    return sharp, known
+
+    def __init__(self, edges: Edgels, s: int, band: float) -> None:
+        self.edges, self.s, self.band = edges, s, band
+        # a predicted sample lies within band along the normal and 1 pixel along the edge of an edge point
+        self.reach = float(np.hypot(band, 1.0))
+        self.tree = cKDTree(np.column_stack([edges.x, edges.y])) if len(edges) else None
+
+    def focus(self, box: tuple[int, int, int, int]) -> None:
+        """Nothing to prepare per block (see `_TargetPrediction.focus`)."""
+
+    def predict(self, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(predicted, sharp) at samples (i, j), i.e. at pixel (j / s, i / s)."""
+        known = np.zeros(i.shape, dtype=bool)
+        sharp = np.zeros(i.shape)
+        if self.tree is None or i.size == 0:
+            return known, sharp
+        e, s, band = self.edges, self.s, self.band
+        px, py = j / s, i / s
+        dist, idx = self.tree.query(np.column_stack([px, py]), distance_upper_bound=band * np.sqrt(2) + 1.0,
+                                    workers=-1)
+        found = np.isfinite(dist)
+        k = idx[found]
+        dx, dy = px[found] - e.x[k], py[found] - e.y[k]
+        d = dx * e.nx[k] + dy * e.ny[k]  # signed distance along the normal, bright side > 0
+        along = np.abs(dx * e.ny[k] - dy * e.nx[k])
+        # along the edge the nearest point is at most half the spacing of edge points (~1 pixel) away;
+        # more means the sample lies beyond the end of an edge
+        ok = (np.abs(d) <= band) & (along <= 1.0)
+        alpha = np.clip(0.5 + d[ok] * s, 0.0, 1.0)
+        flat = np.flatnonzero(found)[ok]
+        sharp[flat] = e.lo[k[ok]] + (e.hi[k[ok]] - e.lo[k[ok]]) * alpha
+        known[flat] = True
+        return known, sharp
 
 
-# --------------------------------------------------------------------------- PSF (sec. 5)
+def _levels(s: int) -> list[int]:
+    """Sample strides at which footprints are checked, coarse to fine: 2s, s, s/2, ..., 1."""
+    levels = [2 * s, s]
+    while levels[-1] > 1:
+        levels.append(levels[-1] // 2 if levels[-1] % 2 == 0 else 1)
+    return levels
+
+
+def _box_any(mask: np.ndarray, size: int, forward: bool) -> np.ndarray:
+    """Whether any of ``size`` x ``size`` samples starting (``forward``) or ending at each position is set."""
+    anchor = (0, 0) if forward else (size - 1, size - 1)
+    return cv2.dilate(mask.view(np.uint8), np.ones((size, size), np.uint8), anchor=anchor) > 0
+
+
+def _near_edges(edges: Edgels, shape: tuple[int, int], radius: float) -> np.ndarray:
+    """Pixels whose centre is within ``radius`` of an edge point (a superset: measured from the point's pixel)."""
+    marks = np.zeros(shape, np.uint8)
+    if len(edges):
+        iy = np.clip(np.rint(edges.y).astype(np.intp), 0, shape[0] - 1)
+        ix = np.clip(np.rint(edges.x).astype(np.intp), 0, shape[1] - 1)
+        marks[iy, ix] = 1
+    # the point is within half a pixel diagonal of its pixel's centre
+    r = radius + np.sqrt(0.5) + 1e-9
+    k = int(np.floor(r))
+    yy, xx = np.mgrid[-k : k + 1, -k : k + 1]
+    return cv2.dilate(marks, (yy * yy + xx * xx <= r * r).astype(np.uint8)) > 0
+
+
+def _gram(patches: np.ndarray, rows: np.ndarray, cols: np.ndarray, b: np.ndarray, support: int,
+          ata: np.ndarray, atb: np.ndarray, chunk: int = 4096) -> float:
+    """Add the rows of A (flipped patches at (rows, cols)) to A^T A and A^T b; returns b^T b."""
+    n = support * support
+    btb = 0.0
+    for start in range(0, rows.size, chunk):
+        r, c = rows[start : start + chunk], cols[start : start + chunk]
+        a = patches[r, c][:, ::-1, ::-1].reshape(-1, n)
+        bb = b[start : start + chunk]
+        ata += a.T @ a
+        atb += a.T @ bb
+        btb += float(bb @ bb)
+    return btb
 
 
 def _normal_equations(sharp: np.ndarray, observed: np.ndarray, valid: np.ndarray, s: int, support: int,
@@ -313,18 +415,66 @@ def _normal_equations(sharp: np.ndarray, observed: np.ndarray, valid: np.ndarray
     padded = np.pad(sharp, half)  # padded sample (s m + half) is sample s m
     patches = sliding_window_view(padded, (support, support))[::s, ::s]
     rows, cols = np.nonzero(valid)
-    n = support * support
-    ata = np.zeros((n, n))
-    atb = np.zeros(n)
-    btb = 0.0
-    for start in range(0, rows.size, chunk):
-        r, c = rows[start : start + chunk], cols[start : start + chunk]
-        a = patches[r, c][:, ::-1, ::-1].reshape(-1, n)
-        b = observed[r, c]
-        ata += a.T @ a
-        atb += a.T @ b
-        btb += float(b @ b)
+    ata = np.zeros((support * support,) * 2)
+    atb = np.zeros(support * support)
+    btb = _gram(patches, rows, cols, observed[rows, cols], support, ata, atb, chunk)
     return ata, atb, btb
+
+
+def _accumulate(crop: np.ndarray, candidates: np.ndarray, prediction, s: int, support: int,
+                tiles: list[tuple[int, int, int, int]], progress: Callable[[], None] | None = None
+                ) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """Normal equations of the observed pixels whose whole footprint is predicted (eq. (4)'s mask M).
+
+    Tile by tile, the prediction is evaluated only on the footprints of
+    ``candidates`` (pixels that may qualify, their footprints inside the
+    s-grid), from a coarse lattice of samples to every sample: a candidate is
+    dropped as soon as one sample of its footprint is not predicted, so the
+    s-grid is never built whole.
+
+    Returns
+    -------
+    ata, atb, btb, and the number of pixels used.
+    """
+    half = support // 2
+    grid = (s * (crop.shape[0] - 1) + 1, s * (crop.shape[1] - 1) + 1)
+    n = support * support
+    levels = np.array(_levels(s))[:, None]
+    ata, atb, btb, used = np.zeros((n, n)), np.zeros(n), 0.0, 0
+    for y0, y1, x0, x1 in tiles:
+        cy, cx = np.nonzero(candidates[y0:y1, x0:x1])
+        if cy.size:
+            cy, cx = cy + y0, cx + x0
+            # the block of samples the tile's footprints cover, and each candidate's footprint corner in it
+            bi0, bj0 = max(0, s * y0 - half), max(0, s * x0 - half)
+            bi1, bj1 = min(grid[0], s * (y1 - 1) + half + 1), min(grid[1], s * (x1 - 1) + half + 1)
+            ci, cj = s * cy - half - bi0, s * cx - half - bj0
+            prediction.focus((bi0, bi1, bj0, bj1))
+            queried = np.zeros((bi1 - bi0, bj1 - bj0), bool)
+            known = np.zeros_like(queried)
+            sharp = np.zeros(queried.shape)
+            on_i, on_j = np.arange(bi0, bi1) % levels == 0, np.arange(bj0, bj1) % levels == 0
+            alive = np.ones(cy.size, bool)
+            for level in range(len(levels)):
+                if not alive.any():
+                    break
+                corners = np.zeros_like(queried)
+                corners[ci[alive], cj[alive]] = True
+                need = _box_any(corners, support, forward=False) & on_i[level][:, None] & on_j[level] & ~queried
+                ii, jj = np.nonzero(need)
+                known[ii, jj], sharp[ii, jj] = prediction.predict(ii + bi0, jj + bj0)
+                queried |= need
+                alive &= ~_box_any(queried & ~known, support, forward=True)[ci, cj]
+            if alive.any():
+                patches = sliding_window_view(sharp, (support, support))
+                btb += _gram(patches, ci[alive], cj[alive], crop[cy[alive], cx[alive]], support, ata, atb)
+                used += int(alive.sum())
+        if progress is not None:
+            progress()
+    return ata, atb, btb, used
+
+
+# --------------------------------------------------------------------------- PSF (sec. 5)
 
 
 def gradient_operator(support: int) -> sparse.csr_matrix:
@@ -360,9 +510,6 @@ def solve_kernel(ata: np.ndarray, atb: np.ndarray, sigma: float, support: int, w
 
 
 # --------------------------------------------------------------------------- target form (sec. 4.2)
-
-ANTI_ALIAS = 4  # coverage sub-samples per s-grid sample side
-
 
 @dataclass
 class TargetView:
@@ -525,80 +672,202 @@ def locate_pattern(image: np.ndarray, saturated: np.ndarray | None = None) -> Kn
         return KnownPattern(view.to_pattern, _edge_print, _on_print, "edge target")
     except TargetNotFoundError:
         pass
-    from psfd.estimator import detect, geometry  # the Bernoulli pipeline's registration steps
+    from psfd.estimator import detect  # the Bernoulli pipeline's registration steps
 
     try:
-        _, to_pattern = geometry.target_maps(detect.find_target(image, saturated))
+        detection = detect.find_target(image, saturated)
     except TargetNotFoundError:
         raise TargetNotFoundError("no edge target and no Bernoulli target found in the frame") from None
+    return bernoulli_pattern(detection)
+
+
+def bernoulli_pattern(detection) -> KnownPattern:
+    """The marks of a detected Bernoulli target (`psfd.estimator.detect.find_target`) as a located pattern."""
+    from psfd.estimator import geometry
+
+    _, to_pattern = geometry.target_maps(detection)
     return KnownPattern(to_pattern, bernoulli_marks, _on_ring, "Bernoulli target marks")
 
 
-def render_target(known: KnownPattern, shape: tuple[int, int], s: int, origin: tuple[float, float] = (0.0, 0.0)
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Coverage of a located pattern on the s-times grid, anti-aliased (sec. 5.1).
+ANTI_ALIAS = 4  # coverage sub-samples per s-grid sample side
+EXACT_MARGIN = 2  # pixels around a change of the pattern between pixel centres where coverage is computed
 
-    Sample (i, j) sits at pixel (origin_x + j / s, origin_y + i / s); its value
-    is the mean reflectance over ANTI_ALIAS^2 points of its 1/s-pixel footprint.
 
-    Returns
-    -------
-    alpha : ndarray of float64 in [0, 1]
-    inside : ndarray of bool, where the pattern is known
+def _changes(values: np.ndarray, margin: int) -> np.ndarray:
+    """Pixels within ``margin`` of a pixel whose value differs from one of its 8 neighbours."""
+    v = np.ascontiguousarray(values, dtype=np.float32)
+    ring = np.ones((3, 3), np.uint8)
+    differs = (cv2.dilate(v, ring) != cv2.erode(v, ring)).astype(np.uint8)
+    return cv2.dilate(differs, np.ones((2 * margin + 1,) * 2, np.uint8)) > 0
+
+
+class _PatternBlock:
+    """A located pattern over one block of a crop's s-grid, evaluated where asked (secs. 4.2, 5.1).
+
+    Sample (i, j) sits at pixel (origin_x + j / s, origin_y + i / s). Its
+    coverage ``alpha`` is the mean reflectance over ANTI_ALIAS^2 points of its
+    1/s-pixel footprint (placed by the map's local Jacobian, the map's central
+    differences over the crop's s-grid as numpy.gradient takes them) and
+    ``inside`` tells whether the pattern is known there. Away from the
+    pattern's edges and from the border of its known region both equal their
+    value at the nearest pixel centre, which takes one look-up per pixel; only
+    samples within EXACT_MARGIN pixels of a change between pixel centres are
+    computed point by point, so the work follows the edges, not the area.
     """
-    iy, ix = np.mgrid[0 : shape[0], 0 : shape[1]]
-    px, py = known.to_pattern(origin[0] + ix / s, origin[1] + iy / s)
-    # the map is smooth at the scale of one sample: sub-sample points from its local Jacobian
-    dxdj, dxdi = np.gradient(px)[::-1]
-    dydj, dydi = np.gradient(py)[::-1]
-    alpha = np.zeros(shape)
-    sub = (np.arange(ANTI_ALIAS) + 0.5) / ANTI_ALIAS - 0.5
-    for oy in sub:
-        for ox in sub:
-            alpha += known.reflectance(px + dxdj * ox + dxdi * oy, py + dydj * ox + dydi * oy)
-    alpha /= ANTI_ALIAS**2
-    return alpha, known.region(px, py)
+
+    def __init__(self, known: "KnownPattern", origin: tuple[int, int], s: int, grid: tuple[int, int],
+                 box: tuple[int, int, int, int]) -> None:
+        self.known, self.origin, self.s, self.grid = known, origin, s, grid
+        i0, i1, j0, j1 = box
+        pixels = ((grid[0] - 1) // s + 1, (grid[1] - 1) // s + 1)
+        reach = EXACT_MARGIN + 1
+        self.p0, self.q0 = max(0, i0 // s - reach), max(0, j0 // s - reach)
+        p1, q1 = min(pixels[0], (i1 - 1) // s + reach + 2), min(pixels[1], (j1 - 1) // s + reach + 2)
+        yy, xx = np.mgrid[self.p0 : p1, self.q0 : q1]
+        X, Y = known.to_pattern(origin[0] + xx, origin[1] + yy)
+        self.value = known.reflectance(X, Y)
+        self.region = np.asarray(known.region(X, Y), dtype=bool)
+        self.exact_value = _changes(self.value, EXACT_MARGIN)
+        self.exact_region = _changes(self.region, EXACT_MARGIN)
+        # pattern coordinates of the samples, computed once when first needed (one sample around for the Jacobian)
+        self.c0 = (max(0, i0 - 1), max(0, j0 - 1))
+        shape = (min(grid[0], i1 + 1) - self.c0[0], min(grid[1], j1 + 1) - self.c0[1])
+        self.px, self.py = np.full(shape, np.nan), np.full(shape, np.nan)
+
+    def any_edge(self) -> bool:
+        """Whether the block may hold partly covered samples inside the known region."""
+        return bool(self.exact_value.any() and (self.region.any() or self.exact_region.any()))
+
+    def _nearest(self, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return (np.floor(i / self.s + 0.5).astype(np.intp) - self.p0,
+                np.floor(j / self.s + 0.5).astype(np.intp) - self.q0)
+
+    def _coords(self, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        li, lj = i - self.c0[0], j - self.c0[1]
+        todo = np.isnan(self.px[li, lj])
+        if todo.any():
+            ti, tj = i[todo], j[todo]
+            x, y = self.known.to_pattern(self.origin[0] + tj / self.s, self.origin[1] + ti / self.s)
+            self.px[li[todo], lj[todo]], self.py[li[todo], lj[todo]] = x, y
+        return self.px[li, lj], self.py[li, lj]
+
+    def _derivative(self, i: np.ndarray, j: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray]:
+        """d(px, py) / d(i or j) as numpy.gradient takes it over the whole s-grid (one-sided at its border)."""
+        size = self.grid[axis]
+        k = i if axis == 0 else j
+        lo, hi = np.maximum(k - 1, 0), np.minimum(k + 1, size - 1)
+        a = (lo, j) if axis == 0 else (i, lo)
+        b = (hi, j) if axis == 0 else (i, hi)
+        xa, ya = self._coords(*a)
+        xb, yb = self._coords(*b)
+        step = np.where((k > 0) & (k < size - 1), 2.0, 1.0)
+        return (xb - xa) / step, (yb - ya) / step
+
+    def alpha(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Coverage of samples (i, j) in [0, 1]."""
+        pi, pj = self._nearest(i, j)
+        out = self.value[pi, pj].astype(np.float64)
+        exact = self.exact_value[pi, pj]
+        if exact.any():
+            ei, ej = i[exact], j[exact]
+            px, py = self._coords(ei, ej)
+            dxdi, dydi = self._derivative(ei, ej, 0)
+            dxdj, dydj = self._derivative(ei, ej, 1)
+            cover = np.zeros(ei.size)
+            sub = (np.arange(ANTI_ALIAS) + 0.5) / ANTI_ALIAS - 0.5
+            for oy in sub:
+                for ox in sub:
+                    cover += self.known.reflectance(px + dxdj * ox + dxdi * oy, py + dydj * ox + dydi * oy)
+            out[exact] = cover / ANTI_ALIAS**2
+        return out
+
+    def inside(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Whether the pattern is known at samples (i, j)."""
+        pi, pj = self._nearest(i, j)
+        out = self.region[pi, pj].copy()
+        exact = self.exact_region[pi, pj]
+        if exact.any():
+            out[exact] = self.known.region(*self._coords(i[exact], j[exact]))
+        return out
 
 
-def target_edges(alpha: np.ndarray, inside: np.ndarray, s: int) -> Edgels:
-    """Edge points of the rendered target: partly covered s-grid samples, normals from the coverage gradient.
+def _target_edges(known: "KnownPattern", origin: tuple[int, int], s: int, grid: tuple[int, int],
+                  progress: Callable[[], None] | None = None) -> Edgels:
+    """Edge points of the located pattern on a crop's s-grid (sec. 4.2): partly covered samples.
 
-    One point per channel pixel along each edge is enough to measure its levels.
+    Normals come from the gradient of the coverage smoothed over one sample;
+    the edge samples are thinned to about one per pixel of edge length, which
+    is enough to measure their levels. Edge points come out in raster order.
     """
-    smooth = ndimage.gaussian_filter(alpha, 1.0)
-    gy, gx = np.gradient(smooth)
-    mag = np.hypot(gx, gy)
-    edge = (alpha > 0.05) & (alpha < 0.95) & inside & (mag > 0)
-    iy, ix = np.nonzero(edge)
-    keep = (iy % s == 0) | (ix % s == 0)  # thin the s-grid edge samples to about one per pixel of edge length
-    keep &= ((iy // s + ix // s) % 2 == 0)
-    iy, ix = iy[keep], ix[keep]
-    nx, ny = gx[iy, ix] / mag[iy, ix], gy[iy, ix] / mag[iy, ix]
-    nan = np.full(iy.size, np.nan)
-    return Edgels(ix / s, iy / s, nx, ny, mag[iy, ix], nan, nan.copy())
+    halo = _gauss_radius(1.0) + 1  # the smoothing and the gradient
+    parts = []
+    for i0, i1, j0, j1 in _tiles((0, grid[0]), (0, grid[1]), s * TILE_PX):
+        block = _PatternBlock(known, origin, s, grid, (max(0, i0 - halo), min(grid[0], i1 + halo),
+                                                       max(0, j0 - halo), min(grid[1], j1 + halo)))
+        if block.any_edge():
+            bi0, bj0 = max(0, i0 - halo), max(0, j0 - halo)
+            ii, jj = np.mgrid[bi0 : min(grid[0], i1 + halo), bj0 : min(grid[1], j1 + halo)]
+            alpha = block.alpha(ii.ravel(), jj.ravel()).reshape(ii.shape)
+            smooth = ndimage.gaussian_filter(alpha, 1.0)
+            gy, gx = np.gradient(smooth)
+            mag = np.hypot(gx, gy)
+            own = (slice(i0 - bi0, i1 - bi0), slice(j0 - bj0, j1 - bj0))
+            edge = (alpha[own] > 0.05) & (alpha[own] < 0.95) & (mag[own] > 0)
+            li, lj = np.nonzero(edge)
+            iy, ix = li + i0, lj + j0
+            keep = (iy % s == 0) | (ix % s == 0)  # thin the s-grid edge samples to about one per pixel of edge length
+            keep &= ((iy // s + ix // s) % 2 == 0)
+            iy, ix = iy[keep], ix[keep]
+            keep = block.inside(iy, ix)
+            iy, ix = iy[keep], ix[keep]
+            li, lj = iy - bi0, ix - bj0
+            m = mag[li, lj]
+            parts.append((iy * grid[1] + ix, ix / s, iy / s, gx[li, lj] / m, gy[li, lj] / m, m))
+        if progress is not None:
+            progress()
+    parts = [p for p in parts if p[0].size]
+    if not parts:
+        empty = np.zeros(0)
+        return Edgels(empty, empty.copy(), empty.copy(), empty.copy(), empty.copy(), empty.copy(), empty.copy())
+    key, x, y, nx, ny, strength = (np.concatenate(column) for column in zip(*parts))
+    order = np.argsort(key, kind="stable")
+    nan = np.full(key.size, np.nan)
+    return Edgels(x[order], y[order], nx[order], ny[order], strength[order], nan, nan.copy())
 
 
-def shade_target(image: np.ndarray, alpha: np.ndarray, inside: np.ndarray, s: int, band: float, length: int
-                 ) -> tuple[np.ndarray, np.ndarray, Edgels]:
-    """Predicted sharp image of the target: coverage shaded with each edge's measured levels (sec. 4.2).
+class _TargetPrediction:
+    """The target form's sharp image (sec. 4.2): coverage shaded with the levels of the nearest edge point.
 
     The levels come from the photograph by the same marches as in the blind
-    case, at edge locations known from the pattern; each s-grid sample within
-    ``band`` pixels of an edge takes the levels of its nearest edge point.
+    case, at edge locations known from the pattern; each s-grid sample of the
+    known region within ``band`` pixels of an edge point is predicted.
     """
-    edges = edge_levels(image, target_edges(alpha, inside, s), length)
-    known = np.zeros(alpha.shape, dtype=bool)
-    sharp = np.zeros(alpha.shape)
-    if len(edges) == 0:
-        return sharp, known, edges
-    tree = cKDTree(np.column_stack([edges.x, edges.y]))
-    iy, ix = np.mgrid[0 : alpha.shape[0], 0 : alpha.shape[1]]
-    dist, idx = tree.query(np.column_stack([ix.ravel() / s, iy.ravel() / s]), distance_upper_bound=band, workers=-1)
-    found = np.isfinite(dist) & inside.ravel()
-    i = idx[found]
-    sharp.ravel()[found] = edges.lo[i] + (edges.hi[i] - edges.lo[i]) * alpha.ravel()[found]
-    known.ravel()[found] = True
-    return sharp, known, edges
+
+    def __init__(self, known: "KnownPattern", origin: tuple[int, int], s: int, grid: tuple[int, int],
+                 edges: Edgels, band: float) -> None:
+        self.known, self.origin, self.s, self.grid, self.edges, self.band = known, origin, s, grid, edges, band
+        self.reach = band
+        self.tree = cKDTree(np.column_stack([edges.x, edges.y])) if len(edges) else None
+        self.block: _PatternBlock | None = None
+
+    def focus(self, box: tuple[int, int, int, int]) -> None:
+        """Evaluate the pattern over this block of samples from now on (see `_accumulate`)."""
+        self.block = _PatternBlock(self.known, self.origin, self.s, self.grid, box)
+
+    def predict(self, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(predicted, sharp) at samples (i, j) of the focused block."""
+        known = np.zeros(i.shape, dtype=bool)
+        sharp = np.zeros(i.shape)
+        if self.tree is None or i.size == 0:
+            return known, sharp
+        dist, idx = self.tree.query(np.column_stack([j / self.s, i / self.s]), distance_upper_bound=self.band,
+                                    workers=-1)
+        found = np.isfinite(dist)
+        found[found] = self.block.inside(i[found], j[found])
+        k = idx[found]
+        e = self.edges
+        sharp[found] = e.lo[k] + (e.hi[k] - e.lo[k]) * self.block.alpha(i[found], j[found])
+        return found, sharp
 
 
 # --------------------------------------------------------------------------- estimate
@@ -612,6 +881,8 @@ def estimate_edges(
     radius: float | None = None,
     grid: tuple[int, int] = (1, 1),
     target_form: bool = False,
+    pattern: KnownPattern | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> list[PSF]:
     """Sharp-edge prediction PSFs of one channel plane, one per grid window, row-major.
 
@@ -635,6 +906,11 @@ def estimate_edges(
         Predict the sharp image from a printed pattern of known geometry: the
         edge target (`edge_target`), or else the marks of the Bernoulli target
         (`locate_pattern`).
+    pattern : KnownPattern, optional
+        The pattern already located in this frame (`locate_pattern`,
+        `bernoulli_pattern`): the target form without locating it again.
+    progress : callable, optional
+        Called with the fraction of the work done, 0 to 1, as it proceeds.
 
     Returns
     -------
@@ -657,12 +933,14 @@ def estimate_edges(
     radius = max(kernel_radius, 1.0) if radius is None else radius
     band = radius + kernel_radius
     length = int(np.ceil(2 * kernel_radius)) + 2  # march far enough to leave the blurred ramp
-    known = locate_pattern(image, frame.saturated) if target_form else None
+    known = pattern if pattern is not None else locate_pattern(image, frame.saturated) if target_form else None
     rows, cols = image.shape
+    windows = split_grid((0, 0, cols, rows), grid)
     out = []
-    for window in split_grid((0, 0, cols, rows), grid):
+    for w, window in enumerate(windows):
+        step = None if progress is None else (lambda f, w=w: progress((w + f) / len(windows)))
         kernel, info, warnings = _estimate_window(image, frame.saturated, window, s, support, weight, band, length,
-                                                  sigma, known)
+                                                  sigma, known, step)
         out.append(PSF(
             psf=kernel, s=s, method=SHARP_EDGE, channel=frame.channel, sources=[frame.source],
             field=field_of_window(window, (rows, cols)), window=window,
@@ -683,32 +961,70 @@ def _check(weight, radius) -> tuple[float, float | None]:
     return weight, radius
 
 
-def _estimate_window(image, saturated, window, s, support, weight, band, length, sigma, known):
-    """One window: predict the sharp image around it, mask, solve eq. (5); (kernel, diagnostics, warnings)."""
+def _counter(progress: Callable[[float], None] | None, start: float, span: float, total: int):
+    """A callback that maps ``total`` calls onto progress(start) .. progress(start + span), or None."""
+    if progress is None:
+        return None
+    done = [0]
+
+    def tick() -> None:
+        done[0] += 1
+        progress(start + span * min(done[0], total) / max(total, 1))
+
+    return tick
+
+
+def _window_equations(image, saturated, window, s, support, band, length, sigma, known, progress=None):
+    """One window's normal equations of eq. (5) and the edge points of its crop.
+
+    Returns
+    -------
+    ata, atb, btb, the number of pixels used, the crop's edge points, and the crop's first (col, row).
+    """
     x0, y0, x1, y1 = window
     rows, cols = image.shape
     margin = int(np.ceil(band + length)) + 6
     cx0, cy0 = max(0, x0 - margin), max(0, y0 - margin)
     cx1, cy1 = min(cols, x1 + margin), min(rows, y1 + margin)
     crop = image[cy0:cy1, cx0:cx1]
-    grid_shape = (s * (crop.shape[0] - 1) + 1, s * (crop.shape[1] - 1) + 1)
+    grid = (s * (crop.shape[0] - 1) + 1, s * (crop.shape[1] - 1) + 1)
+    half = support // 2
     if known is None:
         edges = edge_levels(crop, detect_edges(crop, noise=sigma), length)
-        sharp, predicted = predict_sharp(edges, grid_shape, s, band)
+        prediction = _BlindPrediction(edges, s, band)
+        start = 0.2  # of the window's work, roughly what finding the edges takes
     else:
-        alpha, inside = render_target(known, grid_shape, s, origin=(cx0, cy0))
-        sharp, predicted, edges = shade_target(crop, alpha, inside, s, band, length)
-    # observed pixels whose whole kernel footprint sees predicted samples (eq. (4)'s mask M)
-    footprint = ndimage.binary_erosion(predicted, np.ones((support, support), bool), border_value=0)
-    valid = footprint[::s, ::s].copy()
-    near_clip = ndimage.binary_dilation(saturated[cy0:cy1, cx0:cx1], iterations=int(np.ceil(band)) + 1)
-    valid &= ~near_clip
-    inwin = np.zeros_like(valid)
-    inwin[y0 - cy0 : y1 - cy0, x0 - cx0 : x1 - cx0] = True
-    valid &= inwin
+        tiles = len(list(_tiles((0, grid[0]), (0, grid[1]), s * TILE_PX)))
+        edges = edge_levels(crop, _target_edges(known, (cx0, cy0), s, grid, _counter(progress, 0.0, 0.5, tiles)),
+                            length)
+        prediction = _TargetPrediction(known, (cx0, cy0), s, grid, edges, band)
+        start = 0.5
+    # observed pixels that may use their whole kernel footprint (eq. (4)'s mask M): the footprint inside the
+    # s-grid and the window, away from clipped pixels, and every pixel centre in it near an edge point
+    r = half // s
+    candidates = cv2.erode(_near_edges(edges, crop.shape, prediction.reach).view(np.uint8),
+                           np.ones((2 * r + 1, 2 * r + 1), np.uint8),
+                           borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    candidates &= ~ndimage.binary_dilation(saturated[cy0:cy1, cx0:cx1], iterations=int(np.ceil(band)) + 1)
+    edge_px = -(-half // s)  # footprints reach ceil(half / s) pixels
+    inside = np.zeros_like(candidates)
+    inside[max(y0 - cy0, edge_px) : min(y1 - cy0, crop.shape[0] - edge_px),
+           max(x0 - cx0, edge_px) : min(x1 - cx0, crop.shape[1] - edge_px)] = True
+    candidates &= inside
+    tiles = list(_tiles((y0 - cy0, y1 - cy0), (x0 - cx0, x1 - cx0)))
+    ata, atb, btb, n_valid = _accumulate(crop, candidates, prediction, s, support, tiles,
+                                         _counter(progress, start, 1.0 - start, len(tiles)))
+    return ata, atb, btb, n_valid, edges, (cx0, cy0)
+
+
+def _estimate_window(image, saturated, window, s, support, weight, band, length, sigma, known, progress=None):
+    """One window: predict the sharp image around it, mask, solve eq. (5); (kernel, diagnostics, warnings)."""
+    ata, atb, btb, n_valid, edges, (cx0, cy0) = _window_equations(image, saturated, window, s, support, band,
+                                                                   length, sigma, known, progress)
+    x0, y0, x1, y1 = window
     in_window = (edges.x >= x0 - cx0) & (edges.x < x1 - cx0) & (edges.y >= y0 - cy0) & (edges.y < y1 - cy0)
     hist = edges.subset(in_window).orientation_histogram()
-    n_valid, unknowns = int(valid.sum()), support * support
+    unknowns = support * support
     if n_valid <= unknowns:  # sec. 5.2, test (a)
         raise EstimationError(
             f"window {window}: {n_valid} usable pixels near edges for {unknowns} kernel unknowns "
@@ -720,7 +1036,6 @@ def _estimate_window(image, saturated, window, s, support, weight, band, length,
             f"edge orientations uneven: fewest {int(hist.min())} edge points in a 10-degree bin "
             f"(the paper asks {MIN_PER_BIN}); the kernel is under-constrained across those directions"
         )
-    ata, atb, btb = _normal_equations(sharp, crop, valid, s, support)
     k, q = solve_kernel(ata, atb, sigma, support, weight)
     total = float(k.sum())
     if not np.isfinite(total) or total <= 0:

@@ -1,0 +1,81 @@
+"""Timing of whole processes, as a user waits for them: standard library only.
+
+A command is started as a subprocess and reaped with `os.wait4`, which gives
+the operating system's own accounting of that child: its user and system
+seconds and its peak resident memory (Linux: kilobytes). Wall time is the
+monotonic clock read around start and reap, so start-up, imports and
+interpreter teardown are all in it.
+
+A command and its reference run in turn (A B A B ...) and the ratio is taken
+pair by pair, then the median: on a shared machine whose speed drifts, a ratio
+of two figures measured minutes apart means little.
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import subprocess
+from dataclasses import dataclass
+
+
+@dataclass
+class Run:
+    wall: float  # seconds
+    cpu: float  # user + system seconds
+    peak_mib: float  # peak resident memory of the process
+    code: int  # exit status
+
+
+def run(argv: list[str], env: dict[str, str] | None = None, cwd: str | None = None) -> Run:
+    """Start ``argv``, wait for it, and return its wall and CPU time and peak memory."""
+    start = _now()
+    proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, env=env, cwd=cwd)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = _now() - start
+    proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: tell Popen
+    return Run(wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024.0, proc.returncode)
+
+
+def _now() -> float:
+    import time
+
+    return time.monotonic()
+
+
+@dataclass
+class Paired:
+    a: list[Run]
+    b: list[Run]
+
+    @staticmethod
+    def _median(runs: list[Run], field: str) -> float:
+        return statistics.median(getattr(r, field) for r in runs)
+
+    def median(self, which: str, field: str) -> float:
+        return self._median(self.a if which == "a" else self.b, field)
+
+    def ratio(self) -> float:
+        """Median over pairs of wall(A) / wall(B)."""
+        return statistics.median(x.wall / y.wall for x, y in zip(self.a, self.b))
+
+    def failed(self) -> list[int]:
+        return sorted({r.code for r in self.a + self.b if r.code != 0})
+
+
+def paired(a: list[str], b: list[str], runs: int = 5, warmup: int = 1, env_a: dict[str, str] | None = None,
+           env_b: dict[str, str] | None = None, prepare=None) -> Paired:
+    """Run ``a`` and ``b`` in turn ``runs`` times after ``warmup`` uncounted rounds.
+
+    ``prepare`` is called before every run (e.g. to empty an output folder) and is not timed.
+    """
+    out = Paired([], [])
+    for i in range(warmup + runs):
+        for argv, env, into in ((a, env_a, out.a), (b, env_b, out.b)):
+            if prepare is not None:
+                prepare()
+            r = run(argv, env)
+            if i >= warmup:
+                into.append(r)
+    return out

@@ -1,0 +1,129 @@
+"""`psfd record` then `psfd run` on the recording: a plan replays what was recorded at its positions and
+apertures, a failed session keeps what it recorded, and a plan that asks the rig for something else is told
+where it parts from the recording."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from psfd.catalogue import Catalogue
+import psfd.daemon.runner  # noqa: F401 - imported at collection: the Runner's progress stream is bound at import
+from psfd.cli import main
+from psfd.drivers.recording import open_replay
+from psfd.drivers.sim import SimRig
+
+X = SimRig().distance_for_scale()
+
+PLAN = """[rig]
+{rig}
+
+[target]
+kind = "bernoulli"
+
+[capture]
+apertures = [{apertures}]
+x = [{x}]
+channels = ["g1"]
+"""
+
+
+def run(capfd, *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out, err = capfd.readouterr()
+    return code, out, err
+
+
+def write_plan(path: Path, rig: str, apertures: str = "4, 8") -> Path:
+    path.write_text(PLAN.format(rig=rig, apertures=apertures, x=X))
+    return path
+
+
+def replay_run(capfd, tmp_path: Path, recording: Path, apertures: str = "4, 8"):
+    plan = write_plan(tmp_path / "replay.toml", f'recording = "{recording}"', apertures)
+    catalogue = tmp_path / "replay.sqlite"
+    code, out, err = run(capfd, "run", str(plan), "--local", "--catalogue", str(catalogue), "--workers", "1")
+    return code, out, err, catalogue
+
+
+def test_a_plan_replays_the_recording_psfd_record_made_of_it(capfd, tmp_path):
+    plan = write_plan(tmp_path / "plan.toml", 'simulate = true\nseed = 2\nsettings = { iso = "200" }\n'
+                                              '[rig.camera]\nfocus = "manual"')
+    code, out, err = run(capfd, "record", "--plan", str(plan), "--out", str(tmp_path / "rec"))
+    assert code == 0, err
+    manifest = json.loads((tmp_path / "rec" / "manifest.json").read_text())
+    calls = [(r["device"], r["call"]) for r in manifest["requests"]]
+    assert calls[:6] == [("camera", "info"), ("rail", "info"), ("camera", "choices"), ("camera", "set"),
+                         ("camera", "prepare"), ("camera", "set")]
+    assert manifest["requests"][4]["args"]["focus"] == "manual"
+    assert calls.count(("camera", "capture")) == 2 and calls.count(("rail", "move")) == 1
+
+    # the same plan, its [rig] naming the recording; the runner's own order of requests differs from
+    # record's (it sets the aperture before moving, moves at every step, asks for info twice)
+    plan = tmp_path / "replay.toml"
+    plan.write_text((tmp_path / "plan.toml").read_text().replace("simulate = true\n",
+                                                                   f'recording = "{tmp_path / "rec"}"\n'))
+    code, out, err = run(capfd, "run", str(plan), "--local", "--catalogue", str(tmp_path / "c.sqlite"),
+                         "--workers", "1")
+    assert code == 0, err
+    assert "2 steps, 2 frames, 2 PSFs" in out
+    with Catalogue(tmp_path / "c.sqlite") as cat:
+        frames = [cat.psf_frames(row["id"])[0] for row in cat.query().rows]
+    assert sorted(f["exif_f_number"] for f in frames) == [4.0, 8.0] and {f["exif_iso"] for f in frames} == {200}
+    recorded = {f["sha256"] for r in manifest["requests"] if r["call"] == "capture" for f in r["result"]["files"]
+                if f["name"].endswith(".DNG")}
+    assert {f["sha256"] for f in frames} == recorded  # the recorded frames, byte for byte
+
+
+def test_a_plan_replays_a_recording_made_at_its_positions(capfd, tmp_path):
+    """The case of the issue: `psfd record --at ... --aperture ...`, then a plan with those positions."""
+    recording = tmp_path / "rec"
+    code, _, err = run(capfd, "record", "--simulate", "--out", str(recording), "--at", f"X={X}",
+                       "--aperture", "4,8")
+    assert code == 0, err
+    code, out, err, _ = replay_run(capfd, tmp_path, recording)
+    assert code == 0, err
+    assert "2 steps, 2 frames, 2 PSFs" in out
+
+
+def test_a_plan_that_departs_from_the_recording_is_told_where(capfd, tmp_path):
+    recording = tmp_path / "rec"
+    assert run(capfd, "record", "--simulate", "--out", str(recording), "--at", f"X={X}", "--aperture", "4,8")[0] == 0
+    code, out, err, _ = replay_run(capfd, tmp_path, recording, apertures="8, 4")
+    assert code != 0
+    assert "camera.set(name='aperture', value='8') but the recording has camera.set(name='aperture', value='4')" in err
+
+
+def test_record_keeps_what_it_recorded_before_a_failure(capfd, tmp_path):
+    recording = tmp_path / "rec"
+    code, out, err = run(capfd, "record", "--simulate", "--out", str(recording), "--at", f"X={X}",
+                         "--at", "X=9000", "--aperture", "4")
+    assert code == 4 and out == ""
+    assert f"kept the 9 requests recorded up to the failure in {recording}" in err
+    assert "X=9000 mm is outside the soft limits" in err
+    manifest = json.loads((recording / "manifest.json").read_text())
+    assert [r["call"] for r in manifest["requests"]][-3:] == ["capture", "set", "move"]
+    assert manifest["requests"][-1]["error"]["type"] == "RailError"
+    assert [p.name for p in tmp_path.iterdir()] == ["rec"]  # no work folder left behind
+    # the recording replays up to the failure, and the failure again
+    camera, rail = open_replay(recording)
+    rail.move(x=X)
+    camera.set("aperture", "4")
+    assert [p.suffix for p in camera.capture(tmp_path / "replayed")] == [".DNG"]
+    try:
+        rail.move(x=9000)
+    except Exception as exc:  # noqa: BLE001 - the recorded error, raised again with its type
+        assert type(exc).__name__ == "RailError" and "outside the soft limits" in str(exc)
+    else:
+        raise AssertionError("the recorded failure was not raised")
+
+
+def test_record_refused_before_the_rig_acts_leaves_nothing(capfd, tmp_path):
+    code, _, err = run(capfd, "record", "--simulate", "--out", str(tmp_path / "rec"), "--at", "X=1300",
+                       "--aperture", "3.3")
+    assert code == 4 and "aperture 3.3 is not offered" in err and "kept" not in err
+    assert list(tmp_path.iterdir()) == []
+    plan = write_plan(tmp_path / "plan.toml", "simulate = true")
+    code, _, err = run(capfd, "record", "--plan", str(plan), "--aperture", "4", "--out", str(tmp_path / "rec"))
+    assert code == 2 and "--plan gives the rig and apertures" in err
+    assert [p.name for p in tmp_path.iterdir()] == ["plan.toml"]
