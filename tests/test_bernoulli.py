@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 from psfd.errors import BadInputError, EstimationError, SaturatedError, TargetNotFoundError
-from psfd.estimator import bernoulli, detect, geometry, kernels, mtf, raw, simulate, target
+from psfd.estimator import bernoulli, detect, geometry, kernels, mtf, raw, resample, simulate, target
 
 S = 4
 MODEL_L2 = 0.01  # rendering mismatch, see the module docstring
@@ -382,3 +382,40 @@ def test_a_noise_pattern_that_is_not_the_photographed_one_is_refused(data_dir):
     frame = raw.load_frame(data_dir / "img_example.pgm", "g1")
     with pytest.raises(EstimationError, match=r"img_example.pgm \(g1\): the photographed noise does not follow"):
         bernoulli.estimate_target(frame, noise=target.seeded_noise(7))
+
+
+def test_fast_path_equals_the_per_window_band_limiting(tmp_path):
+    """One band per plane with per-window differences (`PatternBand`), D interpolated from the channel
+    pixels, the target searched once per frame and refined per plane, the windows solved in forked
+    workers: every PSF equals the one of the plain path (a DCT low-pass of the whole raster per window,
+    D at every s-grid sample, a search per plane) within 1 % of its noise floor."""
+    path = tmp_path / "t.dng"
+    simulate.simulate_target(path, psf=PSFS["f/5.6"](), s=S, seed=3, **GEOMETRY)
+    frames = raw.load_frames(path, "all")
+    fast = bernoulli.estimate_frames(frames, grid=(2, 2), workers=2, recentre=False, solver="ls")
+    assert [p.channel for p in fast] == [c for f in frames for c in [f.channel] * 4]
+    noise = target.default_noise()
+    for n, frame in enumerate(frames):
+        plane = bernoulli._prepare(frame, detect.find_target(frame.data, frame.saturated), noise, S, 4 * S + 1,
+                                   (2, 2), None)
+        for k, window in enumerate(plane.windows):
+            raster = bernoulli.u_tilde(noise, S, plane.jacobians[k], plane.factor)
+            slow = bernoulli.estimate_window(plane.v, plane.mask, window, raster, plane.factor, plane.to_pattern,
+                                             S, 4 * S + 1, "ls")
+            got = fast[4 * n + k]
+            assert got.window == tuple(w + o for w, o in zip(window, plane.offset * 2))
+            gap = float(np.linalg.norm(got.psf - slow["psf"]))
+            assert gap < 0.01 * slow["noise_floor"], (frame.channel, k, gap, slow["noise_floor"])
+
+
+def test_pattern_band_window_equals_u_tilde():
+    """A window's u~ read from the shared band equals `u_tilde` for its own Jacobian, to float32 rounding."""
+    noise = target.default_noise()
+    s, factor = 4, 4
+    jacobians = [np.array([[2.7, 0.3], [-0.25, 2.75]]), np.array([[2.75, 0.32], [-0.2, 2.7]])]
+    band = bernoulli.PatternBand(noise, factor, s, jacobians, jacobians[0])
+    y, x = np.mgrid[400:430, 500:540] / factor + 0.01
+    for jac in jacobians:
+        want = resample.keys_bicubic(bernoulli.u_tilde(noise, s, jac, factor), x * factor - 0.5, y * factor - 0.5)
+        got = band.window(jac).sample(x, y)
+        assert np.abs(got - want).max() < 1e-5

@@ -119,11 +119,8 @@ def run_bernoulli(args: argparse.Namespace) -> int:
     frames = _load_all(args.frames, args.channel)
     from psfd.estimator import bernoulli
 
-    estimates = [
-        psf
-        for frame in frames
-        for psf in bernoulli.estimate_target(frame, noise=noise, solver=args.solver, tps=tps, **settings)
-    ]
+    # all planes at once: the target is searched once per file and the windows share the cores
+    estimates = bernoulli.estimate_frames(frames, noise=noise, solver=args.solver, tps=tps, **settings)
     return _report(args, estimates)
 
 

@@ -66,11 +66,11 @@ def estimate_step(kind: str, paths: list[str], channels: list[str], options: dic
     cv2.setNumThreads(1)
     out = []
     if kind == BERNOULLI:
-        from psfd.estimator.bernoulli import estimate_target
+        from psfd.estimator.bernoulli import estimate_frames
 
         planes = {f.channel: f for f in raw.load_frames(paths[0])}
-        for channel in channels:
-            out += estimate_target(planes[channel], **options)
+        # one search for the target per frame; the steps already run in parallel processes
+        out += estimate_frames([planes[channel] for channel in channels], workers=1, **options)
     else:
         from psfd.estimator.twoscale import estimate_pair
 

@@ -21,6 +21,10 @@ well conditioned because the target u is Bernoulli(0.5) white noise
 
 from __future__ import annotations
 
+import contextlib
+import multiprocessing
+import os
+import signal
 from typing import Callable
 
 import numpy as np
@@ -34,8 +38,9 @@ from psfd.estimator.raw import Frame
 from psfd.vocabulary import BERNOULLI, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, check_sizes, check_solver
 
 __all__ = [
-    "band_reach", "estimate_plane", "estimate_target", "estimate_window", "jacobian_of", "noise_mask",
-    "normal_equations", "raster_factor", "recentre", "s_band", "solve", "u_tilde", "u_tilde_d"
+    "PatternBand", "WindowBand", "band_reach", "estimate_frames", "estimate_plane", "estimate_target", "estimate_window",
+    "jacobian_of", "noise_mask", "normal_equations", "raster_factor", "recentre", "s_band", "solve", "u_tilde",
+    "u_tilde_d",
 ]
 
 Map = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -168,8 +173,9 @@ def u_tilde_d(
 
     Parameters
     ----------
-    raster : ndarray
-        Output of `u_tilde`.
+    raster : ndarray or WindowBand
+        Output of `u_tilde`, or the window's band of a `PatternBand` (the
+        same u~, read only where the window needs it).
     factor : int
         Raster pixels per cell.
     to_pattern : callable
@@ -185,11 +191,118 @@ def u_tilde_d(
     index (0, 0) is s-grid sample (s y0 - half, s x0 - half).
     """
     x0, y0, x1, y1 = box
+    if isinstance(raster, WindowBand):
+        return raster.sample(*_pattern_grid(to_pattern, box, s, half))
     iy = np.arange(s * y0 - half, s * (y1 - 1) + half + 1) / s
     ix = np.arange(s * x0 - half, s * (x1 - 1) + half + 1) / s
     gy, gx = np.meshgrid(iy, ix, indexing="ij")
     X, Y = to_pattern(gx, gy)
     return resample.keys_bicubic(raster, np.asarray(X) * factor - 0.5, np.asarray(Y) * factor - 0.5, a=-0.5)
+
+
+def _pattern_grid(to_pattern: Map, box: tuple[int, int, int, int], s: int, half: int) -> tuple[np.ndarray, np.ndarray]:
+    """D on the s-grid of a window (as `u_tilde_d` samples it), from D on the channel pixels.
+
+    D (a homography and lens distortion, or a smooth spline) is evaluated on
+    the s^2 times fewer channel pixels and interpolated by Keys' kernel,
+    which reproduces quadratics: what is left is D's third derivative over a
+    pixel, below 1e-6 cells on a target (the precision D is inverted to).
+    """
+    x0, y0, x1, y1 = box
+    start = (s * y0 - half, s * x0 - half)
+    shape = (s * (y1 - 1 - y0) + 2 * half + 1, s * (x1 - 1 - x0) + 2 * half + 1)
+    gy = resample.keys_grid(start[0], shape[0], s).astype(np.float64)
+    gx = resample.keys_grid(start[1], shape[1], s).astype(np.float64)
+    X, Y = to_pattern(*np.meshgrid(gx, gy))
+    return (resample.keys_upsample(np.asarray(X), s, start, shape),
+            resample.keys_upsample(np.asarray(Y), s, start, shape))
+
+
+class PatternBand:
+    """u~ of `u_tilde` for many windows at once: the raster's DCT taken once, each window's band by difference.
+
+    Every window has its own band (`s_band` of its local Jacobian), so
+    `u_tilde` would low-pass the whole raster once per window; the bands of
+    one target differ in a few hundred of millions of coefficients. The
+    synthesis is linear in the band, so a window's u~ is the u~ of one
+    reference band (synthesised once) plus the image of the coefficients
+    where its band differs from the reference (`resample.dct_band_part`),
+    evaluated only on the part of the raster that the window reads. The
+    result equals `u_tilde`'s up to float rounding.
+
+    Parameters
+    ----------
+    noise : ndarray (256, 256)
+    factor : int
+        Raster pixels per cell (`raster_factor`).
+    s : int
+    jacobians : sequence of ndarray (2, 2)
+        The local linear parts of D of every window that will be read.
+    reference : ndarray (2, 2)
+        The Jacobian whose band is synthesised whole (e.g. at the target's centre).
+    """
+
+    def __init__(self, noise: np.ndarray, factor: int, s: int, jacobians, reference: np.ndarray) -> None:
+        # float32: 4x faster on the raster, rounding far below sensor noise (as in `u_tilde`)
+        cells = target.cells(noise, factor).astype(np.float32)
+        self.factor, self.s, self.shape = factor, s, cells.shape
+        ref = s_band(cells.shape, factor, s, reference)
+        # only the shapes are kept: 400 windows' masks would hold gigabytes
+        shapes = [ref[0].shape] + [s_band(cells.shape, factor, s, j)[0].shape for j in jacobians]
+        self.keep = (max(r for r, _ in shapes), max(c for _, c in shapes))
+        self.coeffs = resample.dct_coefficients(cells, self.keep)
+        self.reference = self._padded(ref)
+        self.base = resample.dct_synthesise(self.coeffs, self.shape, *self.reference)
+
+    def _padded(self, band: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        out = []
+        for m in band:
+            full = np.zeros(self.keep, dtype=np.int8)
+            full[: m.shape[0], : m.shape[1]] = m
+            out.append(full)
+        return out[0], out[1]
+
+    def window(self, jacobian: np.ndarray) -> "WindowBand":
+        """The band of the window whose local linear part of D is ``jacobian``."""
+        band = s_band(self.shape, self.factor, self.s, jacobian)
+        same, cross = self._padded(band)
+        return WindowBand(self, same - self.reference[0], cross - self.reference[1], band)
+
+
+class WindowBand:
+    """One window's u~ (`PatternBand.window`), read by `u_tilde_d` where the window needs it."""
+
+    def __init__(self, band: PatternBand, same: np.ndarray, cross: np.ndarray, own: tuple) -> None:
+        self.band, self.same, self.cross, self.own = band, same, cross, own
+
+    def sample(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+        """Keys' bicubic interpolation (a = -0.5) of u~ at pattern cells (X, Y), as `u_tilde_d`."""
+        factor = self.band.factor
+        x, y = X * factor - 0.5, Y * factor - 0.5
+        rows, cols = self.band.shape
+        finite = np.isfinite(x) & np.isfinite(y)
+        if not finite.any():
+            return np.full(x.shape, np.nan, dtype=np.float32)
+        # the crop holds every 4 x 4 neighbourhood that lies in the raster (`keys_bicubic` reads
+        # taps -1 .. 2 and leaves NaN where they leave its image, which is the raster at its edges)
+        r0 = int(np.clip(np.floor(y[finite].min()) - 1, 0, rows))
+        r1 = int(np.clip(np.floor(y[finite].max()) + 3, r0, rows))
+        c0 = int(np.clip(np.floor(x[finite].min()) - 1, 0, cols))
+        c1 = int(np.clip(np.floor(x[finite].max()) + 3, c0, cols))
+        crop = self.band.base[r0:r1, c0:c1]
+        differ = int(np.count_nonzero(self.same | self.cross))
+        if differ:
+            # the difference costs about (crop rows + differing coefficients) x crop columns products,
+            # the window's own band a synthesis of the whole raster: take the cheaper
+            if (r1 - r0 + differ) * (c1 - c0) * 4 < rows * cols * np.log2(rows * cols):
+                part = resample.dct_band_part(self.band.coeffs, self.same, self.cross, self.band.shape,
+                                              slice(r0, r1), slice(c0, c1))
+                crop = (crop + part).astype(np.float32)
+            else:
+                same, cross = self.own
+                coeffs = self.band.coeffs[: same.shape[0], : same.shape[1]]
+                crop = resample.dct_synthesise(coeffs, self.band.shape, same, cross)[r0:r1, c0:c1]
+        return resample.keys_bicubic(crop, x - c0, y - r0, a=-0.5)
 
 
 def noise_mask(shape: tuple[int, int], to_pattern: Map, s: int, support: int) -> np.ndarray:
@@ -412,26 +525,37 @@ def estimate_plane(
     if support % 2 == 0 or support < 3:
         raise ValueError("support must be an odd number >= 3")
     noise = target.default_noise() if noise is None else np.asarray(noise, dtype=np.float64)
-    v = np.asarray(v, dtype=np.float64)
-    mask = noise_mask(v.shape, to_pattern, s, support)
-    if not mask.any():
-        raise EstimationError("no usable pixel in the noise region of the target")
-    rows, cols = np.nonzero(mask)
-    bounds = (int(cols.min()), int(rows.min()), int(cols.max()) + 1, int(rows.max()) + 1)
-    windows = kernels.split_grid(bounds, grid)
-    # The band follows D's linear part at each window's centre (the centroid
-    # of its usable pixels): with perspective and lens distortion it changes
-    # across the target, and filtering costs ~15 ms per window.
-    jacobians = [jacobian_of(to_pattern, _mask_centre(mask, w)) for w in windows]
-    factor = raster_factor(s, max(band_reach(j) for j in jacobians))
-    cells = target.cells(noise, factor).astype(np.float32)
-    out = []
-    for window, jacobian in zip(windows, jacobians):
-        raster = u_tilde(noise, s, jacobian, factor, raster=cells)
-        result = estimate_window(v, mask, window, raster, factor, to_pattern, s, support, solver)
-        result["window"] = window
-        out.append(result)
-    return out
+    plane = _Plane(np.asarray(v, dtype=np.float64), to_pattern, s, support, grid)
+    band = PatternBand(noise, plane.factor, s, plane.jacobians, plane.reference)
+    return [_window_result(plane, k, band, solver) for k in range(len(plane.windows))]
+
+
+class _Plane:
+    """A normalised plane split into windows, each with the local linear part of D at its centre."""
+
+    def __init__(self, v: np.ndarray, to_pattern: Map, s: int, support: int, grid: tuple[int, int]) -> None:
+        self.v, self.to_pattern, self.s, self.support = v, to_pattern, s, support
+        self.mask = noise_mask(v.shape, to_pattern, s, support)
+        if not self.mask.any():
+            raise EstimationError("no usable pixel in the noise region of the target")
+        rows, cols = np.nonzero(self.mask)
+        bounds = (int(cols.min()), int(rows.min()), int(cols.max()) + 1, int(rows.max()) + 1)
+        self.windows = kernels.split_grid(bounds, grid)
+        # The band follows D's linear part at each window's centre (the centroid
+        # of its usable pixels): with perspective and lens distortion it changes
+        # across the target (`PatternBand` filters once for all windows).
+        self.jacobians = [jacobian_of(to_pattern, _mask_centre(self.mask, w)) for w in self.windows]
+        self.reference = jacobian_of(to_pattern, _mask_centre(self.mask, bounds))
+        self.factor = raster_factor(s, max(band_reach(j) for j in self.jacobians))
+
+
+def _window_result(plane: _Plane, k: int, band: PatternBand, solver: str) -> dict:
+    """`estimate_window` on window ``k`` of a plane, with its box."""
+    window = plane.windows[k]
+    result = estimate_window(plane.v, plane.mask, window, band.window(plane.jacobians[k]), plane.factor,
+                             plane.to_pattern, plane.s, plane.support, solver)
+    result["window"] = window
+    return result
 
 
 def _mask_centre(mask: np.ndarray, window: tuple[int, int, int, int]) -> tuple[float, float]:
@@ -500,16 +624,127 @@ def estimate_target(
     EstimationError
         The system cannot be solved (target too small, no positive mass).
     """
+    return estimate_frames([frame], noise, s, support, solver, grid, recentre, tps)
+
+
+def estimate_frames(
+    frames: list[Frame],
+    noise: np.ndarray | None = None,
+    s: int = DEFAULT_S[BERNOULLI],
+    support: int | None = None,
+    solver: str = DEFAULT_SOLVER,
+    grid: tuple[int, int] = (1, 1),
+    recentre: bool = True,
+    tps: float | None = None,
+    workers: int | None = None,
+) -> list[PSF]:
+    """`estimate_target` on several planes: the target detected once per photograph, the windows shared by workers.
+
+    The planes of one RAW file (same ``source``) see the target at the same
+    place up to the Bayer offsets: it is searched on one plane (g1 when
+    there) and refined on the others (`detect.refine_target`). All planes'
+    windows share one band-limited pattern per raster factor (`PatternBand`)
+    and, when there is more than one window and enough work, are solved by
+    forked worker processes that inherit the prepared planes and receive
+    only window indices.
+
+    Parameters
+    ----------
+    frames : list of Frame
+        In the order of the result.
+    workers : int, optional
+        Processes solving the windows; by default the cores this process may
+        use, and none for a single window or little work.
+    noise, s, support, solver, grid, recentre, tps
+        See `estimate_target`.
+
+    Returns
+    -------
+    list of PSF: every window of the first plane (row-major), then of the next.
+    """
     support = _check_arguments(s, support, solver, grid)
     noise = _check_noise(noise)
+    with _one_blas_thread():
+        return _estimate_frames(frames, noise, s, support, solver, grid, recentre, tps, workers)
+
+
+def _one_blas_thread():
+    """BLAS on one thread while estimating (threadpoolctl, inherited by forked workers).
+
+    The products are small (289 unknowns): on a shared 2-core machine a
+    second BLAS thread that loses its core stalls a 289 x 289 Cholesky or a
+    4096 x 289 product 5-100x, and the windows already share the cores between
+    processes. Without threadpoolctl installed the BLAS keeps its own setting.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        return contextlib.nullcontext()
+    return threadpool_limits(1, user_api="blas")
+
+
+def _estimate_frames(frames, noise, s, support, solver, grid, recentre, tps, workers) -> list[PSF]:
+    planes = [_prepare(frame, detection, noise, s, support, grid, tps) for frame, detection in _detections(frames)]
+    bands = {}
+    for factor in sorted({p.factor for p in planes}):
+        same = [p for p in planes if p.factor == factor]
+        bands[factor] = PatternBand(noise, factor, s, [j for p in same for j in p.jacobians], same[0].reference)
+    jobs = [(i, k) for i, p in enumerate(planes) for k in range(len(p.windows))]
+    results = _run_windows(planes, bands, jobs, solver, workers)
+    out = []
+    for (i, _), r in zip(jobs, results):
+        plane = planes[i]
+        out.append(_psf(plane, r, s, support, solver, grid, recentre, tps))
+    return out
+
+
+def _detections(frames: list[Frame]):
+    """(frame, detection) for every frame: one search per photograph, refined on its other planes."""
+    found: dict[str, tuple[Frame, detect.Detection]] = {}
+    order = sorted(range(len(frames)), key=lambda i: frames[i].channel != "g1")  # search on g1 when there
+    detections: dict[int, detect.Detection] = {}
+    for i in order:
+        frame = frames[i]
+        image = np.asarray(frame.data)
+        try:
+            if frame.from_mosaic and frame.source in found:
+                first, detection = found[frame.source]
+                try:
+                    detections[i] = detect.refine_target(
+                        image, detection, frame.saturated, detect.plane_shift(first.offset, frame.offset))
+                    continue
+                except EstimationError:  # a mark lost on this plane: search it on its own
+                    pass
+            detections[i] = detect.find_target(image, frame.saturated)
+        except EstimationError as exc:  # say which of several frames and planes could not be used
+            raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
+        if frame.from_mosaic:
+            found.setdefault(frame.source, (frame, detections[i]))
+    return [(frames[i], detections[i]) for i in range(len(frames))]
+
+
+class _TargetPlane(_Plane):
+    """A plane of a photograph cropped to the target, corrected, with what its PSFs record."""
+
+    frame: Frame
+    offset: tuple[int, int]
+    alpha: float
+    scale: float
+    geometry: str
+
+
+def _prepare(
+    frame: Frame, detection: detect.Detection, noise: np.ndarray, s: int, support: int, grid: tuple[int, int],
+    tps: float | None,
+) -> _TargetPlane:
+    """The map D of a detection, the target's crop of the plane normalised, and its windows."""
     image = np.asarray(frame.data, dtype=np.float64)
     clipped = float(np.mean(frame.saturated)) if frame.saturated.size else 0.0
     if clipped > OVEREXPOSED:  # the cause, named before the detection it defeats fails
         raise SaturatedError(f"{frame.source} ({frame.channel}): {clipped:.0%} of the frame is saturated; "
                              "lower the exposure")
     try:
-        # X-corners and the map D (IJCV 2012 sec. 4; Delbracio PhD thesis 2013, App. A.1; geometry.target_maps)
-        detection = detect.find_target(image, frame.saturated)
+        # the map D (IJCV 2012 sec. 4; Delbracio PhD thesis 2013, App. A.1; geometry.target_maps)
         to_image, to_pattern = geometry.target_maps(detection, "auto" if tps is None else float(tps))
         box = _target_box(to_image, image.shape, margin=(support - 1) // (2 * s) + 2)
         v, alpha = _corrected(frame, image, box, to_image, to_pattern)
@@ -518,34 +753,94 @@ def estimate_target(
         def local_to_pattern(x, y):
             return to_pattern(np.asarray(x) + x0, np.asarray(y) + y0)
 
-        results = estimate_plane(v, local_to_pattern, noise=noise, s=s, support=support, solver=solver, grid=grid)
-    except EstimationError as exc:  # say which of several frames and planes could not be used
+        plane = _TargetPlane(v, local_to_pattern, s, support, grid)
+    except EstimationError as exc:
         raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
-    scale = s * float(detection.scale)  # s / t, with 1/t = image pixels per cell
-    params = {"solver": solver, "support": support, "grid": [int(grid[0]), int(grid[1])], "crf_alpha": alpha,
-              "scale": scale, "geometry": "homography+radial" if tps is None else f"homography+tps({float(tps):g})"}
-    out = []
-    for r in results:
-        kernel, shift = _recentred(r["psf"], solver) if recentre else (r["psf"], (0.0, 0.0))
-        wx0, wy0, wx1, wy1 = r["window"]
-        window = (wx0 + x0, wy0 + y0, wx1 + x0, wy1 + y0)
-        out.append(
-            PSF(
-                psf=kernel,
-                s=s,
-                method=BERNOULLI,
-                channel=frame.channel,
-                sources=[frame.source],
-                field=kernels.field_of_window(window, image.shape),
-                window=window,
-                noise_floor=r["noise_floor"],
-                residual=r["residual"],
-                params={**params, "mass": r["mass"], "samples": r["count"],
-                        "kernel_shift": [round(shift[0], 4), round(shift[1], 4)]},
-                warnings=_warnings(scale, alpha, r["mass"]),
-            )
-        )
-    return out
+    plane.frame, plane.offset, plane.alpha = frame, (x0, y0), alpha
+    plane.scale = s * float(detection.scale)  # s / t, with 1/t = image pixels per cell
+    plane.geometry = "homography+radial" if tps is None else f"homography+tps({float(tps):g})"
+    return plane
+
+
+# Set in the parent before the workers fork, read by `_solve_job` in them: the
+# planes and bands are inherited, never pickled.
+_WORK: tuple = ()
+# s-grid samples of all windows together below which forking workers costs more than it gains
+_MIN_PARALLEL_SAMPLES = 200_000
+
+
+def _run_windows(planes: list[_TargetPlane], bands: dict, jobs: list[tuple[int, int]], solver: str,
+                 workers: int | None) -> list[dict]:
+    """`estimate_window` of every (plane, window) job, in order, in forked workers when worth it."""
+    global _WORK
+    if workers is None:
+        samples = sum(_area(planes[i].windows[k]) * planes[i].s ** 2 for i, k in jobs)
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        workers = min(cores, len(jobs)) if samples >= _MIN_PARALLEL_SAMPLES else 1
+    workers = max(1, min(int(workers), len(jobs)))
+    _WORK = (planes, bands, jobs, solver)
+    try:
+        if workers == 1 or "fork" not in multiprocessing.get_all_start_methods():
+            return [_solve_job(n) for n in range(len(jobs))]
+        pool = multiprocessing.get_context("fork").Pool(workers, initializer=_worker_signals)
+        try:
+            results = pool.map(_solve_job, range(len(jobs)), chunksize=1)
+            pool.close()
+        except BaseException:
+            pool.terminate()
+            raise
+        finally:
+            pool.join()
+        return results
+    finally:
+        _WORK = ()
+
+
+def _worker_signals() -> None:
+    """A worker leaves interrupts to its parent (which ends it) and ends quietly when terminated."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _solve_job(n: int) -> dict:
+    planes, bands, jobs, solver = _WORK
+    i, k = jobs[n]
+    plane = planes[i]
+    try:
+        return _window_result(plane, k, bands[plane.factor], solver)
+    except EstimationError as exc:
+        frame = plane.frame
+        raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
+
+
+def _area(window: tuple[int, int, int, int]) -> int:
+    return (window[2] - window[0]) * (window[3] - window[1])
+
+
+def _psf(plane: _TargetPlane, r: dict, s: int, support: int, solver: str, grid: tuple[int, int], recentre: bool,
+         tps: float | None) -> PSF:
+    """The PSF record of one window's result."""
+    frame = plane.frame
+    x0, y0 = plane.offset
+    params = {"solver": solver, "support": support, "grid": [int(grid[0]), int(grid[1])], "crf_alpha": plane.alpha,
+              "scale": plane.scale, "geometry": plane.geometry}
+    kernel, shift = _recentred(r["psf"], solver) if recentre else (r["psf"], (0.0, 0.0))
+    wx0, wy0, wx1, wy1 = r["window"]
+    window = (wx0 + x0, wy0 + y0, wx1 + x0, wy1 + y0)
+    return PSF(
+        psf=kernel,
+        s=s,
+        method=BERNOULLI,
+        channel=frame.channel,
+        sources=[frame.source],
+        field=kernels.field_of_window(window, frame.shape),
+        window=window,
+        noise_floor=r["noise_floor"],
+        residual=r["residual"],
+        params={**params, "mass": r["mass"], "samples": r["count"],
+                "kernel_shift": [round(shift[0], 4), round(shift[1], 4)]},
+        warnings=_warnings(plane.scale, plane.alpha, r["mass"]),
+    )
 
 
 def recentre(kernel: np.ndarray, shift: tuple[float, float]) -> np.ndarray:

@@ -105,7 +105,7 @@ def load_frames(path: str | os.PathLike, channel: str = "all") -> list[Frame]:
         if channel != "all":
             frame.channel = channel
         return [frame]
-    planes = _load_raw(path)
+    planes = _load_raw(path, None if channel == "all" else channel)
     if channel == "all":
         return [planes[c] for c in CHANNELS if c in planes]
     if channel not in planes:
@@ -133,7 +133,8 @@ def _quiet_stderr() -> Iterator[None]:
         os.close(saved)
 
 
-def _load_raw(path: Path) -> dict[str, Frame]:
+def _load_raw(path: Path, wanted: str | None = None) -> dict[str, Frame]:
+    """The Bayer planes of a RAW file, or only the ``wanted`` one (the others are named, not built)."""
     import rawpy  # imported here: LibRaw is only needed for RAW input
 
     try:
@@ -165,6 +166,9 @@ def _load_raw(path: Path) -> dict[str, Frame]:
                 name = letter
             else:
                 raise BadInputError(f"{path}: unsupported colour filter {desc!r}")
+            if wanted is not None and name != wanted:
+                planes[name] = None  # type: ignore[assignment]
+                continue
             plane = mosaic[dy::2, dx::2]
             black = float(blacks[index]) if index < len(blacks) else 0.0
             planes[name] = Frame(

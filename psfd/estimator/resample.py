@@ -11,7 +11,10 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft, ndimage
 
-__all__ = ["dct_lowpass", "erode", "keys_bicubic", "keys_weights"]
+__all__ = [
+    "dct_band_part", "dct_coefficients", "dct_lowpass", "dct_synthesise", "erode", "keys_bicubic", "keys_grid",
+    "keys_upsample", "keys_weights",
+]
 
 
 def dct_lowpass(
@@ -62,14 +65,40 @@ def dct_lowpass(
     keep_r, keep_c = min(int(keep[0]), rows, out_r), min(int(keep[1]), cols, out_c)
     if mask is None and keep_r >= rows and keep_c >= cols and (out_r, out_c) == (rows, cols):
         return image.copy()
-    # Axis by axis, dropping the zeroed coefficients at once: the inverse
-    # transforms zero-pad them back, so the second pass works on fewer lines.
-    coeffs = fft.dct(image, type=2, norm="ortho", axis=1, workers=-1)[:, :keep_c]
-    coeffs = fft.dct(coeffs, type=2, norm="ortho", axis=0, workers=-1)[:keep_r]
+    coeffs = dct_coefficients(image, (keep_r, keep_c))
+    if mask is not None:
+        mask = np.asarray(mask)[:keep_r, :keep_c]
+        cross_mask = None if cross_mask is None else np.asarray(cross_mask)[:keep_r, :keep_c]
+    lowpassed = dct_synthesise(coeffs, (out_r, out_c), mask, cross_mask)
+    if (out_r, out_c) != (rows, cols):
+        # orthonormal DCTs of different lengths: sqrt(new / old) keeps the amplitude
+        lowpassed *= np.sqrt(out_r * out_c / (rows * cols)).astype(lowpassed.dtype)
+    return lowpassed
+
+
+def dct_coefficients(image: np.ndarray, keep: tuple[int, int]) -> np.ndarray:
+    """The orthonormal DCT-II coefficients of ``image`` below index ``keep`` (rows, cols).
+
+    Axis by axis, dropping the unwanted coefficients at once, so the second
+    pass works on fewer lines. float32 input stays float32.
+    """
+    coeffs = fft.dct(image, type=2, norm="ortho", axis=1, workers=-1)[:, : int(keep[1])]
+    return fft.dct(coeffs, type=2, norm="ortho", axis=0, workers=-1)[: int(keep[0])]
+
+
+def dct_synthesise(
+    coeffs: np.ndarray, size: tuple[int, int], mask: np.ndarray | None = None, cross_mask: np.ndarray | None = None
+) -> np.ndarray:
+    """The image of `dct_coefficients` ``coeffs`` weighted by the band ``mask`` / ``cross_mask`` (see `dct_lowpass`).
+
+    The coefficients the array does not hold are zero; ``size`` is the
+    (rows, cols) of the grid to synthesise on (the transform's length).
+    """
+    out_r, out_c = int(size[0]), int(size[1])
     anti = None
     if mask is not None:
-        same = np.asarray(mask, dtype=coeffs.dtype)[:keep_r, :keep_c]
-        cross = same if cross_mask is None else np.asarray(cross_mask, dtype=coeffs.dtype)[:keep_r, :keep_c]
+        same = np.asarray(mask, dtype=coeffs.dtype)
+        cross = same if cross_mask is None else np.asarray(cross_mask, dtype=coeffs.dtype)
         if same.shape != coeffs.shape or cross.shape != coeffs.shape:
             raise ValueError(f"mask and cross_mask need at least {coeffs.shape} coefficients")
         # With theta = pi i (row + 1/2) / rows, phi = pi j (col + 1/2) / cols,
@@ -86,10 +115,49 @@ def dct_lowpass(
     if anti is not None and anti.size:
         sine = fft.idst(anti, type=2, norm="ortho", axis=0, n=out_r, workers=-1)
         lowpassed += fft.idst(sine, type=2, norm="ortho", axis=1, n=out_c, workers=-1)
-    if (out_r, out_c) != (rows, cols):
-        # orthonormal DCTs of different lengths: sqrt(new / old) keeps the amplitude
-        lowpassed *= np.sqrt(out_r * out_c / (rows * cols)).astype(lowpassed.dtype)
     return lowpassed
+
+
+def dct_band_part(
+    coeffs: np.ndarray, same: np.ndarray, cross: np.ndarray, size: tuple[int, int], rows: slice, cols: slice
+) -> np.ndarray:
+    """`dct_synthesise` of a sparse band, evaluated on ``rows`` x ``cols`` of the grid only.
+
+    The synthesis is linear in the band, so the image of one band equals that
+    of another plus the image of their difference: here the coefficients
+    where ``same`` and ``cross`` (the difference, same shape as ``coeffs``)
+    are not zero, synthesised from the orthonormal DCT-III and DST-III basis
+    functions (sqrt(2 / N) cos(pi k (n + 1/2) / N), sqrt(1 / N) for k = 0;
+    sqrt(2 / N) sin(pi k (n + 1/2) / N)) tabulated on the rows and columns
+    asked for: B_rows D B_cols^T with D sparse. float64.
+    """
+    from scipy import sparse  # already loaded with scipy.linalg
+
+    out_r, out_c = int(size[0]), int(size[1])
+    keep_r, keep_c = coeffs.shape
+    i, j = np.nonzero((same != 0) | (cross != 0))
+    n_r = np.arange(out_r)[rows] + 0.5
+    n_c = np.arange(out_c)[cols] + 0.5
+    if i.size == 0:
+        return np.zeros((n_r.size, n_c.size))
+    value = coeffs[i, j].astype(np.float64)
+    a, b = same[i, j].astype(np.float64), cross[i, j].astype(np.float64)
+    # the pairs of coefficient (i, j): see `dct_synthesise`; sin(0) = 0 on the first row and column
+    cos_w = value * (a + b) / 2
+    sin_w = np.where((i == 0) | (j == 0), 0.0, value * (b - a) / 2)
+    out = np.zeros((n_r.size, n_c.size))
+    for weights, wave in ((cos_w, np.cos), (sin_w, np.sin)):
+        if not np.any(weights):
+            continue
+        used_r, used_c = np.arange(i.max() + 1), np.arange(j.max() + 1)
+        table_r = wave(np.pi / out_r * np.outer(n_r, used_r)) * np.sqrt(2.0 / out_r)
+        table_c = wave(np.pi / out_c * np.outer(n_c, used_c)) * np.sqrt(2.0 / out_c)
+        if wave is np.cos:
+            table_r[:, used_r == 0] *= np.sqrt(0.5)
+            table_c[:, used_c == 0] *= np.sqrt(0.5)
+        d = sparse.csr_matrix((weights, (i, j)), shape=(used_r.size, used_c.size))
+        out += table_r @ (d @ table_c.T)
+    return out
 
 
 def keys_weights(t: np.ndarray, a: float = -0.5) -> np.ndarray:
@@ -109,10 +177,46 @@ def keys_weights(t: np.ndarray, a: float = -0.5) -> np.ndarray:
     ndarray with a trailing axis of 4: weights of taps at offsets -1, 0, 1, 2.
     """
     t = np.asarray(t)
-    d = np.stack([1 + t, t, 1 - t, 2 - t], axis=-1)
-    near = ((a + 2) * d - (a + 3)) * d * d + 1  # |d| <= 1
-    far = ((a * d - 5 * a) * d + 8 * a) * d - 4 * a  # 1 < |d| < 2
-    return np.where(d <= 1, near, far)
+    u = 1 - t
+    # eq. (15) at the distances 1 + t and 2 - t (outer taps) and t, 1 - t (inner), expanded
+    out = np.empty(t.shape + (4,), dtype=t.dtype if t.dtype.kind == "f" else np.float64)
+    out[..., 0] = a * t * u * u
+    out[..., 1] = ((a + 2) * t - (a + 3)) * t * t + 1
+    out[..., 2] = ((a + 2) * u - (a + 3)) * u * u + 1
+    out[..., 3] = a * u * t * t
+    return out
+
+
+def keys_upsample(values: np.ndarray, s: int, start: tuple[int, int], shape: tuple[int, int]) -> np.ndarray:
+    """A smooth function sampled on integers, interpolated (Keys, a = -0.5) on the grid of step 1 / s.
+
+    ``values[r, c]`` is the function at (r - 1 + start[0] // s, c - 1 + start[1] // s);
+    the result holds it at (i / s, j / s) for i from ``start[0]``, j from
+    ``start[1]``, over ``shape``. ``values`` needs (shape + start % s) / s + 3
+    samples along each axis (`keys_grid` gives the integer range). Keys' a = -0.5 kernel
+    reproduces quadratics exactly (Keys, IEEE Trans. ASSP 1981, sec. III), so
+    a map whose third derivatives are small over one sample (a homography,
+    lens distortion) is reproduced to far below its own precision.
+    """
+    out = np.asarray(values, dtype=np.float64)
+    for axis in (0, 1):
+        n = out.shape[axis] - 3
+        w = keys_weights(np.arange(s) / s)  # (phase, tap)
+        taps = [np.take(out, np.arange(k, k + n), axis=axis) for k in range(4)]
+        if axis == 0:
+            up = sum(taps[k][:, None, :] * w[None, :, k, None] for k in range(4)).reshape(n * s, -1)
+            first = start[0] % s
+            out = up[first : first + shape[0]]
+        else:
+            up = sum(taps[k][:, :, None] * w[None, None, :, k] for k in range(4)).reshape(-1, n * s)
+            first = start[1] % s
+            out = up[:, first : first + shape[1]]
+    return out
+
+
+def keys_grid(start: int, count: int, s: int) -> np.ndarray:
+    """The integers `keys_upsample` needs to cover samples ``start / s`` .. ``(start + count - 1) / s``."""
+    return np.arange(start // s - 1, (start + count - 1) // s + 3)
 
 
 def keys_bicubic(

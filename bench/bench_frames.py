@@ -1,0 +1,93 @@
+"""Whole-process time of `psfd estimate target` on simulated 24-megapixel RAW frames.
+
+Two RGGB DNGs of 6000 x 4000 photosites (written into a temporary folder,
+f/5.6 diffraction, 3 degrees of rotation, a little perspective and lens
+distortion):
+
+- ``advised``: the target at the advised imaging scale (0.3 channel pixel per
+  cell, s/t = 1.2 at s = 4), ``--channel all``; goal <= 2.5 s;
+- ``large``: the target at 1.05 pixel per cell (a 3200 x 3200 pattern raster,
+  the frame of issue 11's 74 s figure), ``--channel all --grid 10x10`` (400
+  PSFs); goal <= 5 s on 2 cores.
+
+Each command is started as a subprocess (what a user waits for: start-up,
+imports, decoding, estimation, teardown), several times; the median is
+printed beside the median of a reference command run in the same session,
+interleaved with it, so the machine's load weighs on both alike:
+``--reference DIR`` times the same command on another checkout of psfd
+(e.g. the previous commit), and without it the reference is the C program's
+figure on extracted planes, 2.1 s per 1953 x 1301 plane (issue 11), times
+the four Bayer planes.
+
+Usage: python bench/bench_frames.py [--repeat N] [--reference CHECKOUT] [--keep DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+C_PLANE_SECONDS = 2.1  # published C program, whole process, one 1953x1301 plane on this kind of machine
+SENSOR = (4000, 6000)
+FRAMES = {  # name: (channel pixels per cell, extra arguments, goal in seconds)
+    "advised": (0.3, ["--channel", "all"], 2.5),
+    "large": (1.05, ["--channel", "all", "--grid", "10x10"], 5.0),
+}
+
+
+def make_frame(path: Path, pixels_per_cell: float) -> None:
+    """Render a 24-megapixel target photograph with psfd's simulator (in a subprocess: its memory is freed)."""
+    code = (
+        "import sys; from psfd.estimator import simulate; "
+        "simulate.simulate_target(sys.argv[1], psf=simulate.diffraction_psf(5.6, s=4, support=17), s=4, "
+        f"pixels_per_cell={pixels_per_cell}, rotation_deg=3.0, sensor={SENSOR}, seed=1, tilt=(0.02, -0.01), "
+        "distortion=0.01)"
+    )
+    subprocess.run([sys.executable, "-c", code, str(path)], check=True)
+
+
+def timed(command: list[str], env: dict | None = None) -> float:
+    start = time.perf_counter()
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL, env=env)
+    return time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeat", type=int, default=3, help="runs of each command (median kept)")
+    parser.add_argument("--reference", metavar="CHECKOUT", help="a psfd checkout to time the same commands with")
+    parser.add_argument("--keep", metavar="DIR", help="write (or reuse) the frames here instead of a temporary folder")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(args.keep or tmp)
+        folder.mkdir(parents=True, exist_ok=True)
+        reference_env = None
+        if args.reference:
+            reference_env = {**os.environ, "PYTHONPATH": str(Path(args.reference).resolve())}
+        print(f"{'frame':>8} {'psfd s':>7} {'ref s':>7} {'ratio':>6} {'goal s':>7}   reference")
+        for name, (pixels_per_cell, extra, goal) in FRAMES.items():
+            frame = folder / f"{name}.dng"
+            if not frame.exists():
+                make_frame(frame, pixels_per_cell)
+            command = [sys.executable, "-m", "psfd", "estimate", "target", str(frame), *extra]
+            ours, theirs = [], []
+            for _ in range(args.repeat):  # interleaved: both see the same load
+                ours.append(timed(command))
+                if reference_env is not None:
+                    theirs.append(timed(command, reference_env))
+            mine = statistics.median(ours)
+            if reference_env is not None:
+                ref, label = statistics.median(theirs), f"psfd at {args.reference}"
+            else:
+                ref, label = 4 * C_PLANE_SECONDS, "C program, 4 planes (issue 11)"
+            print(f"{name:>8} {mine:7.2f} {ref:7.2f} {mine / ref:6.2f} {goal:7.1f}   {label}")
+
+
+if __name__ == "__main__":
+    main()
