@@ -706,6 +706,10 @@ def _detections(frames: list[Frame]):
     for i in order:
         frame = frames[i]
         image = np.asarray(frame.data)
+        clipped = float(np.mean(frame.saturated)) if frame.saturated.size else 0.0
+        if clipped > OVEREXPOSED:  # the cause, named before the detection it defeats fails
+            raise SaturatedError(f"{frame.source} ({frame.channel}): {clipped:.0%} of the frame is saturated; "
+                                 "lower the exposure")
         try:
             if frame.from_mosaic and frame.source in found:
                 first, detection = found[frame.source]
@@ -739,10 +743,6 @@ def _prepare(
 ) -> _TargetPlane:
     """The map D of a detection, the target's crop of the plane normalised, and its windows."""
     image = np.asarray(frame.data, dtype=np.float64)
-    clipped = float(np.mean(frame.saturated)) if frame.saturated.size else 0.0
-    if clipped > OVEREXPOSED:  # the cause, named before the detection it defeats fails
-        raise SaturatedError(f"{frame.source} ({frame.channel}): {clipped:.0%} of the frame is saturated; "
-                             "lower the exposure")
     try:
         # the map D (IJCV 2012 sec. 4; Delbracio PhD thesis 2013, App. A.1; geometry.target_maps)
         to_image, to_pattern = geometry.target_maps(detection, "auto" if tps is None else float(tps))
