@@ -23,13 +23,15 @@ The modules, from the bottom up (each imports only those above it in this list):
 - ``drivers/``: the ``Camera`` and ``Rail`` protocols (``base``), libgphoto2 (``gphoto``),
   GRBL (``grbl``), the simulated rig (``sim``) and recordings (``recording``).
 - ``printing``: the calibration targets rendered for print.
-- ``figures``: every picture psfd draws (PSF figure, array images, method comparison, field report).
+- ``figures``: every picture psfd draws (PSF figure, array images, method comparison, field report),
+  with matplotlib, loaded only by the commands that draw.
 - ``catalogue``: the SQLite catalogue; all SQL, and the rule of which run of a plan is unfinished.
 - ``daemon/``: plans (``plan``), estimation jobs in worker processes (``work``), the
   content-addressed frame store (``store``), the resumable runner and ``run_plan``
   (``runner``), the control-socket client (``client``) and the service (``service``).
 - ``cli/``: the ``psfd`` command line, thin: option values and shared option groups
-  (``options``), what commands write and print (``output``), and one module per group of
+  (``options``), what commands write and print (``output``: files, CSV, JSON, tables with units),
+  where the log goes (``logs``: -v/-q, stderr, journald), and one module per group of
   commands (``target``, ``estimate``, ``compare``, ``hardware``, ``query``, ``lab``).
 """
 

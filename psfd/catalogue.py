@@ -9,6 +9,13 @@ lets the daemon resume after a crash with no PSF lost and none stored twice.
 
 The schema is versioned with ``PRAGMA user_version``: ``MIGRATIONS[i]`` takes a
 catalogue from version ``i`` to ``i + 1`` inside one transaction.
+
+Frame paths inside the catalogue's folder (the frame store beside it) are
+stored relative to that folder, so a catalogue and its frames can be moved or
+copied together; a frame elsewhere keeps its absolute path, and so do the
+absolute paths of older catalogues outside the folder (`psf_frames` returns
+absolute paths either way). `datasette_metadata` describes every table and
+column, with units, in the metadata format Datasette reads.
 """
 
 from __future__ import annotations
@@ -35,7 +42,7 @@ from psfd import __version__
 from psfd.drivers.base import CameraInfo
 from psfd.errors import BadInputError, CatalogueError, StorageError, path_reason, user_name
 from psfd.estimator.kernels import PSF
-from psfd.vocabulary import camera_fnumber, method_name, parse_fnumber
+from psfd.vocabulary import camera_fnumber, data_dir, method_name, parse_fnumber
 
 STEP_STATES = ("pending", "running", "done", "failed")
 RUN_STATES = ("running", "done", "paused", "cancelled", "failed")
@@ -77,9 +84,7 @@ def default_path() -> Path:
     A relative or empty ``XDG_DATA_HOME`` is ignored, as the XDG base directory
     specification requires.
     """
-    base = os.environ.get("XDG_DATA_HOME", "")
-    root = Path(base) if base and os.path.isabs(base) else Path.home() / ".local" / "share"
-    return root / "psfd" / "catalogue.sqlite"
+    return data_dir() / "catalogue.sqlite"
 
 
 # ---------------------------------------------------------------------------
@@ -156,6 +161,42 @@ def _v2_query_indexes(db: sqlite_utils.Database) -> None:
     db["runs"].create_index(["plan_hash"])
 
 
+def _database_folder(db: sqlite_utils.Database) -> Path | None:
+    """The folder of the catalogue file a connection has open (None for an in-memory database)."""
+    for _, name, file in db.execute("PRAGMA database_list").fetchall():
+        if name == "main" and file:
+            return Path(file).resolve().parent
+    return None
+
+
+def _v5_relative_frame_paths(db: sqlite_utils.Database) -> None:
+    """Version 5: frame paths inside the catalogue's folder become relative to it (others stay absolute).
+
+    Paths already relative are left alone, so running it again, or after any other migration, changes nothing.
+    """
+    folder = _database_folder(db)
+    if folder is None:
+        return
+    for frame_id, path in db.execute("SELECT id, path FROM frames").fetchall():
+        if not os.path.isabs(path):
+            continue
+        stored = stored_frame_path(path, folder)
+        if stored != path:
+            db.execute("UPDATE frames SET path = ? WHERE id = ?", [stored, frame_id])
+
+
+def stored_frame_path(path: str | os.PathLike, folder: Path) -> str:
+    """How a frame path is stored: relative to the catalogue's ``folder`` when inside it, else absolute."""
+    absolute = Path(os.path.abspath(path))
+    try:
+        return absolute.relative_to(folder).as_posix()
+    except ValueError:
+        try:  # the same file through a symbolic link in either path
+            return absolute.resolve().relative_to(folder.resolve()).as_posix()
+        except (ValueError, OSError):
+            return str(absolute)
+
+
 # A frame's own EXIF beside the requested ``settings``: column -> FrameMetadata field.
 FRAME_EXIF = {
     "exif_focal_length_mm": "focal_length_mm", "exif_f_number": "f_number", "exif_exposure_s": "exposure_s",
@@ -174,8 +215,10 @@ def _v4_frame_exif(db: sqlite_utils.Database) -> None:
             db["frames"].add_column(column, str if column in ("exif_lens", "exif_serial") else float)
 
 
-# Schema version 3 is another change; frame EXIF is version 4 whatever lands first.
-MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [_v1_tables, _v2_query_indexes, _v4_frame_exif]
+# Schema version 3 is another change; frame EXIF is version 4 and relative frame paths version 5
+# whatever lands first (each migration checks what is already there, so the order does not matter).
+MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [
+    _v1_tables, _v2_query_indexes, _v4_frame_exif, _v5_relative_frame_paths]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -286,6 +329,7 @@ class Catalogue:
                  readonly: bool = False) -> None:
         self.path = Path(path)
         self.readonly = readonly
+        self.folder = Path(os.path.abspath(self.path)).parent  # frame paths are stored relative to it
         if not self.path.exists():
             if readonly or not create:
                 raise CatalogueError(f"no catalogue at {self.path}")
@@ -692,7 +736,7 @@ class Catalogue:
         run_id: int | None,
         step_id: int | None,
     ) -> list[int]:
-        frame_ids = [self._insert_frame(db, f) for f in frames]
+        frame_ids = [self._insert_frame(db, f, self.folder) for f in frames]
         ids = []
         for estimate, meta in psfs:
             indices = meta.get("frame_indices")
@@ -707,10 +751,10 @@ class Catalogue:
         return ids
 
     @staticmethod
-    def _insert_frame(db: sqlite_utils.Database, frame: FrameRecord) -> int:
+    def _insert_frame(db: sqlite_utils.Database, frame: FrameRecord, folder: Path) -> int:
         db["frames"].insert(
             {
-                "path": str(frame.path), "sha256": frame.sha256,
+                "path": stored_frame_path(frame.path, folder), "sha256": frame.sha256,
                 "settings": json.dumps(frame.settings, sort_keys=True),
                 "aperture": camera_fnumber(frame.settings.get("aperture")),
                 "rail": json.dumps(frame.rail, sort_keys=True), "taken_at": frame.taken_at,
@@ -825,7 +869,7 @@ class Catalogue:
         return _from_npy(blob[0]), _row(row)
 
     def psf_frames(self, psf_id: int) -> list[dict]:
-        """The frames a PSF was estimated from."""
+        """The frames a PSF was estimated from (``path`` absolute, wherever it is stored relative)."""
         with self._read() as db:
             rows = list(
                 db.query(
@@ -835,6 +879,7 @@ class Catalogue:
                 )
             )
         for row in rows:
+            row["path"] = str(self.folder / row["path"])  # an absolute path stays as it is
             row["settings"] = json.loads(row["settings"] or "{}")
             row["rail"] = json.loads(row["rail"] or "{}")
         return rows
@@ -858,3 +903,126 @@ def _nearest_per_group(rows: list[dict], near: tuple[float, float]) -> list[dict
         group = (row["rig_id"], row["focal_length_mm"], row["aperture"], row["channel"], row["method"])
         best.setdefault(group, row)
     return sorted(best.values(), key=lambda r: (r["distance"], r["aperture"] or 0.0, r["channel"], r["method"]))
+
+
+# ---------------------------------------------------------------------------
+# Description for other tools
+
+# Every column of every table, with its unit: shown by Datasette (`datasette_metadata`) and the docs.
+COLUMNS: dict[str, dict[str, str]] = {
+    "rigs": {
+        "id": "rig id",
+        "model": "camera model as the camera reports it",
+        "serial": "camera body serial number ('' when unknown)",
+        "lens": "lens name ('' when unknown)",
+        "focal_length_mm": "focal length when the rig was first seen, mm",
+        "created": "when the rig was first seen, ISO 8601 UTC",
+    },
+    "runs": {
+        "id": "run id",
+        "rig_id": "the rig (rigs.id)",
+        "plan_path": "path of the plan file as given",
+        "plan_text": "the plan's TOML text, verbatim (a run is resumed for the same text only)",
+        "plan_hash": "SHA-256 of plan_text",
+        "started": "start, ISO 8601 UTC",
+        "finished": "end, ISO 8601 UTC (empty while running)",
+        "state": "running, done, paused, cancelled or failed",
+    },
+    "steps": {
+        "id": "step id",
+        "run_id": "the run (runs.id)",
+        "key": "aperture, rail position and repeat, e.g. a5.6/x1200/y-40/z10/r0 (rail positions in mm)",
+        "position": "order of the step in its run",
+        "state": "pending, running, done or failed",
+        "payload": "the step as JSON: aperture (f-number), x or near/far, y, z (mm), repeat",
+        "reason": "why the step failed (empty otherwise)",
+        "attempts": "how many times the step was started",
+        "updated": "last change, ISO 8601 UTC",
+    },
+    "frames": {
+        "id": "frame id",
+        "path": "the RAW file: relative to the catalogue's folder when inside it, else absolute",
+        "sha256": "SHA-256 of the file's content (its name in the frame store)",
+        "settings": "camera settings asked for, JSON (aperture as an f-number, shutter speed in s, ISO)",
+        "aperture": "f-number asked for",
+        "rail": "rail position of the exposure, JSON {x, y, z} in mm",
+        "taken_at": "exposure time, ISO 8601 UTC",
+        "exif_focal_length_mm": "focal length the RAW's EXIF records, mm (NULL when absent)",
+        "exif_f_number": "f-number the RAW's EXIF records",
+        "exif_exposure_s": "exposure time the RAW's EXIF records, s",
+        "exif_iso": "ISO speed the RAW's EXIF records",
+        "exif_lens": "lens the RAW's EXIF names",
+        "exif_serial": "camera serial number the RAW's EXIF records",
+        "exif_focus_distance_m": "focus distance the RAW's EXIF records, m (NULL when the lens does not say)",
+    },
+    "psfs": {
+        "id": "PSF id",
+        "rig_id": "the rig (rigs.id)",
+        "run_id": "the run (runs.id)",
+        "step_id": "the step (steps.id)",
+        "method": "bernoulli, two-photo or sharp-edge",
+        "channel": "Bayer channel plane: r, g1, g2, b (or mono)",
+        "aperture": "f-number",
+        "focal_length_mm": "focal length, mm",
+        "focus_distance_m": "focus distance, m",
+        "field_x": "window centre across the image, normalised: 0 left edge, 1 right edge",
+        "field_y": "window centre down the image, normalised: 0 top edge, 1 bottom edge",
+        "window_x0": "window left edge on the channel plane, channel pixels",
+        "window_y0": "window top edge on the channel plane, channel pixels",
+        "window_x1": "window right edge (exclusive), channel pixels",
+        "window_y1": "window bottom edge (exclusive), channel pixels",
+        "s": "super-resolution factor: kernel samples per channel pixel",
+        "support": "kernel side, samples of the s-times grid (odd)",
+        "psf": "the kernel: a NumPy .npy file (float64, support x support, unit sum, centred), "
+               "numpy.load(io.BytesIO(blob))",
+        "mtf50_x": "MTF50 along x (horizontal frequency), cycles per channel pixel (Nyquist 0.5)",
+        "mtf50_y": "MTF50 along y (vertical frequency), cycles per channel pixel (Nyquist 0.5)",
+        "fwhm_x": "full width at half maximum along x, channel pixels",
+        "fwhm_y": "full width at half maximum along y, channel pixels",
+        "noise_floor": "expected RMS error of each kernel sample from sensor noise, fraction of energy per sample",
+        "residual": "RMS residual of the image model, normalised data units (0 to 1)",
+        "params": "estimator parameters, JSON",
+        "psfd_version": "psfd version that made the estimate",
+        "warnings": "conditions of the method only partly met, JSON list of sentences",
+        "sources": "files the estimate came from, JSON list",
+        "created": "when the estimate was stored, ISO 8601 UTC",
+    },
+    "psf_frames": {
+        "psf_id": "the PSF (psfs.id)",
+        "frame_id": "a frame it was estimated from (frames.id)",
+    },
+}
+TABLES = {
+    "rigs": "Cameras and lenses, one row per model, serial and lens.",
+    "runs": "Runs of measurement plans, with the plan's text.",
+    "steps": "The journal of each run: one row per exposure position, with its state.",
+    "frames": "RAW frames, stored once by content hash.",
+    "psfs": "Sub-pixel PSFs, one per channel, field location and aperture, with their metrics.",
+    "psf_frames": "Which frames each PSF was estimated from.",
+}
+# Units Datasette shows beside values (names from Pint's registry); the others are in the descriptions.
+UNITS = {"rigs": {"focal_length_mm": "mm"}, "psfs": {"focal_length_mm": "mm", "focus_distance_m": "m"}}
+
+
+def datasette_metadata(database: str = "catalogue") -> dict:
+    """Datasette's metadata (``datasette CATALOGUE.sqlite -m metadata.json``) for a catalogue file
+    whose name without suffix is ``database``: every table and column described, with units."""
+    return {
+        "title": "psfd PSF catalogue",
+        "description": "Sub-pixel point spread functions measured by psfd: MTF50 in cycles per channel pixel "
+                       "(Nyquist 0.5), FWHM in channel pixels, field positions normalised (0,0 top-left).",
+        "databases": {
+            database: {
+                "description": f"psfd catalogue, schema version {SCHEMA_VERSION}",
+                "tables": {
+                    name: {
+                        "description": TABLES[name],
+                        "columns": dict(columns),
+                        **({"units": UNITS[name]} if name in UNITS else {}),
+                        **({"sort_desc": "id"} if name in ("runs", "psfs") else {}),
+                    }
+                    for name, columns in COLUMNS.items()
+                },
+            }
+        },
+    }

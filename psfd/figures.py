@@ -1,324 +1,591 @@
 """Every picture psfd draws: the PSF figure, array images, the method comparison and the field report.
 
 The commands only decide what to draw and where; the drawing lives here, so
-that a figure looks the same whichever command writes it. Pictures are BGR
-uint8 arrays drawn with OpenCV and written by `save` (PNG, JPEG or TIFF by the
-file's suffix). MTF profiles come from `psfd.estimator.mtf`, in cycles per
-channel pixel (Nyquist 0.5).
+that a figure looks the same whichever command writes it. Figures are drawn
+with matplotlib's object interface on the Agg canvas (no pyplot, no GUI, no
+global state) and written by their file suffix: PNG for viewing, PDF or SVG
+when a vector file is wanted. matplotlib is imported inside the drawing
+functions, so that commands which draw nothing never load it.
+
+Units, the same on every figure: spatial frequency in cycles per channel pixel
+(the channel plane of one Bayer colour; its Nyquist frequency is 0.5), and in
+line pairs per mm on a second axis when the photosite pitch is known
+(`psfd.estimator.mtf.lp_per_mm`); PSF values are the fraction of the kernel's
+energy in one sample of the s-times grid (a kernel sums to 1); positions on a
+kernel in channel pixels from its centre; positions on the sensor in
+photosites from its top-left corner, and in mm when the pitch is known.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-import cv2
 import numpy as np
 
 from psfd.estimator import mtf
 from psfd.estimator.kernels import PSF
 
-__all__ = ["array_image", "can_write", "comparison_figure", "psf_figure", "report_figure", "save", "save_array",
-           "save_comparison", "save_psf", "save_report"]
+if TYPE_CHECKING:  # pragma: no cover - types only
+    from matplotlib.figure import Figure
+
+__all__ = ["FORMATS", "Sensor", "array_figure", "can_write", "comparison_figure", "pixel_borders", "psf_figure",
+           "report_figure", "save", "save_array", "save_comparison", "save_psf", "save_report"]
+
+# Suffixes matplotlib writes without extra libraries: raster for viewing, vector for papers and print.
+FORMATS = ("png", "pdf", "svg", "eps", "jpg", "jpeg", "tif", "tiff", "webp")
+DPI = 110
+NEGATIVE = "#7fc8e8"  # light blue: not in inferno, so a negative sample can never pass for a small one
+LOG_DECADES = 4  # the log views show four decades below the largest value
+CHANNEL_ORDER = ("r", "g1", "g2", "b", "mono")
+FREQ_LABEL = "spatial frequency (cycles per channel pixel)"
+VALUE_LABEL = "PSF value (fraction of energy per sample)"
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """The sensor a field report is drawn on: its size in photosites and, when known, the photosite pitch."""
+
+    width: int
+    height: int
+    pitch_um: float | None = None
+
+    @property
+    def aspect(self) -> float:
+        return self.width / self.height
+
+
+# ---------------------------------------------------------------- files
 
 
 def can_write(path: str | Path) -> bool:
-    """Whether `save` can write an image of this file name (by its suffix)."""
-    return bool(cv2.haveImageWriter(str(path)))
+    """Whether `save` can write a figure of this file name (by its suffix, `FORMATS`)."""
+    return Path(path).suffix.lower().lstrip(".") in FORMATS
 
 
-def save(image: np.ndarray, path: str | Path) -> None:
-    """Write a picture; the format follows the suffix. OSError when it cannot be encoded or written."""
-    if not cv2.imwrite(str(path), image):
-        raise OSError(f"cannot write {Path(path).name}")
+def _figure(width: float, height: float, layout: str | None = None) -> Figure:
+    """A new figure on the Agg canvas (no pyplot: nothing global, nothing that opens a window).
+
+    ``layout``: None places the axes by the callers' fixed margins (`Figure.subplots_adjust`), which
+    draws several times faster than the constrained layout engine measuring every label.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height), dpi=DPI, layout=layout)
+    FigureCanvasAgg(fig)
+    return fig
 
 
-def save_psf(est: PSF, path: str | Path) -> None:
+def save(fig: Figure, path: str | Path) -> None:
+    """Write a figure; the format follows the suffix (`FORMATS`). OSError when it cannot be written."""
+    path = Path(path)
+    if not can_write(path):
+        raise OSError(f"cannot write a figure named {path.name} (use {', '.join(FORMATS[:3])})")
+    fmt = path.suffix.lower().lstrip(".")
+    metadata = {"Creator": "psfd"} if fmt in ("png", "pdf", "svg") else None
+    # the format is given, not guessed: the staging names of atomic writes end in .partial.png
+    fig.savefig(path, format={"jpg": "jpeg", "tif": "tiff"}.get(fmt, fmt), dpi=DPI, metadata=metadata)
+
+
+def save_psf(est: PSF, path: str | Path, pitch_um: float | None = None) -> None:
     """`psf_figure` of one estimate, written to ``path``."""
-    save(psf_figure(est), path)
+    save(psf_figure(est, pitch_um), path)
 
 
-def save_array(array: np.ndarray, path: str | Path) -> None:
-    """`array_image` of a 2-D array, written to ``path``."""
-    save(array_image(array), path)
+def save_array(array: np.ndarray, path: str | Path, name: str = "", est: PSF | None = None) -> None:
+    """`array_figure` of a 2-D array that came with an estimate, written to ``path``."""
+    save(array_figure(array, name, est), path)
 
 
-def save_comparison(curves: list[tuple[str, np.ndarray, int]], path: str | Path) -> None:
+def save_comparison(curves: list[tuple[str, np.ndarray, int]], path: str | Path, against_truth: bool = False) -> None:
     """`comparison_figure` of labelled kernels ``(label, psf, s)``, written to ``path``."""
-    save(comparison_figure(curves), path)
+    save(comparison_figure(curves, against_truth), path)
 
 
-def save_report(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: str, path: str | Path) -> None:
+def save_report(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: str, path: str | Path,
+                sensors: Mapping[int, Sensor | None] | None = None) -> None:
     """`report_figure` of catalogue rows, written to ``path``."""
-    save(report_figure(rows, arrays, channel), path)
+    save(report_figure(rows, arrays, channel, sensors), path)
 
 
-# ---------------------------------------------------------------- one estimate
-
-PSF_PANEL = 360  # target side of the enlarged PSF panel, pixels
-PAD = 12
-TITLE = 34  # height of the title band
-PLOT_W, PLOT_H = 520, 360
-AXES = (56, 16, 24, 44)  # left, top, right, bottom margins of the MTF axes inside the plot
-GRID_COLOUR = (0, 200, 0)  # BGR; not in the inferno colour map, so the grid is always visible
-X_COLOUR = (200, 90, 0)
-Y_COLOUR = (0, 0, 210)
-FONT = cv2.FONT_HERSHEY_SIMPLEX
+# ---------------------------------------------------------------- kernels
 
 
-def zoom(size: int) -> int:
-    """Nearest-neighbour enlargement of a kernel of ``size`` samples for the PSF panel."""
-    return max(1, PSF_PANEL // size)
+def kernel_extent(shape: tuple[int, int], s: int) -> list[float]:
+    """imshow extent (left, right, bottom, top) of a kernel in channel pixels from its centre sample."""
+    rows, cols = shape
+    cx, cy = cols // 2, rows // 2
+    return [(-cx - 0.5) / s, (cols - 1 - cx + 0.5) / s, (rows - 1 - cy + 0.5) / s, (-cy - 0.5) / s]
 
 
-def grid_lines(size: int, s: int, factor: int) -> list[int]:
-    """Panel pixel positions of the channel-pixel borders drawn over a kernel.
+def pixel_borders(size: int, s: int) -> list[float]:
+    """Channel-pixel borders inside a kernel of ``size`` samples, in channel pixels from its centre.
 
-    The centre sample (size // 2) is the centre of a channel pixel, whose
-    borders lie s/2 samples either side; the others follow every s samples.
+    The centre sample is the centre of a channel pixel, so the borders lie at
+    odd multiples of half a pixel from it.
     """
-    centre = size // 2 + 0.5  # sample-edge coordinates
-    first = centre - s / 2
-    first -= math.floor(first / s) * s
-    return [int(round(e * factor)) for e in np.arange(first, size + 1e-9, s) if 0 < e < size]
+    half = (size / 2) / s
+    return [m + 0.5 for m in range(-math.ceil(half) - 1, math.ceil(half) + 1) if abs(m + 0.5) < half - 1e-9]
 
 
-def _text(img: np.ndarray, text: str, org: tuple[int, int], colour=(0, 0, 0), scale: float = 0.45) -> None:
-    cv2.putText(img, text, org, FONT, scale, colour, 1, cv2.LINE_AA)
+def _draw_pixel_grid(ax: Any, shape: tuple[int, int], s: int) -> None:
+    for x in pixel_borders(shape[1], s):
+        ax.axvline(x, color="0.75", lw=0.6, alpha=0.7)
+    for y in pixel_borders(shape[0], s):
+        ax.axhline(y, color="0.75", lw=0.6, alpha=0.7)
 
 
-def psf_panel(psf: np.ndarray, s: int) -> np.ndarray:
-    """The kernel enlarged with nearest neighbour (inferno map, negatives black) and the channel-pixel grid."""
-    peak = float(np.max(psf))
-    grey = np.clip(psf / peak if peak > 0 else psf * 0, 0, 1)
-    img = cv2.applyColorMap(np.round(grey * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
-    f = zoom(psf.shape[0])
-    img = cv2.resize(img, None, fx=f, fy=f, interpolation=cv2.INTER_NEAREST)
-    for pos in grid_lines(psf.shape[1], s, f):
-        img[:, pos] = GRID_COLOUR
-    for pos in grid_lines(psf.shape[0], s, f):
-        img[pos, :] = GRID_COLOUR
-    return img
+def _kernel_axes(ax: Any, title: str) -> None:
+    ax.set_title(title, fontsize=10)
+    ax.set_xlabel("x (channel pixels)")
+    ax.set_ylabel("y (channel pixels)")
 
 
-def mtf_plot(psf: np.ndarray, s: int) -> np.ndarray:
-    """Horizontal (x) and vertical (y) MTF profiles up to s/2 cycles per channel pixel.
+def _cmap(name: str, under: str | None = None, bad: str | None = None) -> Any:
+    import matplotlib
 
-    Nyquist (0.5 cycle per channel pixel) is the dashed line; the MTF50 of
-    each profile is printed in its colour.
+    extremes = {key: colour for key, colour in (("under", under), ("bad", bad)) if colour}
+    return matplotlib.colormaps[name].with_extremes(**extremes)
+
+
+def mtf_noise_band(est: PSF) -> float | None:
+    """One standard deviation of the MTF error that the kernel's noise floor implies, or None.
+
+    With independent errors of RMS sigma on the n samples of a unit-sum kernel,
+    each OTF value is off by sigma * sqrt(n) (Parseval): MTF values below this
+    band cannot be told from noise (Delbracio et al., IJCV 2012, sec. 2, on the
+    noise of the estimate).
     """
-    img = np.full((PLOT_H, PLOT_W, 3), 255, dtype=np.uint8)
-    left, top, right, bottom = AXES
-    x0, y0, x1, y1 = left, top, PLOT_W - right, PLOT_H - bottom
-    freqs, mx, my = mtf.profiles(psf, s)
-    fmax = float(freqs[-1])
-    # An MTF above 1 (negative kernel lobes) is shown up to 2, not hidden.
-    top_value = min(2.0, 1.05 * max(1.0, float(mx.max()), float(my.max())))
-
-    def px(f: np.ndarray | float, m: np.ndarray | float) -> tuple:
-        return x0 + np.asarray(f) / fmax * (x1 - x0), y1 - np.clip(m, 0, top_value) / top_value * (y1 - y0)
-
-    for level in (0.5, 1.0):  # guide lines
-        _, yy = px(0, level)
-        cv2.line(img, (x0, int(yy)), (x1, int(yy)), (215, 215, 215), 1)
-    nx, _ = px(0.5, 0)
-    for y in range(y0, y1, 8):  # dashed Nyquist line
-        cv2.line(img, (int(nx), y), (int(nx), min(y + 4, y1)), (120, 120, 120), 1)
-    _text(img, "Nyquist", (int(nx) + 4, y0 + 14), (90, 90, 90), 0.4)
-    for values, colour in ((mx, X_COLOUR), (my, Y_COLOUR)):
-        xs, ys = px(freqs, values)
-        points = np.round(np.stack([xs, ys], axis=1)).astype(np.int32)
-        cv2.polylines(img, [points], False, colour, 2, cv2.LINE_AA)
-    cv2.rectangle(img, (x0, y0), (x1, y1), (0, 0, 0), 1)
-    step = 0.5 if fmax <= 4 else 1.0
-    for f in np.arange(0, fmax + 1e-9, step):
-        xx, _ = px(f, 0)
-        cv2.line(img, (int(xx), y1), (int(xx), y1 + 4), (0, 0, 0), 1)
-        _text(img, f"{f:g}", (int(xx) - 8, y1 + 18), scale=0.4)
-    for m in np.arange(0, top_value, 0.5):
-        _, yy = px(0, m)
-        cv2.line(img, (x0 - 4, int(yy)), (x0, int(yy)), (0, 0, 0), 1)
-        _text(img, f"{m:.1f}", (x0 - 34, int(yy) + 5), scale=0.4)
-    _text(img, "cycles / channel pixel", (x0 + (x1 - x0) // 2 - 80, PLOT_H - 6), scale=0.45)
-    _, label_y = px(0, 0.75)
-    _text(img, "MTF", (8, int(label_y) + 5), scale=0.45)
-    for row, (name, values, colour) in enumerate((("x", mx, X_COLOUR), ("y", my, Y_COLOUR))):
-        value = mtf.mtf50(freqs, values)
-        label = f"MTF {name}: MTF50 {value:.3f}" if math.isfinite(value) else f"MTF {name}: MTF50 n/a"
-        _text(img, label, (x1 - 200, y0 + 40 + 20 * row), colour)
-    return img
+    if est.noise_floor is None or not math.isfinite(est.noise_floor):
+        return None
+    return float(est.noise_floor) * math.sqrt(est.psf.size)
 
 
-def psf_figure(est: PSF) -> np.ndarray:
-    """The figure of one estimate (BGR uint8): title, PSF panel with pixel grid, MTF profiles."""
-    panel = psf_panel(est.psf, est.s)
-    plot = mtf_plot(est.psf, est.s)
-    height = TITLE + max(panel.shape[0], PLOT_H) + PAD
-    width = 3 * PAD + panel.shape[1] + PLOT_W
-    img = np.full((height, width, 3), 255, dtype=np.uint8)
-    img[TITLE : TITLE + panel.shape[0], PAD : PAD + panel.shape[1]] = panel
-    img[TITLE : TITLE + PLOT_H, 2 * PAD + panel.shape[1] : 2 * PAD + panel.shape[1] + PLOT_W] = plot
-    title = (
-        f"{est.method} {est.channel}  field ({est.field[0]:.2f}, {est.field[1]:.2f})  "
-        f"s={est.s}  support={est.support}  grid lines = channel pixels"
+def psf_figure(est: PSF, pitch_um: float | None = None) -> Figure:
+    """The figure of one estimate: the kernel in a linear and a log view on the s-times grid with the
+    channel-pixel grid drawn, and its horizontal and vertical MTF with the noise floor as a band.
+
+    ``pitch_um``: the photosite pitch, for a second frequency axis in line pairs per mm.
+    """
+    from matplotlib.colors import LogNorm, Normalize
+
+    psf, s = est.psf, est.s
+    fig = _figure(16.5, 5.2)
+    fig.subplots_adjust(left=0.05, right=0.985, bottom=0.11, top=0.83, wspace=0.42)
+    ax_lin, ax_log, ax_mtf = fig.subplots(1, 3, width_ratios=[1, 1, 1.3])
+    extent = kernel_extent(psf.shape, s)
+    peak = float(psf.max())
+    negative = bool((psf < 0).any())
+
+    image = ax_lin.imshow(psf, cmap=_cmap("inferno", under="black"), norm=Normalize(0.0, peak), extent=extent,
+                          interpolation="nearest")
+    _draw_pixel_grid(ax_lin, psf.shape, s)
+    _kernel_axes(ax_lin, "linear scale" + (" (negative values drawn as 0)" if negative else ""))
+    bar = fig.colorbar(image, ax=ax_lin, shrink=0.85, extend="min" if negative else "neither")
+    bar.set_label(VALUE_LABEL)
+
+    floor = peak * 10.0 ** -LOG_DECADES
+    image = ax_log.imshow(np.where(psf > 0, psf, np.nan), cmap=_cmap("inferno", under="black", bad=NEGATIVE),
+                          norm=LogNorm(floor, peak), extent=extent, interpolation="nearest")
+    _draw_pixel_grid(ax_log, psf.shape, s)
+    _kernel_axes(ax_log, f"log scale, {LOG_DECADES} decades\n(black: below, blue: negative or 0)")
+    bar = fig.colorbar(image, ax=ax_log, shrink=0.85, extend="min")
+    bar.set_label(VALUE_LABEL)
+    if est.noise_floor and floor < est.noise_floor < peak:
+        bar.ax.axhline(est.noise_floor, color="white", lw=2)
+        bar.set_label(VALUE_LABEL + "\nwhite line: noise floor")
+
+    _mtf_axes(ax_mtf, est, pitch_um)
+    m = est.metrics()
+    fig.suptitle(
+        f"{est.method} PSF, channel {est.channel}, field ({est.field[0]:.2f}, {est.field[1]:.2f}) of "
+        f"{', '.join(Path(p).name for p in est.sources) or 'an image'}\n"
+        f"s = {s} (grid lines: channel pixels), support {psf.shape[0]} samples = {psf.shape[0] / s:.2f} px;  "
+        f"FWHM x {_num(m['fwhm_x'], '.2f')} y {_num(m['fwhm_y'], '.2f')} px;  "
+        f"noise floor {_num(est.noise_floor, '.1e')} per sample",
+        fontsize=10,
     )
-    _text(img, title, (PAD, 22), scale=0.5)
-    return img
+    return fig
 
 
-def array_image(array: np.ndarray, min_side: int = 256) -> np.ndarray:
-    """A 2-D array as 8-bit grey for viewing: signed arrays centred on mid-grey, small ones enlarged."""
-    a = np.nan_to_num(np.asarray(array, dtype=np.float64))
-    lo, hi = float(a.min()), float(a.max())
-    if lo < 0:
-        span = max(-lo, hi) or 1.0
-        grey = 127.5 + 127.5 * a / span
+def _num(value: float | None, spec: str) -> str:
+    return "n/a" if value is None or not math.isfinite(value) else format(value, spec)
+
+
+def _mtf_axes(ax: Any, est: PSF, pitch_um: float | None) -> None:
+    """Horizontal (x) and vertical (y) MTF profiles up to s/2, Nyquist, MTF50 and the noise floor band."""
+    freqs, mx, my = mtf.profiles(est.psf, est.s)
+    band = mtf_noise_band(est)
+    if band is not None:
+        ax.axhspan(0.0, band, color="0.6", alpha=0.35, lw=0, label=f"noise floor (1 sigma = {band:.3f})")
+    for values, style, name in ((mx, "-", "x (horizontal frequency)"), (my, "--", "y (vertical frequency)")):
+        value = mtf.mtf50(freqs, values)
+        line, = ax.plot(freqs, values, style, lw=1.8, label=f"{name}: MTF50 {_num(value, '.3f')}")
+        if math.isfinite(value):
+            ax.plot([value], [0.5], "o", color=line.get_color(), ms=5)
+    ax.axhline(0.5, color="0.5", lw=0.6, ls=":")
+    ax.axvline(0.5, color="0.3", lw=0.8, ls="-.", label="Nyquist (0.5)")
+    top = max(1.0, float(mx.max()), float(my.max()))  # an MTF above 1 (negative lobes) is shown, not clipped
+    ax.set_xlim(0, freqs[-1])
+    ax.set_ylim(0, 1.05 * top)
+    ax.set_xlabel(FREQ_LABEL)
+    ax.set_ylabel("MTF")
+    ax.set_title("MTF profiles", fontsize=10)
+    ax.grid(alpha=0.25)
+    ax.legend(fontsize=8, loc="upper right")
+    if pitch_um:
+        scale = mtf.lp_per_mm(1.0, pitch_um, est.channel)
+        top_axis = ax.secondary_xaxis("top", functions=(lambda f: f * scale, lambda f: f / scale))
+        top_axis.set_xlabel("line pairs per mm", fontsize=9)
+
+
+# ---------------------------------------------------------------- arrays beside an estimate
+
+# name -> (title, colour bar label, axes on the kernel's s-grid (True) or the channel plane (False))
+ARRAYS = {
+    "kernel": ("inter-image kernel k (near to far), s-times grid", "value (fraction of energy per sample)", True),
+    "residual": ("model residual on the far photograph (0 outside the mask)",
+                 "far minus predicted (normalised data units)", False),
+}
+
+
+def array_figure(array: np.ndarray, name: str = "", est: PSF | None = None) -> Figure:
+    """A 2-D array with axes and a colour bar: signed arrays on a diverging map centred on 0.
+
+    ``name`` picks the title and units (`ARRAYS`); ``est`` gives the s-grid (kernels) or the window
+    origin on the channel plane (images), so the axes are in channel pixels.
+    """
+    from matplotlib.colors import Normalize
+
+    a = np.asarray(array, dtype=np.float64)
+    title, label, on_grid = ARRAYS.get(name, (name or "array", "value", False))
+    fig = _figure(6.6, 5.6 * min(2.0, max(0.5, a.shape[0] / a.shape[1])))
+    ax = fig.subplots()
+    finite = a[np.isfinite(a)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    if lo < 0 < hi:
+        span = max(-lo, hi)
+        cmap, norm = "RdBu_r", Normalize(-span, span)
     else:
-        grey = 255 * a / (hi or 1.0)
-    img = np.round(np.clip(grey, 0, 255)).astype(np.uint8)
-    factor = max(1, min_side // max(img.shape))
-    return cv2.resize(img, None, fx=factor, fy=factor, interpolation=cv2.INTER_NEAREST) if factor > 1 else img
+        lo = min(lo, 0.0)  # a non-negative array is drawn from 0, so its colours are proportions
+        cmap, norm = "inferno", Normalize(lo, hi if hi > lo else lo + 1.0)
+    if on_grid and est is not None:
+        extent = kernel_extent(a.shape, est.s)
+        xlabel, ylabel = "x (channel pixels from the centre)", "y (channel pixels from the centre)"
+    else:
+        x0, y0 = (est.window[0], est.window[1]) if est is not None else (0, 0)
+        extent = [x0 - 0.5, x0 + a.shape[1] - 0.5, y0 + a.shape[0] - 0.5, y0 - 0.5]
+        xlabel, ylabel = "x (channel pixels)", "y (channel pixels)"
+    image = ax.imshow(a, cmap=cmap, norm=norm, extent=extent, interpolation="nearest")
+    if on_grid and est is not None:
+        _draw_pixel_grid(ax, a.shape, est.s)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    source = f"\n{', '.join(Path(p).name for p in est.sources)}, channel {est.channel}" if est is not None else ""
+    ax.set_title(f"{title}{source}", fontsize=10)
+    fig.colorbar(image, ax=ax, shrink=0.85).set_label(label)
+    return fig
 
 
 # ---------------------------------------------------------------- method comparison
 
-COLOURS = ((200, 90, 0), (0, 0, 210), (0, 150, 0), (160, 0, 160), (0, 140, 220), (120, 80, 40), (90, 90, 90))
-W, H = 760, 460
-LEFT, TOP, RIGHT, BOTTOM = 56, 16, 250, 44
 
+def comparison_figure(curves: list[tuple[str, np.ndarray, int]], against_truth: bool = False) -> Figure:
+    """Overlaid MTF profiles of labelled kernels ``(label, psf, s)``: x solid, y dashed, one colour per kernel.
 
-def comparison_figure(curves: list[tuple[str, np.ndarray, int]]) -> np.ndarray:
-    """Overlaid MTF profiles (x solid, y dotted), one colour per curve, legend on the right (BGR uint8)."""
-    img = np.full((H, W, 3), 255, np.uint8)
-    x0, y0, x1, y1 = LEFT, TOP, W - RIGHT, H - BOTTOM
-    fmax = max(s for _, _, s in curves) / 2.0
+    A kernel labelled ``truth`` is drawn in black. The vertical axis reaches the largest value drawn,
+    so an MTF above 1 (negative kernel lobes) is never clipped.
+    """
+    from matplotlib.lines import Line2D
 
-    def px(f, m):
-        return x0 + np.asarray(f) / fmax * (x1 - x0), y1 - np.clip(m, 0, 1.05) / 1.05 * (y1 - y0)
-
-    nx, _ = px(0.5, 0)
-    cv2.line(img, (int(nx), y0), (int(nx), y1), (170, 170, 170), 1)
-    _text(img, "Nyquist", (int(nx) + 4, y0 + 14), (90, 90, 90), 0.4)
-    for i, (label, psf, s) in enumerate(curves):
-        colour = (0, 0, 0) if label == "truth" else COLOURS[i % len(COLOURS)]
-        f, mx, my = mtf.profiles(psf, s)
-        for values, dotted in ((mx, False), (my, True)):
-            xs, ys = px(f, values)
-            pts = np.round(np.stack([xs, ys], 1)).astype(np.int32)
-            if dotted:  # OpenCV draws no dashed lines: every other short piece of the polyline
-                for j in range(0, len(pts) - 1, 4):
-                    end = pts[min(j + 2, len(pts) - 1)]
-                    cv2.line(img, tuple(map(int, pts[j])), tuple(map(int, end)), colour, 1, cv2.LINE_AA)
-            else:
-                cv2.polylines(img, [pts], False, colour, 2, cv2.LINE_AA)
-        ly = y0 + 14 + 18 * i
-        cv2.line(img, (x1 + 12, ly - 4), (x1 + 32, ly - 4), colour, 2)
-        _text(img, label[:40], (x1 + 38, ly), (0, 0, 0), 0.33)
-    cv2.rectangle(img, (x0, y0), (x1, y1), (0, 0, 0), 1)
-    for f in np.arange(0, fmax + 1e-9, 0.5):
-        xx, _ = px(f, 0)
-        _text(img, f"{f:g}", (int(xx) - 8, y1 + 18), (0, 0, 0), 0.4)
-    for m in (0.0, 0.5, 1.0):
-        _, yy = px(0, m)
-        _text(img, f"{m:.1f}", (x0 - 34, int(yy) + 5), (0, 0, 0), 0.4)
-    _text(img, "cycles / channel pixel   (x solid, y dotted)", (x0 + 60, H - 8), (0, 0, 0), 0.45)
-    return img
+    fig = _figure(11.5, 5.6)
+    ax = fig.subplots()
+    handles, top, fmax = [], 1.0, 0.5
+    colours = iter(f"C{i}" for i in range(1000))
+    for label, psf, s in curves:
+        colour = "black" if label == "truth" else next(colours)
+        freqs, mx, my = mtf.profiles(psf, s)
+        ax.plot(freqs, mx, "-", color=colour, lw=1.8 if label == "truth" else 1.4)
+        ax.plot(freqs, my, "--", color=colour, lw=1.8 if label == "truth" else 1.4)
+        handles.append(Line2D([], [], color=colour, lw=2.5, label=label if len(label) <= 48 else label[:47] + "~"))
+        top = max(top, float(mx.max()), float(my.max()))
+        fmax = max(fmax, float(freqs[-1]))
+    ax.axvline(0.5, color="0.3", lw=0.8, ls="-.")
+    ax.axhline(0.5, color="0.5", lw=0.6, ls=":")
+    ax.text(0.5, 1.0, " Nyquist", transform=ax.get_xaxis_transform(), va="top", fontsize=8, color="0.3")
+    ax.set_xlim(0, fmax)
+    ax.set_ylim(0, 1.05 * top)
+    if top > 1.0:
+        ax.axhline(1.0, color="0.5", lw=0.6)
+        ax.text(0.5, 1.0, " MTF above 1: negative kernel lobes", ha="left", va="bottom", fontsize=8, color="0.3")
+    ax.set_xlabel(FREQ_LABEL)
+    ax.set_ylabel("MTF")
+    ax.grid(alpha=0.25)
+    ax.set_title("MTF of each estimate" + (" and of the true PSF" if against_truth else ""), fontsize=11)
+    styles = [Line2D([], [], color="0.2", ls="-", label="solid: x (horizontal frequency)"),
+              Line2D([], [], color="0.2", ls="--", label="dashed: y (vertical frequency)")]
+    # inside, top right: every MTF has fallen there, and nothing of the legend falls off the figure
+    ax.legend(handles=handles + styles, loc="upper right", fontsize=8, framealpha=0.9)
+    return fig
 
 
 # ---------------------------------------------------------------- field report
 
-REPORT_PANEL = (480, 320)  # width, height of one field panel: a 3:2 sensor
-REPORT_MARGIN, REPORT_HEADER = 16, 28
-WHITE = (255, 255, 255)
+TILE = 0.1  # side of one PSF tile, as a fraction of the sensor width: the same for every tile and figure
 
 
-def _sharpness(row: dict) -> float | None:
-    values = [v for v in (row["mtf50_x"], row["mtf50_y"]) if v is not None]
-    return float(np.mean(values)) if values else None
+def sagittal_meridional(psf: np.ndarray, s: int, field: tuple[float, float], aspect: float) -> tuple[float, float]:
+    """MTF50 (cycles per channel pixel) across and along the radius through a field point.
 
-
-def _psf_field(rows: list[dict], arrays: Mapping[int, np.ndarray]) -> np.ndarray:
-    """Each PSF drawn at its field position, scaled to its own peak, square-root shaded to show the tails."""
-    width, height = REPORT_PANEL
-    panel = np.zeros((height, width, 3), np.uint8)
-    n_side = math.ceil(math.sqrt(len(rows)))
-    size = int(np.clip(min(width, height) / (n_side + 1), 24, 96))
-    for row in rows:
-        array = arrays[row["id"]]
-        shade = np.sqrt(np.clip(array / max(array.max(), 1e-300), 0, 1))
-        thumb = cv2.applyColorMap(
-            cv2.resize((255 * shade).astype(np.uint8), (size, size), interpolation=cv2.INTER_NEAREST),
-            cv2.COLORMAP_INFERNO,
-        )
-        cx = int(np.clip(row["field_x"] * width - size / 2, 0, width - size))
-        cy = int(np.clip(row["field_y"] * height - size / 2, 0, height - size))
-        panel[cy : cy + size, cx : cx + size] = thumb
-        cv2.rectangle(panel, (cx, cy), (cx + size - 1, cy + size - 1), (90, 90, 90), 1)
-    return panel
-
-
-def _mtf50_field(rows: list[dict], vmin: float, vmax: float) -> np.ndarray:
-    """MTF50 over the field, inverse-distance-weighted between the measured locations.
-
-    Inverse distance weighting (a few lines of numpy) is used rather than scipy's
-    griddata because it needs no triangulation, so it also works with one or two
-    collinear measurements and leaves no holes outside their convex hull.
+    Meridional: frequencies along the radius from the image centre (the MTF of lines tangent to a
+    circle around the centre); sagittal: frequencies across it (lines along the radius). At the
+    centre, where there is no radius, x is taken as the radius.
     """
-    width, height = REPORT_PANEL
-    points = [(r["field_x"], r["field_y"], _sharpness(r)) for r in rows if _sharpness(r) is not None]
-    panel = np.zeros((height, width, 3), np.uint8)
-    if not points:
-        _text(panel, "no MTF50", (10, height // 2), WHITE, 0.6)
-        return panel
-    fx, fy, value = (np.array(v, float) for v in zip(*points))
-    gy, gx = np.mgrid[0:height:4, 0:width:4]
-    d2 = (gx[..., None] / width - fx) ** 2 + (gy[..., None] / height - fy) ** 2
-    weight = 1.0 / np.maximum(d2, 1e-9)
-    field = (weight * value).sum(-1) / weight.sum(-1)
-    level = np.clip((field - vmin) / max(vmax - vmin, 1e-12), 0, 1)
-    small = cv2.applyColorMap((255 * level).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
-    panel[:] = cv2.resize(small, (width, height), interpolation=cv2.INTER_LINEAR)
-    for x, y, v in points:
-        centre = (int(x * (width - 1)), int(y * (height - 1)))
-        cv2.circle(panel, centre, 3, WHITE, -1, cv2.LINE_AA)
-        _text(panel, f"{v:.2f}", (centre[0] + 5, centre[1] - 5), WHITE, 0.4)
-    return panel
+    dx, dy = (field[0] - 0.5) * aspect, field[1] - 0.5
+    angle = math.atan2(dy, dx) if math.hypot(dx, dy) > 1e-6 else 0.0
+    freqs = np.linspace(0.0, s / 2.0, 257)
+    meridional = mtf.mtf50(freqs, mtf.directional_profile(psf, s, angle, freqs))
+    sagittal = mtf.mtf50(freqs, mtf.directional_profile(psf, s, angle + math.pi / 2, freqs))
+    return sagittal, meridional
 
 
-def _colour_bar(image: np.ndarray, origin: tuple[int, int], size: tuple[int, int]) -> None:
-    """The MTF50 colour scale, low to high from left to right."""
-    (x, y), (width, height) = origin, size
-    ramp = np.tile(np.linspace(0, 255, width).astype(np.uint8), (height, 1))
-    image[y : y + height, x : x + width] = cv2.applyColorMap(ramp, cv2.COLORMAP_VIRIDIS)
-
-
-def report_figure(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: str) -> np.ndarray:
-    """One band per (camera, lens, method, aperture): the PSFs over the field, and the MTF50 field map.
-
-    ``rows`` are catalogue rows (`psfd.catalogue.Catalogue.query`) of ``channel``, at least one;
-    ``arrays`` maps their ids to the PSF arrays. MTF50 is the mean of the x and y values in
-    cycles per channel pixel; one colour scale (printed in the title) is shared by all bands
-    so that apertures can be compared.
-    """
-    values = [v for v in map(_sharpness, rows) if v is not None]
-    vmin, vmax = (min(values), max(values)) if values else (0.0, 0.5)
+def _group_rows(rows: list[dict]) -> dict[tuple, list[dict]]:
     groups: dict[tuple, list[dict]] = {}
     for row in rows:
-        key = (row["camera"] or "", row["lens"] or "", row["method"], row["aperture"] or 0.0)
+        key = (row.get("camera") or "", row.get("lens") or "", row["method"], row.get("aperture") or 0.0)
         groups.setdefault(key, []).append(row)
-    (width, height), margin, header = REPORT_PANEL, REPORT_MARGIN, REPORT_HEADER
-    band = height + header + margin
-    image = np.full((header + margin + band * len(groups), 2 * width + 3 * margin, 3), 32, np.uint8)
-    title = f"channel {channel}   MTF50 (cycles/pixel) colour scale {vmin:.3f} .. {vmax:.3f}"
-    _text(image, title, (margin, header - 8), WHITE, 0.55)
-    _colour_bar(image, (image.shape[1] - margin - 160, 8), (160, 12))
-    for i, ((camera, lens, method, aperture), group) in enumerate(sorted(groups.items())):
-        top = header + margin + i * band
+    return dict(sorted(groups.items()))
+
+
+def _sensor_of(rows: list[dict], sensors: Mapping[int, Sensor | None]) -> Sensor:
+    """The sensor of a group of rows: the first known one, else inferred from the windows (channel planes)."""
+    known = [sensors[r["id"]] for r in rows if sensors.get(r["id"]) is not None]
+    pitch = next((k.pitch_um for k in known if k.pitch_um), None)
+    sized = [k for k in known if k.width > 0 and k.height > 0]
+    if sized:
+        return Sensor(sized[0].width, sized[0].height, sized[0].pitch_um or pitch)
+    widths, heights = [], []
+    for row in rows:  # the window centre is at field x plane size: plane size = centre / field
+        x0, y0, x1, y1 = row["window"]
+        factor = 1 if row["channel"] == "mono" else 2  # a Bayer plane has half the photosites
+        if row["field_x"] > 0.1:
+            widths.append(factor * (x0 + x1) / 2 / row["field_x"])
+        if row["field_y"] > 0.1:
+            heights.append(factor * (y0 + y1) / 2 / row["field_y"])
+    if widths and heights:
+        return Sensor(int(round(float(np.median(widths)))), int(round(float(np.median(heights)))), pitch)
+    return Sensor(3000, 2000, pitch)  # nothing to go by: a 3:2 frame
+
+
+def _field_points(rows: list[dict], arrays: Mapping[int, np.ndarray], sensor: Sensor) -> list[dict]:
+    """One point per measured field location (repeats averaged): photosite position, radius, S and M MTF50."""
+    points: dict[tuple, list] = {}
+    for row in rows:
+        key = (round(row["field_x"], 4), round(row["field_y"], 4))
+        sag, mer = sagittal_meridional(arrays[row["id"]], row["s"], (row["field_x"], row["field_y"]), sensor.aspect)
+        points.setdefault(key, []).append((sag, mer))
+    out = []
+    for (fx, fy), values in points.items():
+        sag = np.nanmean([v[0] for v in values]) if any(math.isfinite(v[0]) for v in values) else math.nan
+        mer = np.nanmean([v[1] for v in values]) if any(math.isfinite(v[1]) for v in values) else math.nan
+        x, y = fx * sensor.width, fy * sensor.height
+        radius = math.hypot(x - sensor.width / 2, y - sensor.height / 2)
+        out.append({"x": x, "y": y, "radius": radius, "sagittal": float(sag), "meridional": float(mer)})
+    return out
+
+
+def _sensor_axes(ax: Any, sensor: Sensor, title: str, *, show_x: bool, show_y: bool, mm_x: bool = False,
+                 mm_y: bool = False) -> None:
+    """Axes on the whole sensor, true aspect ratio, photosites from the top-left (labelled where ``show_x``,
+    ``show_y``); a mm scale on top (``mm_x``) or at the right (``mm_y``) when the pitch is known."""
+    ax.set_xlim(0, sensor.width)
+    ax.set_ylim(sensor.height, 0)
+    ax.set_aspect("equal")
+    ax.set_facecolor("0.93")
+    ax.set_title(title, fontsize=9)
+    ax.plot([sensor.width / 2], [sensor.height / 2], "+", color="0.4", ms=8, mew=0.8, zorder=5)  # the image centre, above tiles
+    ax.tick_params(labelsize=7)
+    if show_x:
+        ax.set_xlabel("x (photosites)", fontsize=8)
+    if show_y:
+        ax.set_ylabel("y (photosites)", fontsize=8)
+    if sensor.pitch_um:
+        mm = sensor.pitch_um / 1000.0
+        if mm_x:
+            top = ax.secondary_xaxis("top", functions=(lambda v: v * mm, lambda v: v / mm))
+            top.set_xlabel("x (mm)", fontsize=7)
+            top.tick_params(labelsize=6)
+        if mm_y:
+            side = ax.secondary_yaxis("right", functions=(lambda v: v * mm, lambda v: v / mm))
+            side.set_ylabel("y (mm)", fontsize=7)
+            side.tick_params(labelsize=6)
+
+
+def report_figure(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: str,
+                  sensors: Mapping[int, Sensor | None] | None = None) -> Figure:
+    """The field report: one row of panels per (camera, lens, method, aperture), and MTF50 against image height.
+
+    Each row shows the PSFs of every channel at their measured field positions on the whole sensor
+    (true aspect ratio, photosites and mm), one tile per PSF, all tiles the same size and on one log
+    colour scale; then the sagittal and meridional MTF50 of ``channel`` at each measured field point:
+    markers, coloured on one scale for every aperture, with linear interpolation drawn only inside
+    the measured points' hull (no extrapolation). The last row plots MTF50 against image height.
+
+    Parameters
+    ----------
+    rows : list of dict
+        Catalogue rows (`psfd.catalogue.Catalogue.query`), any channels.
+    arrays : mapping
+        PSF arrays by row id.
+    channel : str
+        The channel whose MTF50 is mapped and charted.
+    sensors : mapping, optional
+        `Sensor` of each row id (None or absent: inferred from the windows, no pitch).
+    """
+    from matplotlib import patheffects, tri
+    from matplotlib.colors import LogNorm, Normalize
+
+    sensors = sensors or {}
+    groups = _group_rows(rows)
+    channels = [c for c in CHANNEL_ORDER if any(r["channel"] == c for r in rows)]
+    if channel not in channels:
+        channel = channels[0]
+    bands = []
+    for key, group in groups.items():
+        sensor = _sensor_of(group, sensors)
+        points = _field_points([r for r in group if r["channel"] == channel], arrays, sensor)
+        bands.append((key, group, sensor, points))
+    values = [p[k] for *_, points in bands for p in points for k in ("sagittal", "meridional") if math.isfinite(p[k])]
+    vmin, vmax = (min(values), max(values)) if values else (0.0, 0.5)
+    if vmax - vmin < 1e-3:
+        vmin, vmax = vmin - 0.01, vmax + 0.01
+    mtf_norm = Normalize(vmin, vmax)
+    peak = max(float(arrays[r["id"]].max()) for r in rows)
+    psf_norm = LogNorm(peak * 10.0 ** -LOG_DECADES, peak)
+    psf_cmap = _cmap("inferno", under="black", bad=NEGATIVE)
+    halo = patheffects.withStroke(linewidth=2, foreground="white")  # values stay readable on dark colours
+
+    ncols = len(channels) + 2
+    aspect = bands[0][2].aspect
+    panel_w = 2.9
+    fig = _figure(panel_w * ncols + 0.8, (panel_w / aspect + 0.8) * (len(bands) + 1.1) + 2.0)
+    grid = fig.add_gridspec(len(bands) + 1, ncols, height_ratios=[1] * len(bands) + [1.1])
+    psf_axes, mtf_axes, psf_image, mtf_markers = [], [], None, None
+    rigs = {(camera, lens) for camera, lens, *_ in groups}
+    for i, ((camera, lens, method, aperture), group, sensor, points) in enumerate(bands):
+        last = i == len(bands) - 1
         name = f"f/{aperture:g}" if aperture else "f/?"
-        _text(image, f"{name}  {method}  {camera} {lens}  {len(group)} PSFs", (margin, top + 18), WHITE, 0.5)
-        _text(image, f"{name}: MTF50 map", (2 * margin + width, top + 18), WHITE, 0.5)
-        y = top + header
-        image[y : y + height, margin : margin + width] = _psf_field(group, arrays)
-        image[y : y + height, 2 * margin + width : 2 * margin + 2 * width] = _mtf50_field(group, vmin, vmax)
-    return image
+        rig = f" {camera} {lens}" if len(rigs) > 1 else ""
+        tile = TILE * sensor.width
+        for j, ch in enumerate(channels):
+            ax = fig.add_subplot(grid[i, j])
+            psf_axes.append(ax)
+            _sensor_axes(ax, sensor, f"{name}  channel {ch}: PSFs", show_x=last, show_y=j == 0, mm_x=i == 0)
+            if j == 0:
+                ax.set_ylabel(f"{name} {method}{rig}\ny (photosites)", fontsize=8)
+            for row in (r for r in group if r["channel"] == ch):
+                x, y = row["field_x"] * sensor.width, row["field_y"] * sensor.height
+                array = arrays[row["id"]]
+                extent = [x - tile / 2, x + tile / 2, y + tile / 2, y - tile / 2]
+                psf_image = ax.imshow(np.where(array > 0, array, np.nan), cmap=psf_cmap, norm=psf_norm,
+                                      extent=extent, interpolation="nearest", zorder=2)
+                ax.add_patch(_rectangle(extent))
+            ax.set_xlim(0, sensor.width)
+            ax.set_ylim(sensor.height, 0)
+        for j, kind in enumerate(("sagittal", "meridional")):
+            ax = fig.add_subplot(grid[i, len(channels) + j])
+            mtf_axes.append(ax)
+            _sensor_axes(ax, sensor, f"{name}  {channel}: MTF50 {kind}", show_x=last, show_y=False, mm_x=i == 0,
+                         mm_y=j == 1)
+            good = [p for p in points if math.isfinite(p[kind])]
+            xs, ys, vs = (np.array([p[k] for p in good]) for k in ("x", "y", kind))
+            if len(good) >= 3:
+                try:  # Delaunay triangles span the hull of the measured points only: nothing is extrapolated
+                    mesh = tri.Triangulation(xs, ys)
+                    ax.tripcolor(mesh, vs, cmap="viridis", norm=mtf_norm, shading="gouraud", zorder=1)
+                except (ValueError, RuntimeError):
+                    pass  # collinear points: no area to interpolate over, the markers say it all
+            mtf_markers = ax.scatter(xs, ys, c=vs, cmap="viridis", norm=mtf_norm, s=70, edgecolors="black",
+                                     linewidths=0.6, zorder=3)
+            for p in good:
+                ax.annotate(f"{p[kind]:.3f}", (p["x"], p["y"]), textcoords="offset points", xytext=(0, 7),
+                            ha="center", fontsize=6.5, zorder=4, path_effects=[halo])
+    from matplotlib.ticker import MaxNLocator
+
+    if psf_image is not None:
+        bar = fig.colorbar(psf_image, ax=psf_axes, location="bottom", shrink=0.6 if len(channels) > 2 else 0.95,
+                           aspect=40 if len(channels) > 2 else 15, extend="min")
+        bar.set_label(f"PSF value (fraction of energy per sample),\nlog scale, {LOG_DECADES} decades, the same for "
+                      "every tile", fontsize=8)
+    if mtf_markers is not None:
+        bar = fig.colorbar(mtf_markers, ax=mtf_axes, location="bottom", shrink=0.9, aspect=25)
+        bar.locator = MaxNLocator(6)
+        bar.update_ticks()
+        bar.set_label(f"MTF50 (cycles/pixel): one scale, {vmin:.3f} to {vmax:.3f}, for all apertures", fontsize=8)
+
+    ax = fig.add_subplot(grid[-1, :ncols])
+    _height_chart(ax, bands, channel)
+    import textwrap
+
+    tile_px = {r["support"] / r["s"] for r in rows}
+    about = (f"Each tile shows a whole kernel ({', '.join(f'{t:g}' for t in sorted(tile_px))} channel pixels) "
+             f"enlarged to {TILE:.0%} of the sensor width at its measured position; + marks the image centre; "
+             "meridional: frequencies along the radius, sagittal: across it.")
+    if len(rigs) == 1:
+        about = f"{' '.join(next(iter(rigs))).strip()}. {about}"
+    width = int(fig.get_figwidth() * 13)  # characters of 9-point text across the figure
+    fig.suptitle("\n".join([f"Field report: PSFs of {', '.join(channels)} and MTF50 of {channel} over the sensor, "
+                            "per aperture", *textwrap.wrap(about, width)]), fontsize=9)
+    return fig
+
+
+def _rectangle(extent: Sequence[float]) -> Any:
+    from matplotlib.patches import Rectangle
+
+    left, right, bottom, top = extent
+    return Rectangle((left, top), right - left, bottom - top, fill=False, edgecolor="0.45", lw=0.5, zorder=2.5)
+
+
+def _height_chart(ax: Any, bands: list, channel: str) -> None:
+    """MTF50 against image height (distance from the centre), one colour per row of the report,
+    sagittal solid with circles, meridional dashed with squares, a line through the mean at each height."""
+    from matplotlib.lines import Line2D
+
+    pitch = next((sensor.pitch_um for _, _, sensor, _ in bands if sensor.pitch_um), None)
+    handles = []
+    for i, ((camera, lens, method, aperture), _, sensor, points) in enumerate(bands):
+        colour = f"C{i % 10}"
+        for kind, style, marker in (("sagittal", "-", "o"), ("meridional", "--", "s")):
+            good = sorted((p["radius"], p[kind]) for p in points if math.isfinite(p[kind]))
+            if not good:
+                continue
+            radius, value = np.array(good).T
+            ax.plot(radius, value, marker, color=colour, ms=4, alpha=0.7, mfc="none" if kind == "meridional" else colour)
+            # heights within 2 % of the half diagonal are one height (a 4:3 grid's edge midpoints differ a little)
+            step = 0.02 * math.hypot(sensor.width, sensor.height) / 2
+            bins = np.round(radius / step)
+            heights = [radius[bins == b].mean() for b in np.unique(bins)]
+            means = [value[bins == b].mean() for b in np.unique(bins)]
+            ax.plot(heights, means, style, color=colour, lw=1.3)
+        label = f"f/{aperture:g}" if aperture else "f/?"
+        handles.append(Line2D([], [], color=colour, lw=2, label=f"{label} {method}"))
+    handles += [Line2D([], [], color="0.2", ls="-", marker="o", label="sagittal"),
+                Line2D([], [], color="0.2", ls="--", marker="s", mfc="none", label="meridional")]
+    ax.set_xlabel("image height: distance from the image centre (photosites)")
+    corner = max(math.hypot(sensor.width, sensor.height) / 2 for _, _, sensor, _ in bands)
+    ax.set_xlim(-0.02 * corner, 1.02 * corner)  # from the centre to the corner
+    ax.set_ylabel(f"MTF50 of {channel} (cycles/pixel)")
+    ax.grid(alpha=0.25)
+    ax.set_title(f"MTF50 of {channel} against image height (lines through the mean at each measured height)",
+                 fontsize=9)
+    ax.legend(handles=handles, fontsize=7, ncols=2, loc="best")
+    if pitch:
+        mm = pitch / 1000.0
+        ax.secondary_xaxis("top", functions=(lambda v: v * mm, lambda v: v / mm)).set_xlabel("mm", fontsize=8)
+        scale = mtf.lp_per_mm(1.0, pitch, channel)
+        ax.secondary_yaxis("right", functions=(lambda v: v * scale, lambda v: v / scale)).set_ylabel(
+            "line pairs per mm", fontsize=8)

@@ -15,6 +15,7 @@ has had since the start: filled rectangles (``re``), filled paths
 from __future__ import annotations
 
 import os
+import tempfile
 import zlib
 from pathlib import Path
 
@@ -208,9 +209,20 @@ def _png(raster: np.ndarray) -> bytes:
     return encoded.tobytes()
 
 
-def noise_path(out: Path) -> Path:
-    """Where the noise realisation of a rendered target is kept: ``x.pdf`` -> ``x.noise.pgm``."""
-    return out.with_name(out.stem + ".noise.pgm")
+def noise_path(out: Path, origin: str) -> Path:
+    """Where the noise realisation of a rendered target is kept, named after where the noise came from:
+    ``x.pdf`` with ``seed7`` -> ``x.seed7.noise.pgm`` (``published`` for the published noise), so that
+    targets of different noise written to one folder never share a noise file."""
+    return out.with_name(f"{out.stem}.{origin}.noise.pgm")
+
+
+def _refuse_overwrite(path: Path, data: bytes | None, force: bool, what: str) -> None:
+    """Refuse to replace a file that holds something else (the same bytes again are harmless)."""
+    if not path.exists() or force:
+        return
+    if data is not None and path.is_file() and path.read_bytes() == data:
+        return
+    raise BadInputError(f"{path}: exists and holds {what}; choose another --out or add --force to replace it")
 
 
 def output_format(out: str | os.PathLike) -> tuple[Path, str]:
@@ -226,12 +238,18 @@ def output_format(out: str | os.PathLike) -> tuple[Path, str]:
     return out, suffix
 
 
-def _write_atomic(out: Path, data: bytes, noise: np.ndarray | None = None) -> None:
-    """Write ``data`` to ``out`` (and ``noise`` beside it) under temporary names, then rename.
+def _write_atomic(out: Path, data: bytes, noise: np.ndarray | None = None, origin: str = "",
+                  force: bool = False) -> None:
+    """Write ``data`` to ``out`` (and ``noise`` beside it, `noise_path` of ``origin``) under temporary
+    names, then rename.
 
-    A failure leaves neither file behind, and never a target without its noise.
+    A failure leaves neither file behind, and never a target without its noise. A file that exists
+    with other content is not replaced unless ``force``: a printed target's noise is never lost.
     """
-    pgm = noise_path(out)
+    pgm = noise_path(out, origin)
+    _refuse_overwrite(out, data, force, "another target")
+    if noise is not None:
+        _refuse_overwrite(pgm, _pgm_bytes(noise), force, "another noise pattern, the record of a printed target")
     tmp_target = out.with_name(f".{out.name}.part")
     tmp_noise = pgm.with_name(f".{pgm.stem}.part.pgm")  # OpenCV picks the encoder by suffix
     existed = out.exists()
@@ -258,11 +276,16 @@ def write_target(
     out: str | os.PathLike,
     noise: np.ndarray,
     *,
+    origin: str = "published",
     size_mm: float = 700.0,
     caption: str = "",
     px_per_cell: int = 8,
+    force: bool = False,
 ) -> tuple[Path, Path]:
     """Render the Bernoulli target to ``out`` (.pdf or .png) and save its noise beside it.
+
+    ``origin`` names the noise (``seed7``, ``published``...) in the noise file's name (`noise_path`).
+    Files that exist with other content are refused unless ``force``.
 
     Returns
     -------
@@ -270,8 +293,16 @@ def write_target(
     """
     out, suffix = output_format(out)
     data = pdf_bytes(noise, size_mm, caption) if suffix == ".pdf" else png_bytes(noise, px_per_cell)
-    _write_atomic(out, data, noise)
-    return out, noise_path(out)
+    _write_atomic(out, data, noise, origin, force)
+    return out, noise_path(out, origin)
+
+
+def _pgm_bytes(noise: np.ndarray) -> bytes:
+    """The bytes `psfd.estimator.target.save_noise` writes for ``noise`` (to compare with a file on disk)."""
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "noise.pgm"
+        target.save_noise(noise, path)
+        return path.read_bytes()
 
 
 # ---------------------------------------------------------------- the sharp-edge target
@@ -310,13 +341,14 @@ def edge_pdf_bytes(size_mm: float, caption: str = "") -> bytes:
 
 
 def write_edge_target(out: str | os.PathLike, *, size_mm: float = 700.0, caption: str = "",
-                      px_per_cell: int = 8) -> Path:
-    """Render the sharp-edge target to ``out`` (.pdf, or .png at 16 px_per_cell pixels per square)."""
+                      px_per_cell: int = 8, force: bool = False) -> Path:
+    """Render the sharp-edge target to ``out`` (.pdf, or .png at 16 px_per_cell pixels per square);
+    a file that exists with other content is refused unless ``force``."""
     out, suffix = output_format(out)
     if suffix == ".pdf":
         data = edge_pdf_bytes(size_mm, caption)
     else:
         _check_px(px_per_cell)
         data = _png((sharpedge.edge_target(px_per_square=EDGE_CELLS_PER_SQUARE * px_per_cell) * 255).astype(np.uint8))
-    _write_atomic(out, data)
+    _write_atomic(out, data, force=force)
     return out

@@ -20,8 +20,10 @@ catalogues, so an old plan must still parse and resume).
 from __future__ import annotations
 
 import math
+import os
 import numbers
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 from psfd.errors import BadInputError
@@ -189,3 +191,13 @@ def camera_fnumber(value: Any) -> float | None:
         return parse_fnumber(value)
     except BadInputError:
         return None
+
+
+def data_dir() -> Path:
+    """The user's psfd data folder: ``$XDG_DATA_HOME/psfd``, else ``~/.local/share/psfd``.
+
+    A relative or empty ``XDG_DATA_HOME`` is ignored, as the XDG base directory specification requires.
+    """
+    base = os.environ.get("XDG_DATA_HOME", "")
+    root = Path(base) if base and os.path.isabs(base) else Path.home() / ".local" / "share"
+    return root / "psfd"

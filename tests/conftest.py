@@ -1,4 +1,4 @@
-"""Shared fixtures: the real photographs shipped with the tests."""
+"""Shared fixtures: the real photographs shipped with the tests, and a private data folder per test."""
 
 from __future__ import annotations
 
@@ -7,6 +7,15 @@ from pathlib import Path
 import pytest
 
 DATA = Path(__file__).parent / "data"
+
+
+@pytest.fixture(autouse=True)
+def private_data_home(tmp_path_factory, monkeypatch) -> Path:
+    """Every test gets its own $XDG_DATA_HOME: the user's catalogue and the simulated rig's state
+    (sim-rig.json) never leak between tests or into the home folder of whoever runs them."""
+    home = tmp_path_factory.mktemp("data-home")
+    monkeypatch.setenv("XDG_DATA_HOME", str(home))
+    return home
 
 
 @pytest.fixture

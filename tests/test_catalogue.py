@@ -458,3 +458,71 @@ def test_one_catalogue_shared_by_threads(tmp_path):
         assert errors == []
         assert all(s["psfs"] == 2 * s["done"] for s in summaries)  # never a step without its PSFs
         assert summaries[-1]["psfs"] == 40 and cat.integrity_check() == []
+
+
+# -- frame paths and the description for other tools ----------------------------------
+
+
+def test_frame_paths_are_relative_to_the_catalogue_folder_so_it_can_move(tmp_path):
+    folder = tmp_path / "lab"
+    store = folder / "cat-frames" / "ab"
+    store.mkdir(parents=True)
+    inside, outside = store / "1.dng", tmp_path / "elsewhere" / "2.dng"
+    with Catalogue(folder / "cat.sqlite") as cat:
+        run = new_run(cat, keys=("a",))
+        records = [FrameRecord(str(inside), "1" * 64, {}, {}, "t"), FrameRecord(str(outside), "2" * 64, {}, {}, "t")]
+        (psf_id,) = cat.commit_step(run, "a", records, [(make_psf(), {"aperture": 5.6})])
+        stored = [r[0] for r in cat.db.execute("SELECT path FROM frames ORDER BY id").fetchall()]
+    assert stored == ["cat-frames/ab/1.dng", str(outside)]  # inside: relative; elsewhere: absolute
+    moved = tmp_path / "moved"
+    (folder).rename(moved)
+    with Catalogue(moved / "cat.sqlite") as cat:
+        paths = [f["path"] for f in cat.psf_frames(psf_id)]
+    assert paths == [str(moved / "cat-frames" / "ab" / "1.dng"), str(outside)]
+
+
+def test_migration_to_relative_frame_paths_reads_old_absolute_paths(tmp_path):
+    """A catalogue written before relative paths: absolute paths inside its folder become relative, others stay."""
+    path = tmp_path / "old.sqlite"
+    db = sqlite_utils.Database(path)
+    for migrate in MIGRATIONS[:2]:
+        migrate(db)
+    db.execute("PRAGMA user_version = 2")
+    db["frames"].insert_all([{"path": str(tmp_path / "old-frames" / "aa" / "x.dng"), "sha256": "a" * 64},
+                             {"path": "/mnt/raw/y.dng", "sha256": "b" * 64}])
+    db.close()
+    with Catalogue(path) as cat:
+        assert cat.schema_version() == SCHEMA_VERSION
+        assert [r[0] for r in cat.db.execute("SELECT path FROM frames ORDER BY id").fetchall()] == [
+            "old-frames/aa/x.dng", "/mnt/raw/y.dng"]
+
+
+def test_datasette_metadata_describes_every_table_and_column(tmp_path):
+    with Catalogue(tmp_path / "lab.sqlite") as cat:
+        schema = {name: [c.name for c in cat.db[name].columns] for name in cat.db.table_names()}
+    meta = catalogue_module.datasette_metadata("lab")
+    tables = meta["databases"]["lab"]["tables"]
+    assert set(tables) == set(schema)
+    for name, columns in schema.items():
+        assert set(tables[name]["columns"]) == set(columns), name
+        assert all(isinstance(text, str) and text for text in tables[name]["columns"].values())
+    psfs = tables["psfs"]["columns"]
+    assert "cycles per channel pixel" in psfs["mtf50_x"] and "channel pixels" in psfs["fwhm_x"]
+    assert "numpy.load" in psfs["psf"]
+    assert tables["psfs"]["units"] == {"focal_length_mm": "mm", "focus_distance_m": "m"}
+
+
+def test_relative_frame_paths_migration_runs_again_without_change(tmp_path, monkeypatch):
+    """Other branches' migrations may reach a catalogue in another order: running version 5 again (from any
+    working folder) leaves relative paths alone instead of reading them against the working folder."""
+    path = tmp_path / "lab" / "cat.sqlite"
+    path.parent.mkdir()
+    with Catalogue(path) as cat:
+        cat.db["frames"].insert_all([{"path": "cat-frames/aa/x.dng", "sha256": "a" * 64},
+                                     {"path": "/mnt/raw/y.dng", "sha256": "b" * 64}])
+    monkeypatch.chdir(tmp_path)
+    db = sqlite_utils.Database(path)
+    MIGRATIONS[-1](db)
+    assert [r[0] for r in db.execute("SELECT path FROM frames ORDER BY id").fetchall()] == [
+        "cat-frames/aa/x.dng", "/mnt/raw/y.dng"]
+    db.close()

@@ -210,7 +210,7 @@ def test_a_failed_comparison_figure_leaves_no_output_folder(tmp_path, monkeypatc
 
     kernel = simulate.gaussian_psf(0.5, s=4, support=17)
     estimates = [Estimate("bernoulli", PSF(kernel, 4, "bernoulli", "g1", ["a.dng"]))]
-    def disk_full(curves):
+    def disk_full(curves, against_truth=False):
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(figures, "comparison_figure", disk_full)  # the last files fail, after the estimates

@@ -5,6 +5,8 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -64,6 +66,7 @@ def test_write_estimates_files_round_trip(tmp_path):
     assert names == sorted(
         [f"IMG_0001_bernoulli_g1_w0{i}.{ext}" for i in (0, 1) for ext in ("npy", "tif", "png", "json")]
         + [f"IMG_0001_bernoulli_g1_w00.{k}.{ext}" for k in ("kernel", "residual") for ext in ("npy", "png")]
+        + ["metrics.csv"]
     )
     base = tmp_path / "out" / "IMG_0001_bernoulli_g1_w00"
     np.testing.assert_array_equal(np.load(f"{base}.npy"), estimates[0].psf)
@@ -73,49 +76,33 @@ def test_write_estimates_files_round_trip(tmp_path):
     assert json.loads(Path(f"{base}.json").read_text())["window"] == [0, 0, 320, 480]
     np.testing.assert_array_equal(np.load(f"{base}.kernel.npy"), kernel)
     np.testing.assert_array_equal(np.load(f"{base}.residual.npy"), residual)
-    grey = cv2.imread(f"{base}.kernel.png", cv2.IMREAD_UNCHANGED)
-    assert grey.ndim == 2 and grey.shape == (255, 255)  # 5x5 enlarged 51 times, nearest neighbour
-    assert grey[0, 0] == 0 and grey[-1, -1] == 255 and grey[127, 127] == 128  # signed: 0 is mid-grey
+    for name in (f"{base}.png", f"{base}.kernel.png", f"{base}.residual.png"):  # figures, not bare arrays
+        image = cv2.imread(name, cv2.IMREAD_COLOR)
+        assert image is not None and min(image.shape[:2]) > 400 and image.std() > 10
+    # one CSV row per estimate, units in the header, the metrics the JSON has
+    import csv
+
+    with open(tmp_path / "out" / "metrics.csv", newline="") as stream:
+        rows = list(csv.DictReader(stream))
+    assert [r["file"] for r in rows] == ["IMG_0001_bernoulli_g1_w00.npy", "IMG_0001_bernoulli_g1_w01.npy"]
+    metrics = estimates[1].metrics()
+    assert float(rows[1]["mtf50_x [cycles/px]"]) == pytest.approx(metrics["mtf50_x"], rel=1e-5)
+    assert float(rows[1]["fwhm_y [channel px]"]) == pytest.approx(metrics["fwhm_y"], rel=1e-5)
+    assert rows[1]["window x0 y0 x1 y1 [channel px]"] == "320 0 640 480"
+    assert rows[0]["mtf50_x [lp/mm]"] == ""  # no pitch known for this source: empty, never a guess
     # no temporary folder left beside the output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
-
-
-def test_figure_structure(tmp_path):
-    est = synthetic(0)
-    output.write_estimates([est], tmp_path)
-    image = cv2.imread(str(tmp_path / "IMG_0001_bernoulli_g1_w00.png"), cv2.IMREAD_COLOR)
-    np.testing.assert_array_equal(image, figures.psf_figure(est))  # PNG is lossless
-    zoom = figures.zoom(17)
-    assert zoom == 21
-    # channel-pixel borders every s = 4 samples around the centre sample 8: sample edges 2.5, 6.5, 10.5, 14.5
-    lines = figures.grid_lines(17, 4, zoom)
-    assert lines == [round(e * zoom) for e in (2.5, 6.5, 10.5, 14.5)]
-    panel = image[figures.TITLE : figures.TITLE + 17 * zoom, figures.PAD : figures.PAD + 17 * zoom]
-    for pos in lines:
-        assert (panel[:, pos] == figures.GRID_COLOUR).all() and (panel[pos, :] == figures.GRID_COLOUR).all()
-    # the centre sample (the peak) is brightest: inferno maps 1.0 to near white
-    centre = panel[8 * zoom + zoom // 2, 8 * zoom + zoom // 2]
-    assert centre.astype(int).sum() > 3 * 200
-    # the MTF plot: both profiles drawn in their colours, right of the panel
-    plot = image[figures.TITLE : figures.TITLE + figures.PLOT_H, 2 * figures.PAD + 17 * zoom :]
-    for colour in (figures.X_COLOUR, figures.Y_COLOUR):
-        assert (np.abs(plot.astype(int) - colour).sum(axis=2) == 0).sum() > 200
-
-
-def test_grid_lines_odd_s():
-    # s = 3, 13 samples: centre sample 6 spans [6, 7); its pixel [5, 8); borders every 3 samples
-    assert figures.grid_lines(13, 3, 1) == [2, 5, 8, 11]
 
 
 def test_write_estimates_is_atomic(tmp_path, monkeypatch):
     calls = {"n": 0}
     real = figures.psf_figure
 
-    def failing(est):
+    def failing(est, pitch_um=None):
         calls["n"] += 1
         if calls["n"] == 2:
             raise OSError(28, "No space left on device")
-        return real(est)
+        return real(est, pitch_um)
 
     monkeypatch.setattr(figures, "psf_figure", failing)
     with pytest.raises(BadInputError, match="cannot write results"):
@@ -169,12 +156,17 @@ def test_print_json_nan_is_null():
     assert record["mtf50_x"] is None and record["mtf50_y"] is None
 
 
-def test_print_table(capsys):
+def test_print_table_and_warnings_on_stderr(capsys):
+    from psfd.cli import logs
+
     est = synthetic(0, warnings=["pixels per cell 0.9 outside 0.35..0.5"])
     output.print_table([est])
-    text = capsys.readouterr().out
-    assert "IMG_0001 " in text and " g1 " in text and "0.25,0.50" in text
-    assert "warning: pixels per cell 0.9" in text
+    logs.setup()
+    output.log_warnings([est])
+    captured = capsys.readouterr()
+    assert "IMG_0001 " in captured.out and " g1 " in captured.out and "0.25,0.50" in captured.out
+    assert "warning" not in captured.out  # the table stays a table
+    assert captured.err == "psfd: warning: IMG_0001.dng g1 at (0.25, 0.50): pixels per cell 0.9 outside 0.35..0.5\n"
 
 
 # ---------------------------------------------------------------- bad input on the command line
@@ -277,8 +269,9 @@ def test_pair_end_to_end_on_real_photos(tmp_path, capsys, data_dir):
     assert psf.shape == (13, 13) and psf.sum() == pytest.approx(1.0, abs=1e-9)
     files = sorted(p.name for p in (tmp_path / "out").iterdir())
     base = "IMG_0608_v1+IMG_0602_v1_CUT_two-photo_mono_w00"
-    assert files == sorted(f"{base}{tail}" for tail in (
-        ".npy", ".tif", ".png", ".json", ".kernel.npy", ".kernel.png", ".residual.npy", ".residual.png"))
+    assert files == sorted([f"{base}{tail}" for tail in (
+        ".npy", ".tif", ".png", ".json", ".kernel.npy", ".kernel.png", ".residual.npy", ".residual.png")]
+        + ["metrics.csv"])
     np.testing.assert_array_equal(np.load(tmp_path / "out" / f"{base}.npy"), psf)
     # Which photo is near is detected: the other order gives the same estimate up to the
     # registration, which is fitted the other way round; the change stays below the noise floor
@@ -348,7 +341,8 @@ def test_target_end_to_end_on_simulated_dng(tmp_path, capsys):
     assert "MTF50" in stdout and all(f" {c} " in stdout for c in raw.CHANNELS)
     files = sorted(p.name for p in out.iterdir())
     extensions = ("npy", "tif", "png", "json")
-    assert files == sorted(f"sim_bernoulli_{c}_w00.{ext}" for c in raw.CHANNELS for ext in extensions)
+    assert files == sorted([f"sim_bernoulli_{c}_w00.{ext}" for c in raw.CHANNELS for ext in extensions]
+                           + ["metrics.csv"])
     for channel in raw.CHANNELS:
         estimate = np.load(out / f"sim_bernoulli_{channel}_w00.npy")
         assert relative_error(estimate, truth) < DNG_TOLERANCE, channel
@@ -396,7 +390,7 @@ def test_rendered_target_round_trip(tmp_path, capsys):
     photo = photograph_png(png, sigma, np.random.default_rng(5))
     cv2.imwrite(str(tmp_path / "photo.png"), photo)
     code, stdout, stderr = run(
-        capsys, "estimate", "target", tmp_path / "photo.png", "--pattern", tmp_path / "lab.noise.pgm", "--json"
+        capsys, "estimate", "target", tmp_path / "photo.png", "--pattern", tmp_path / "lab.seed21.noise.pgm", "--json"
     )
     assert code == 0, stderr
     record = json.loads(stdout)
@@ -440,3 +434,35 @@ def test_no_target_is_an_estimation_error(tmp_path, capfd):
     assert code == 3  # EstimationError: the photograph does not support an estimate
     assert stderr.startswith("psfd: error: ") and stderr.count("\n") == 1 and stdout == ""
     assert [p.name for p in tmp_path.iterdir()] == ["wall.png"]
+
+
+def test_output_folders_honour_the_umask(tmp_path):
+    old = os.umask(0o022)
+    try:
+        output.write_estimates([synthetic(0)], tmp_path / "shared")
+        os.umask(0o077)
+        output.write_estimates([synthetic(0)], tmp_path / "private")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "shared").stat().st_mode) == 0o755  # not mkdtemp's 0700
+    assert stat.S_IMODE((tmp_path / "private").stat().st_mode) == 0o700
+    assert all(stat.S_IMODE(p.stat().st_mode) == 0o644 for p in (tmp_path / "shared").iterdir())
+
+
+def test_force_replaces_an_output_folder_whole_and_nothing_else(tmp_path, capsys):
+    out = tmp_path / "out"
+    output.write_estimates([synthetic(0), synthetic(1)], out)
+    with pytest.raises(BadInputError, match="add --force"):
+        output.write_estimates([synthetic(0)], out)
+    output.write_estimates([synthetic(0)], out, force=True)
+    assert sorted(p.name for p in out.iterdir()) == sorted(  # the earlier w01 files are gone, not mixed in
+        [f"IMG_0001_bernoulli_g1_w00.{ext}" for ext in ("npy", "tif", "png", "json")] + ["metrics.csv"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging or old folder left
+    home = tmp_path / "home"
+    (home / "Documents").mkdir(parents=True)
+    with pytest.raises(BadInputError, match="holds folders"):
+        output.write_estimates([synthetic(0)], home, force=True)
+    assert [p.name for p in home.iterdir()] == ["Documents"]
+    (tmp_path / "file").write_text("mine")
+    with pytest.raises(BadInputError, match="not a folder"):
+        output.write_estimates([synthetic(0)], tmp_path / "file", force=True)

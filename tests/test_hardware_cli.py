@@ -128,3 +128,20 @@ def test_console_entry_point(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "psfd", "rail", "move", "X=1300", "--simulate"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0 and proc.stdout == "X=1300 Y=0 Z=0\n"
+
+
+def test_the_simulated_rig_remembers_between_commands(capsys, private_data_home):
+    """Like a real camera and rail: what one command set, the next one finds; `rail home` starts afresh."""
+    assert run(capsys, "camera", "set", "aperture", "8", "--simulate")[0] == 0
+    code, out, _ = run(capsys, "camera", "info", "--simulate")
+    assert code == 0 and "aperture       8 " in out
+    assert run(capsys, "rail", "move", "X=1200", "Y=-40", "--simulate")[0] == 0
+    assert run(capsys, "rail", "position", "--simulate")[:2] == (0, "X=1200 Y=-40 Z=0\n")
+    state = json.loads((private_data_home / "psfd" / "sim-rig.json").read_text())
+    assert state["settings"]["aperture"] == "8" and state["position"] == {"x": 1200.0, "y": -40.0, "z": 0.0}
+    assert run(capsys, "rail", "home", "--simulate")[:2] == (0, "X=200 Y=0 Z=0\n")
+    assert "aperture       5.6 " in run(capsys, "camera", "info", "--simulate")[1]
+    # a damaged or foreign state file is ignored, never an error
+    (private_data_home / "psfd" / "sim-rig.json").write_text('{"settings": {"aperture": "1.0"}, "position": 5}')
+    code, out, _ = run(capsys, "camera", "info", "--simulate")
+    assert code == 0 and "aperture       5.6 " in out

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -209,3 +210,34 @@ def test_demo(tmp_path):
     mtf = {(r["aperture"], r["channel"], r["step"].split("/", 1)[1]): r["mtf50_x"] for r in rows}
     softer = [mtf[(16.0, c, where)] < mtf[(4.0, c, where)] for (a, c, where) in mtf if a == 4.0]
     assert len(softer) == 36 and all(softer)
+
+
+def test_plan_init_writes_every_key_and_passes_plan_check(tmp_path, capsys):
+    from psfd.daemon.plan import TABLES
+
+    for simulate in (True, False):
+        path = tmp_path / f"plan-{simulate}.toml"
+        assert main(["plan", "init", str(path)] + ["--simulate"] * simulate) == 0
+        text = path.read_text()
+        for table, keys in TABLES.items():
+            section = text.split(f"[{table}]", 1)[1].split("\n[", 1)[0]
+            named = {line.lstrip("# ").split(" =", 1)[0] for line in section.splitlines() if " = " in line}
+            assert keys <= named, f"[{table}] lacks {keys - named}"
+        assert main(["plan", "check", str(path)]) == 0
+    assert "ok, 2 steps" in capsys.readouterr().out  # the simulated one is small enough to try at once
+    code = main(["plan", "init", str(tmp_path / "plan-True.toml")])
+    assert code == 2 and "exists" in capsys.readouterr().err
+
+
+def test_status_json_has_one_shape(tmp_path, capsys):
+    db, none = tmp_path / "cat.sqlite", str(tmp_path / "none.sock")
+    assert main(["status", "--json", "--catalogue", str(db), "--socket", none]) == 0
+    assert json.loads(capsys.readouterr().out) == {"service": None, "catalogue": None, "runs": []}
+    assert main(["capture", "--aperture", "4", "--simulate", "--channels", "g1", "--catalogue", str(db),
+                 "--socket", none, "--workers", "1"]) == 0
+    capsys.readouterr()
+    assert main(["status", "--json", "--catalogue", str(db), "--socket", none]) == 0
+    status = json.loads(capsys.readouterr().out)
+    assert status["service"] is None and status["catalogue"] == str(db)
+    assert set(status["runs"][0]) == {"id", "state", "plan_path", "started", "finished", "pending", "running",
+                                      "done", "failed", "total", "psfs", "frames"}

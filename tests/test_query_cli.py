@@ -69,12 +69,14 @@ def test_query_table_and_note(capsys, catalogue):
     code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "5.6", "--channel", "g1")
     lines = out.splitlines()
     assert code == 0 and err == ""
-    assert lines[0].split()[:4] == ["id", "camera", "lens", "f/"] and len(lines) == 1 + 9
-    assert all(" 5.6 " in line and " g1 " in line for line in lines[1:])
+    assert lines[0].split()[:4] == ["id", "camera", "lens", "f/"] and len(lines) == 1 + 9 + 1
+    assert all(" 5.6 " in line and " g1 " in line for line in lines[1:-1])
+    assert lines[-1].startswith("units: ") and "mtf50 in cycles per channel pixel" in lines[-1]
+    assert "lp/mm" not in lines[0]  # no pixel pitch known for these PSFs: no lp/mm column
 
     code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "f/6.3")
     assert code == 0 and err.strip() == "psfd: note: f/6.3 not measured; nearest is f/5.6"
-    assert len(out.splitlines()) == 1 + 18
+    assert len(out.splitlines()) == 1 + 18 + 1
 
 
 def test_query_json_near(capsys, catalogue):
@@ -94,7 +96,7 @@ def test_export_formats(capsys, catalogue, tmp_path, fmt):
                          "--format", fmt, "--out", str(out_dir))
     assert code == 0
     index = json.loads((out_dir / "index.json").read_text())
-    assert len(index["psfs"]) == 9 and len(list(out_dir.iterdir())) == 10
+    assert len(index["psfs"]) == 9 and len(list(out_dir.iterdir())) == 9 + 2  # and index.json, metrics.csv
     with Catalogue(catalogue, create=False) as cat:
         for entry in index["psfs"]:
             expected = cat.psf(entry["id"])[0]
@@ -128,27 +130,39 @@ def test_export_failure_leaves_nothing(capsys, catalogue, tmp_path, monkeypatch)
     assert sorted(p.name for p in tmp_path.iterdir()) == CATALOGUE_FILES
 
 
-def test_report_draws_psfs_and_mtf_map(capsys, catalogue, tmp_path):
-    out = tmp_path / "figs" / "report.png"
-    code, _, _ = run_cli(capsys, "report", "--catalogue", catalogue, "--out", str(out))
+def test_report_as_png_and_vector(capsys, catalogue, tmp_path):
+    """`psfd report` writes the field report (its content: tests/test_figures.py) by the file's suffix."""
+    for name, magic in (("report.png", b"\x89PNG"), ("report.pdf", b"%PDF"), ("report.svg", b"<?xml")):
+        out = tmp_path / "figs" / name
+        code, stdout, _ = run_cli(capsys, "report", "--catalogue", catalogue, "--out", str(out))
+        assert code == 0 and stdout == f"report written to {out}\n"
+        assert out.read_bytes().startswith(magic)
+    image = cv2.imread(str(tmp_path / "figs" / "report.png"))
+    assert image.shape[1] > 1200 and image.std() > 20  # two channels and two MTF50 maps per row
+    assert sorted(p.name for p in (tmp_path / "figs").iterdir()) == ["report.pdf", "report.png", "report.svg"]
+    # --channel picks the channel of the MTF50 maps; every channel's PSFs are drawn
+    code, _, _ = run_cli(capsys, "report", "--catalogue", catalogue, "--channel", "r", "--out", str(tmp_path / "r.png"))
     assert code == 0
-    image = cv2.imread(str(out))
-    width, height = figures.REPORT_PANEL
-    m, h = figures.REPORT_MARGIN, figures.REPORT_HEADER
-    assert image.shape == (h + m + 2 * (height + h + m), 2 * width + 3 * m, 3)
-    top = h + m + h  # first band (f/5.6): its two panels start here
+    code, _, err = run_cli(capsys, "report", "--catalogue", catalogue, "--channel", "b", "--out", str(tmp_path / "b.png"))
+    assert code == 1 and "no PSF" in err and not (tmp_path / "b.png").exists()  # nothing matched
 
-    def psf_panel(fx, fy):
-        return image[top + int(fy * height), m + int(fx * width)]
 
-    def mtf_panel(fx, fy):
-        return image[top + int(fy * height), 2 * m + width + int(fx * width)]
+def test_query_csv_and_units(capsys, catalogue):
+    import csv
+    import io
 
-    # A PSF is drawn at each grid location, nothing between them.
-    assert psf_panel(1 / 6, 1 / 6).sum() > 100 and psf_panel(1 / 3, 1 / 3).sum() == 0
-    # The synthetic lens is sharpest at the centre: viridis' green component grows with MTF50.
-    assert int(mtf_panel(0.45, 0.55)[1]) > int(mtf_panel(0.12, 0.88)[1]) + 40
-    assert [p.name for p in out.parent.iterdir()] == ["report.png"]
+    code, out, _ = run_cli(capsys, "query", "--catalogue", catalogue, "--channel", "g1", "--csv")
+    rows = list(csv.DictReader(io.StringIO(out)))
+    assert code == 0 and len(rows) == 18
+    header = out.splitlines()[0].split(",")
+    assert "mtf50_x [cycles/px]" in header and "mtf50_x [lp/mm]" in header and "fwhm_x [channel px]" in header
+    with Catalogue(catalogue, create=False) as cat:
+        for row in rows:
+            stored = cat.psf(int(row["id"]))[1]
+            assert float(row["mtf50_x [cycles/px]"]) == pytest.approx(stored["mtf50_x"], rel=1e-5)
+            assert row["aperture [f-number]"] == format(stored["aperture"], ".6g") and row["camera"] == "Canon EOS 400D"
+    code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--channel", "b", "--csv")
+    assert code == 1 and len(out.splitlines()) == 1 and "no PSF matches" in err  # the header alone
 
 
 def test_bad_inputs_give_one_line_errors(capsys, catalogue, tmp_path):
@@ -162,7 +176,7 @@ def test_bad_inputs_give_one_line_errors(capsys, catalogue, tmp_path):
         (["query", "--method", "foo"], 2, "unknown method 'foo'"),
         (["export", "--method", "two-photo", "--out", str(tmp_path / "empty")], 1, "no PSF matches"),
         (["report", "--method", "two-photo", "--out", str(tmp_path / "r.png")], 1, "no PSF matches"),
-        (["report", "--out", str(tmp_path / "r.xyz")], 2, "cannot write"),
+        (["report", "--out", str(tmp_path / "r.xyz")], 2, "cannot write a figure"),
     ]
     for argv, expected, text in cases:
         code, _, err = run_cli(capsys, *argv, "--catalogue", catalogue)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -82,7 +83,7 @@ def raw_request(sock: Path, line: bytes) -> dict:
         return json.loads(s.makefile("rb").readline())
 
 
-def test_socket_is_0660_and_bad_requests_leave_the_service_running(served):
+def test_socket_is_0660_and_bad_requests_leave_the_service_running(served, tmp_path):
     proc, sock, db, notes = served
     assert stat.S_IMODE(os.stat(sock).st_mode) == 0o660
     assert stat.S_ISSOCK(os.stat(sock).st_mode)
@@ -105,11 +106,24 @@ def test_socket_is_0660_and_bad_requests_leave_the_service_running(served):
     cli = subprocess.run([sys.executable, "-m", "psfd", "status", "--socket", str(sock)],
                          capture_output=True, text=True)
     assert cli.returncode == 0 and "idle" in cli.stdout
+    cli = subprocess.run([sys.executable, "-m", "psfd", "status", "--json", "--socket", str(sock)],
+                         capture_output=True, text=True)
+    status = json.loads(cli.stdout)  # the same shape as without the service (docs/formats.md)
+    assert set(status) == {"service", "catalogue", "runs"} and status["runs"] == []
+    assert set(status["service"]) == {"socket", "state", "queued", "current", "last", "paused_plan"}
+    assert status["service"]["state"] == "idle" and status["service"]["socket"] == str(sock)
     assert proc.poll() is None
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=30) == 0
     notes.wait_for("STOPPING=1")
     assert not sock.exists()
+    # its log (stderr): start, refusals with their reason, the signal and the stop, each one line
+    log = (tmp_path / "serve.log").read_text().splitlines()
+    assert any(f"psfd: info: psfd service listening on {sock}" in line for line in log)
+    assert any("psfd: warning: pause refused: no run is in progress" in line for line in log)
+    assert any("psfd: info: SIGTERM: stopping the service after the current frame" in line for line in log)
+    assert log[-1].endswith("psfd: info: psfd service stopped")
+    assert all(re.match(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d psfd: ", line) for line in log)  # timestamped
 
 
 def wait_status(sock: Path, predicate, timeout: float = 120.0) -> dict:
@@ -189,10 +203,11 @@ def test_unit_file_verifies():
         pytest.skip("the psfd console script is not on PATH (pip install -e .)")
     unit = (ROOT / "systemd" / "psfd.service").read_text()
     assert "Type=notify" in unit and "User=psfd" in unit and "DevicePolicy=closed" in unit
+    assert "ExecStart=/opt/psfd/bin/psfd serve" in unit  # the virtual environment the README installs
     # verify checks that ExecStart exists: point it at this machine's console script
     tmp = Path(os.environ.get("TMPDIR", "/tmp")) / f"psfd-verify-{os.getpid()}"
     tmp.mkdir(exist_ok=True)
-    (tmp / "psfd.service").write_text(unit.replace("/usr/local/bin/psfd", os.path.realpath(psfd)))
+    (tmp / "psfd.service").write_text(unit.replace("/opt/psfd/bin/psfd", os.path.realpath(psfd)))
     out = subprocess.run(["systemd-analyze", "verify", str(tmp / "psfd.service")], capture_output=True, text=True)
     shutil.rmtree(tmp)
     assert out.returncode == 0, out.stderr

@@ -103,7 +103,7 @@ def test_pdf_is_well_formed_and_draws_the_layout(tmp_path, capsys):
     np.testing.assert_array_equal(rasterise_content(content, PX), target.cells(noise, PX))
     # small: a 256x256 noise target in well under 100 kB (one rectangle per row run, compressed)
     assert out.stat().st_size < 100_000
-    saved = target.load_noise(tmp_path / "t.noise.pgm")
+    saved = target.load_noise(tmp_path / "t.seed7.noise.pgm")
     np.testing.assert_array_equal(saved, noise)
 
 
@@ -115,7 +115,7 @@ def test_png_matches_the_layout_and_its_noise(tmp_path, capsys):
     margin = printing.MARGIN_BLOCKS * target.BLOCK * PX
     assert image.dtype == np.uint8 and image.shape == ((target.SIZE * PX + 2 * margin),) * 2
     assert (image[:margin] == 255).all() and (image[:, -margin:] == 255).all()
-    saved = target.load_noise(tmp_path / "t.noise.pgm")
+    saved = target.load_noise(tmp_path / "t.seed11.noise.pgm")
     np.testing.assert_array_equal(saved, target.seeded_noise(11))
     # noise region: every pixel of cell (r, c) equals the saved noise value
     start = margin + target.NOISE_START * PX
@@ -132,7 +132,7 @@ def test_seed_is_reproducible_and_default_is_published(tmp_path, capsys):
         assert run(capsys, "target", "--out", str(path), *extra)[0] == 0
     assert a.read_bytes() == b.read_bytes()
     assert a.read_bytes() != c.read_bytes()
-    np.testing.assert_array_equal(target.load_noise(tmp_path / "d.noise.pgm"), target.default_noise())
+    np.testing.assert_array_equal(target.load_noise(tmp_path / "d.published.noise.pgm"), target.default_noise())
 
 
 def test_own_noise_round_trips(tmp_path, capsys):
@@ -140,7 +140,7 @@ def test_own_noise_round_trips(tmp_path, capsys):
     target.save_noise(noise, tmp_path / "lab.pgm")
     out = tmp_path / "lab_target.png"
     assert run(capsys, "target", "--out", str(out), "--noise", str(tmp_path / "lab.pgm"))[0] == 0
-    np.testing.assert_array_equal(target.load_noise(tmp_path / "lab_target.noise.pgm"), noise)
+    np.testing.assert_array_equal(target.load_noise(tmp_path / "lab_target.lab.noise.pgm"), noise)
 
 
 @pytest.mark.skipif(shutil.which("pdftoppm") is None, reason="no PDF rasteriser (pdftoppm) on this machine")
@@ -203,3 +203,20 @@ def test_edge_target_pdf_is_well_formed(tmp_path, capsys):
     assert pdf["content"].count(" re\n") == nx * ny // 2  # the black squares
     assert pdf["content"].count(" c ") == 4 * nx * ny  # one disk of four Bezier arcs per square
     assert sorted(p.name for p in tmp_path.iterdir()) == ["e.pdf"]  # no noise file for this target
+
+
+def test_no_noise_pattern_is_overwritten_silently(tmp_path, capsys):
+    """A target printed from seed 7 keeps its noise when another target is written to the same name."""
+    out = tmp_path / "target.pdf"
+    assert run(capsys, "target", "--out", str(out), "--seed", "7")[0] == 0
+    assert run(capsys, "target", "--out", str(tmp_path / "target.png"))[0] == 0  # the published noise
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "target.pdf", "target.png", "target.published.noise.pgm", "target.seed7.noise.pgm"]
+    np.testing.assert_array_equal(target.load_noise(tmp_path / "target.seed7.noise.pgm"), target.seeded_noise(7))
+    pdf = out.read_bytes()
+    assert run(capsys, "target", "--out", str(out), "--seed", "7")[0] == 0  # the same target again: harmless
+    code, _, err = run(capsys, "target", "--out", str(out), "--seed", "8")  # another target under that name
+    assert code == 2 and "exists" in err and "--force" in err and len(err.strip().splitlines()) == 1
+    assert out.read_bytes() == pdf and not (tmp_path / "target.seed8.noise.pgm").exists()
+    assert run(capsys, "target", "--out", str(out), "--seed", "8", "--force")[0] == 0
+    assert out.read_bytes() != pdf and (tmp_path / "target.seed7.noise.pgm").exists()

@@ -40,13 +40,14 @@ os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_PIXELS))
 import importlib  # noqa: E402
 
 from psfd import __version__  # noqa: E402 - after the environment above
+from psfd.cli import logs  # noqa: E402
 from psfd.errors import BadInputError, PsfdError, path_reason  # noqa: E402
 
 # Command word -> the module of psfd.cli whose register() adds it, in the order of the help.
 COMMANDS = {
     "target": "target", "estimate": "estimate", "compare": "compare",
     "camera": "hardware", "rail": "hardware", "record": "hardware",
-    "query": "query", "export": "query", "report": "query",
+    "query": "query", "export": "query", "report": "query", "metadata": "query",
     "capture": "lab", "run": "lab", "status": "lab", "plan": "lab", "serve": "lab", "demo": "lab",
 }
 COMMAND_MODULES = tuple(dict.fromkeys(COMMANDS.values()))
@@ -68,11 +69,24 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The ``psfd`` parser with the commands ``argv`` needs (`command_modules`; all without ``argv``)."""
     parser = argparse.ArgumentParser(prog="psfd", description="Sub-pixel camera PSF measurement.")
     parser.add_argument("--version", action="version", version=f"psfd {__version__}")
+    logs.add_options(parser)
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     subparsers.required = True
     for name in command_modules(argv):
         importlib.import_module(f"psfd.cli.{name}").register(subparsers)
+    for command in _commands(parser):  # -v and -q after the command too: `psfd run plan.toml -v`
+        logs.add_options(command, suppress=True)
     return parser
+
+
+def _commands(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """Every parser below ``parser`` that runs a command (the leaves of the subcommand tree)."""
+    found = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in dict.fromkeys(action.choices.values()):  # aliases share their parser
+                found += _commands(sub) or [sub]
+    return found
 
 
 class Terminated(KeyboardInterrupt):
@@ -99,6 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv)
     args = parser.parse_args(argv)
+    logs.setup(args.verbose, args.quiet, service=args.command == "serve")
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     try:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
@@ -49,6 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--truth", metavar="PSF.npy",
                         help=f"true PSF on the -s grid (default s {DEFAULT_S[BERNOULLI]})")
     parser.add_argument("--out", metavar="DIR", help="write compare.png, compare.json and the estimates here")
+    parser.add_argument("--force", action="store_true", help="replace --out if it holds an earlier comparison")
     parser.add_argument("--channel", default="g1", help="Bayer plane of RAW files: r, g1, g2 or b (default g1)")
     options.add_size_options(parser, grid=False)
     parser.add_argument("--weights", default="2",
@@ -66,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out is not None:
         from psfd.cli import output
 
-        output.check_out_dir(args.out)
+        output.check_out_dir(args.out, args.force)
     from psfd.estimator import mtf, raw
 
     truth_s = sizes[BERNOULLI]["s"]
@@ -81,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
                             None if truth is None else (truth, truth_s))
     print_table(estimates, table, truth is not None)
     if args.out is not None:
-        write_outputs(Path(args.out), done, table, truth, truth_s)
+        write_outputs(Path(args.out), done, table, truth, truth_s, force=args.force)
         print(f"wrote the comparison to {args.out}")
     return 0
 
@@ -211,14 +213,14 @@ def print_table(estimates: list[Estimate], table: dict, with_truth: bool, stream
                 print(f"    vs {other:<{width}} MTF err <=Nyq {fmt(err[LOW], '.4f')}  >Nyq {fmt(err[HIGH], '.4f')}",
                       file=stream)
                 shown = True
-        for w in e.psf.warnings:
-            print(f"    warning: {w}", file=stream)
+        for w in e.psf.warnings:  # on the log (stderr), not inside the table
+            logging.getLogger("psfd.compare").warning("%s: %s", e.label, w)
     if shown:
         print("MTF error: RMS difference of the x and y MTF profiles, cycles per channel pixel (Nyquist 0.5).",
               file=stream)
 
 
-def write_outputs(out: Path, estimates: list[Estimate], table: dict, truth, s: int) -> None:
+def write_outputs(out: Path, estimates: list[Estimate], table: dict, truth, s: int, force: bool = False) -> None:
     """The estimates (output.write_estimates) with compare.png and compare.json, all in one atomic folder."""
     from psfd import figures
     from psfd.cli import output
@@ -235,6 +237,7 @@ def write_outputs(out: Path, estimates: list[Estimate], table: dict, truth, s: i
     output.write_estimates(
         [e.psf for e in estimates],
         out,
-        extra={"compare.png": lambda path: figures.save_comparison(curves, path),
+        extra={"compare.png": lambda path: figures.save_comparison(curves, path, truth is not None),
                "compare.json": lambda path: path.write_text(json.dumps(output.plain(summary), indent=1))},
+        force=force,
     )

@@ -72,7 +72,8 @@ def _common(p: argparse.ArgumentParser, method: str) -> None:
                    help="r, g1, g2, b or all: Bayer plane of a RAW file (default all; "
                         "a single-channel image is its own plane)")
     options.add_size_options(p, method)
-    p.add_argument("--out", metavar="DIR", help="write .npy, .tif and .png figures here")
+    p.add_argument("--out", metavar="DIR", help="write .npy, .tif, .json, .png figures and metrics.csv here")
+    p.add_argument("--force", action="store_true", help="replace --out if it holds earlier results")
     p.add_argument("--json", action="store_true", help="print one JSON object per estimate per line")
 
 
@@ -82,7 +83,7 @@ def _settings(args: argparse.Namespace, method: str) -> dict:
     if args.out is not None:
         from psfd.cli import output
 
-        output.check_out_dir(args.out)
+        output.check_out_dir(args.out, args.force)
     return settings
 
 
@@ -97,7 +98,8 @@ def _report(args: argparse.Namespace, estimates: list) -> int:
     from psfd.cli import output
 
     if args.out is not None:
-        files = output.write_estimates(estimates, args.out)
+        files = output.write_estimates(estimates, args.out, force=args.force)
+    output.log_warnings(estimates)
     if args.json:
         output.print_json(estimates)
     else:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import sys
 from dataclasses import dataclass, field
@@ -34,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     rail = subparsers.add_parser("rail", help="home, move or read the rail")
     rail_sub = rail.add_subparsers(dest="rail_command", metavar="ACTION", required=True)
-    p = rail_sub.add_parser("home", help="run the homing cycle")
+    p = rail_sub.add_parser("home", help="run the homing cycle (--simulate: also start the simulated rig afresh)")
     options.add_rig_options(p)
     p.set_defaults(func=rail_home)
     p = rail_sub.add_parser("move", help="absolute move in mm, e.g. `psfd rail move X=120 Y=-5`")
@@ -137,6 +136,10 @@ def _with_rail(args: argparse.Namespace, action) -> int:
 
 
 def rail_home(args: argparse.Namespace) -> int:
+    if args.simulate:  # the simulated rig starts afresh: default settings, shutter count 0, then home
+        from psfd.drivers.sim import state_path
+
+        state_path().unlink(missing_ok=True)
     return _with_rail(args, lambda rail: rail.home())
 
 
@@ -155,7 +158,7 @@ def rail_unlock(args: argparse.Namespace) -> int:
 
 def record(args: argparse.Namespace) -> int:
     """Capture at every shot of the session, recording every request; DIR appears only when the rig acted."""
-    from psfd.cli.output import check_out_dir, staging_dir
+    from psfd.cli.output import check_out_dir, publish, staging_dir
     from psfd.drivers import open_rig
     from psfd.drivers.recording import Recorder
 
@@ -174,9 +177,7 @@ def record(args: argparse.Namespace) -> int:
             recorder.close()
         if failure is not None and not recorder.acted:
             raise failure  # refused before the rig did anything: nothing to keep
-        if out.exists():
-            out.rmdir()
-        os.replace(work / "recording", out)
+        publish(work / "recording", out)  # with the umask's permissions, as any new folder
     finally:
         shutil.rmtree(work, ignore_errors=True)
     if failure is not None:

@@ -61,6 +61,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     c = sub.add_parser("check", help="list every problem of a plan, one per line")
     c.add_argument("plan", metavar="PLAN")
     c.set_defaults(func=run_plan_check)
+    c = sub.add_parser("init", help="write a plan with every key, commented (edit it, then plan check and run)")
+    c.add_argument("plan", metavar="PLAN", help="file to write, e.g. plan.toml")
+    c.add_argument("--simulate", action="store_true", help="a small plan for the simulated rig, ready to run")
+    c.add_argument("--force", action="store_true", help="replace PLAN if it exists")
+    c.set_defaults(func=run_plan_init)
 
     p = subparsers.add_parser("serve", help="run the service: control socket, job queue, systemd notify")
     _service_options(p)
@@ -244,48 +249,72 @@ def run_capture(args: argparse.Namespace) -> int:
     code = _report(result, None)
     if result.get("rows"):
         print(output.format_rows(result["rows"]))
+        print(output.UNITS)
     return code
 
 
 # -- status, plan check, serve -------------------------------------------------------------------
 
 
-def run_status(args: argparse.Namespace) -> int:
+STATUS_KEYS = ("service", "catalogue", "runs")  # `psfd status --json`, with or without the service (docs/formats.md)
+SERVICE_KEYS = ("socket", "state", "queued", "current", "last", "paused_plan", "unfinished")
+
+
+def status(args: argparse.Namespace) -> dict:
+    """What `psfd status` shows, in one shape whether or not the service runs (`STATUS_KEYS`):
+    ``service`` (None when no service answers, else `SERVICE_KEYS`), the ``catalogue`` whose latest runs
+    are listed (the service's own when it says which) and those ``runs`` (newest first, at most 10)."""
+    from psfd.catalogue import Catalogue
+    from psfd.daemon.store import frames_dir_for, shown_state
+    from psfd.errors import CatalogueError
+
     catalogue, frames, sock = options.paths(args)
+    service = None
     if client.service_up(sock):
         answer = client.request(sock, {"cmd": "status"})
-        answer.pop("ok", None)
-        if args.json:
-            print(json.dumps(answer))
-            return 0
-        print(f"service at {sock}: {answer['state']}, {answer['queued']} queued")
-        if answer["current"]:
-            c = answer["current"]
+        service = {"socket": str(sock), **{key: answer.get(key) for key in SERVICE_KEYS[1:]}}
+        if answer.get("catalogue") and not args.catalogue:
+            catalogue = Path(answer["catalogue"])
+            frames = frames_dir_for(catalogue)
+    runs: list[dict] = []
+    if catalogue.exists():
+        try:
+            with Catalogue(catalogue, readonly=True) as cat:
+                runs = [cat.run_summary(r["id"]) for r in cat.runs()[:10]]
+        except CatalogueError:
+            if service is None:
+                raise
+    for run in runs:  # a run its process no longer holds was killed: say so, it is resumable
+        run["state"] = shown_state(run["state"], frames)
+    return {"service": service, "catalogue": str(catalogue) if catalogue.exists() else None, "runs": runs}
+
+
+def run_status(args: argparse.Namespace) -> int:
+    info = status(args)
+    if args.json:
+        print(json.dumps(info))
+        return 0
+    service = info["service"]
+    if service is not None:
+        print(f"service at {service['socket']}: {service['state']}, {service['queued']} queued")
+        if service["current"]:
+            c = service["current"]
             print(f"  running {c['plan']}: {c['done']}/{c['total']} steps, at {c['step']}")
-        if answer["last"]:
-            last = answer["last"]
+        if service["last"]:
+            last = service["last"]
             print(f"  last: {last['plan']} run {last.get('run_id', '-')} {last['state']}"
                   + (f" ({last['reason']})" if last.get("reason") else ""))
-        for run in answer.get("unfinished", []):  # what the service would continue on request
+        for run in service["unfinished"] or []:  # paused and interrupted runs: what --resume continues
             print(f"  run {run['id']} of {run['plan_path']} is {run['state']} ({run['done']}/{run['total']} steps "
                   f"done); continue with: {_again(args, 'run', run['plan_path'], '--resume')}")
         return 0
-    from psfd.catalogue import Catalogue
-    from psfd.daemon.store import shown_state
-
-    if not catalogue.exists():
-        print(f"no service at {sock}; no catalogue at {catalogue}")
+    _, _, sock = options.paths(args)
+    if info["catalogue"] is None:
+        print(f"no service at {sock}; no catalogue at {options.paths(args)[0]}")
         return 0
-    with Catalogue(catalogue, readonly=True) as cat:
-        summaries = [cat.run_summary(r["id"]) for r in cat.runs()[:10]]
-    for s in summaries:  # a run its process no longer holds was killed: say so, it is resumable
-        s["state"] = shown_state(s["state"], frames)
-    if args.json:
-        print(json.dumps({"service": None, "runs": summaries}))
-        return 0
-    print(f"no service at {sock}; latest runs in {catalogue}:")
+    print(f"no service at {sock}; latest runs in {info['catalogue']}:")
     print(f"{'run':>5} {'state':<11} {'done':>9} {'failed':>6} {'psfs':>6}  plan")
-    for s in summaries:
+    for s in info["runs"]:
         print(f"{s['id']:>5} {s['state']:<11} {s['done']:>4}/{s['total']:<4} {s['failed']:>6} {s['psfs']:>6}  "
               f"{s['plan_path']}")
     return 0
@@ -311,6 +340,21 @@ def run_plan_check(args: argparse.Namespace) -> int:
     nx, ny = plan.estimator_options().get("grid", (1, 1))
     print(f"{path}: ok, {plural(steps, 'step')}, {plural(steps * (2 if plan.kind == TWO_PHOTO else 1), 'frame')}, "
           f"{plural(steps * len(plan.channels) * nx * ny, 'PSF')}" + (f"; {rail}" if rail else ""))
+    return 0
+
+
+def run_plan_init(args: argparse.Namespace) -> int:
+    from psfd.cli import output
+    from psfd.daemon import plan as plans
+
+    path = Path(args.plan)
+    if path.exists() and not args.force:
+        raise BadInputError(f"{path}: exists; choose another name or add --force to replace it")
+    if path.is_dir():
+        raise BadInputError(f"{path}: is a folder")
+    text = plans.plan_template(simulate=args.simulate)
+    output.write_file(path, lambda staging: staging.write_text(text, encoding="utf-8"))
+    print(f"wrote {path}: check it with `psfd plan check {path}`, run it with `psfd run {path}`")
     return 0
 
 
@@ -416,11 +460,13 @@ def _demo_outputs(catalogue: Path, workdir: Path) -> None:
     """The query tables (centre and corner of the field) and the report figure, as `psfd query` and `psfd report`."""
     from psfd.catalogue import Catalogue
     from psfd.cli import output
+    from psfd.cli.query import with_units
 
     with Catalogue(catalogue, readonly=True) as cat:
         for name, near in (("centre", (0.5, 0.5)), ("corner", (0.0, 0.0))):
             print(f"\n$ psfd query --catalogue {catalogue} --channel g1 --near {near[0]:g},{near[1]:g}   # {name}")
-            print(output.format_rows(cat.query(channel="g1", near=near).rows))
+            print(output.format_rows(with_units(cat, cat.query(channel="g1", near=near).rows)))
+        print(output.UNITS)
         report = workdir / "report.png"
         output.write_report(cat, cat.query().rows, "g1", report)
     print(f"\nreport figure: {report}  (all PSFs: psfd query --catalogue {catalogue})")

@@ -1,9 +1,17 @@
-"""What the commands write and print: PSF files, figure files, JSON lines, tables.
+"""What the commands write and print: PSF files, figure files, JSON lines, CSV, tables.
 
 Every output folder is checked the same way (`check_out_dir`: new or empty,
-in a writable place) and written the same way (a hidden staging folder
-renamed at the end), so a failure leaves nothing half-written. The pictures
-themselves are drawn by `psfd.figures`.
+in a writable place, or replaced whole with ``--force``) and written the same
+way (a hidden staging folder renamed at the end, with the permissions the
+umask gives a new folder), so a failure leaves nothing half-written and
+nothing a user made is overwritten silently. The pictures themselves are
+drawn by `psfd.figures`.
+
+Units, wherever a number is printed or written: MTF50 in cycles per channel
+pixel (Nyquist 0.5), and in line pairs per mm and line widths per picture
+height when the photosite pitch and the picture height are known (from the
+RAW's EXIF, `psfd.exif.read_metadata`, or the plan's ``[rig] pitch_um``);
+FWHM in channel pixels; field coordinates normalised, (0, 0) top-left.
 """
 
 from __future__ import annotations
@@ -24,24 +32,59 @@ import numpy as np
 from psfd.errors import BadInputError, NoMatchError, path_reason
 from psfd.estimator.kernels import PSF
 
+UNITS = ("units: f/ f-number; field normalised (0,0 top-left, 1,1 bottom-right); size: kernel side in samples "
+         "of the s-times grid; mtf50 in cycles per channel pixel (Nyquist 0.5), lp/mm: line pairs per mm on the "
+         "sensor; fwhm in channel pixels; dist: field distance to --near")
+
 # ---------------------------------------------------------------- folders and files
 
 
-def check_out_dir(out_dir: str | os.PathLike) -> Path:
+def check_out_dir(out_dir: str | os.PathLike, force: bool = False) -> Path:
     """Fail early (before any work) if ``out_dir`` cannot be created or filled.
 
     An existing folder must be empty, so earlier results are never overwritten
-    or mixed with new ones.
+    or mixed with new ones, unless ``force`` (``--force``) asks to replace it whole:
+    then it must be a folder of files such as psfd writes (no subfolders), never
+    a file and never a folder of folders (a home folder given by mistake).
     """
     out_dir = Path(out_dir).absolute()
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
-        raise BadInputError(f"{out_dir}: exists and is not an empty folder")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise BadInputError(f"{out_dir}: exists and is not a folder")
+    if out_dir.exists() and any(out_dir.iterdir()):
+        if not force:
+            raise BadInputError(f"{out_dir}: exists and is not an empty folder (add --force to replace it)")
+        if any(p.is_dir() for p in out_dir.iterdir()):
+            raise BadInputError(f"{out_dir}: holds folders, so it is not an output folder of psfd; not replaced")
     parent = out_dir.parent
     if not parent.is_dir():
         raise BadInputError(f"{parent}: {'not a folder' if parent.exists() else 'no such folder'}")
     if not os.access(parent, os.W_OK):
         raise BadInputError(f"{parent}: not a writable folder")
     return out_dir
+
+
+def umask() -> int:
+    """The process's file-creation mask (read by setting it and putting it back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def publish(staging: Path, out: Path) -> None:
+    """Rename a complete staging folder to ``out``, with the permissions a new folder gets (the umask's,
+    not `tempfile.mkdtemp`'s private 0700). An existing ``out`` (``--force``, checked by `check_out_dir`)
+    is moved aside first and removed only once the new folder is in place."""
+    os.chmod(staging, 0o777 & ~umask())
+    old = None
+    if out.exists():
+        if any(out.iterdir()):
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+            os.rename(out, old / "replaced")
+        else:
+            out.rmdir()  # the empty folder check_out_dir accepted
+    os.rename(staging, out)  # one atomic step: the folder appears complete
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def staging_dir(out: Path) -> Path:
@@ -61,19 +104,17 @@ def parent_folder(out: Path) -> Path:
     return out.parent
 
 
-def write_folder(out_dir: str | os.PathLike, write: Callable[[Path], list[str]]) -> list[Path]:
+def write_folder(out_dir: str | os.PathLike, write: Callable[[Path], list[str]], force: bool = False) -> list[Path]:
     """Fill a new folder atomically: ``write(staging)`` fills a hidden folder beside ``out_dir``
     and returns the names it wrote; the folder is renamed to ``out_dir`` only when complete.
 
-    ``out_dir`` must not exist or be empty (`check_out_dir`).
+    ``out_dir`` must not exist or be empty, or with ``force`` is replaced whole (`check_out_dir`, `publish`).
     """
-    out_dir = check_out_dir(out_dir)
+    out_dir = check_out_dir(out_dir, force)
     tmp = staging_dir(out_dir)
     try:
         files = write(tmp)
-        if out_dir.exists():  # the empty folder check_out_dir accepted
-            out_dir.rmdir()
-        os.rename(tmp, out_dir)  # one atomic step: the folder appears complete
+        publish(tmp, out_dir)
     except OSError as exc:
         raise BadInputError(f"{out_dir}: cannot write results ({exc.strerror or exc})") from None
     finally:
@@ -119,7 +160,7 @@ def base_names(estimates: list[PSF]) -> list[str]:
     return names
 
 
-def _write_one(folder: Path, name: str, est: PSF) -> list[str]:
+def _write_one(folder: Path, name: str, est: PSF, sensor: Any) -> list[str]:
     import tifffile  # only the writers need these
 
     from psfd import figures
@@ -128,16 +169,16 @@ def _write_one(folder: Path, name: str, est: PSF) -> list[str]:
     np.save(folder / files[0], est.psf)
     meta = {"method": est.method, "channel": est.channel, "s": est.s, "field": [float(v) for v in est.field]}
     tifffile.imwrite(folder / files[1], est.psf.astype(np.float32), metadata=meta)
-    figures.save_psf(est, folder / files[2])
+    figures.save_psf(est, folder / files[2], sensor.pitch_um if sensor else None)
     # the provenance and metrics beside the arrays, so a folder of results describes itself
-    (folder / files[3]).write_text(json.dumps(plain(est.to_json()), allow_nan=False) + "\n")
+    (folder / files[3]).write_text(json.dumps(estimate_json(est, sensor), allow_nan=False) + "\n")
     for key, array in est.figures.items():
         label = re.sub(r"[^A-Za-z0-9._+-]", "_", key)
         array = np.asarray(array)
         np.save(folder / f"{name}.{label}.npy", array)
         files.append(f"{name}.{label}.npy")
         if array.ndim == 2 and array.size:
-            figures.save_array(array, folder / f"{name}.{label}.png")
+            figures.save_array(array, folder / f"{name}.{label}.png", key, est)
             files.append(f"{name}.{label}.png")
     return files
 
@@ -146,13 +187,15 @@ def write_estimates(
     estimates: list[PSF],
     out_dir: str | os.PathLike,
     extra: dict[str, Callable[[Path], None]] | None = None,
+    force: bool = False,
 ) -> list[Path]:
     """Write every estimate as .npy, 32-bit float .tif and a .png figure, plus its extra figures.
 
     Per estimate ``NAME`` (see `base_names`): ``NAME.npy`` (float64 kernel),
     ``NAME.tif`` (float32), ``NAME.png`` (`psfd.figures.psf_figure`), ``NAME.json``
     (the `print_json` record), and for each entry
-    ``key`` of ``PSF.figures``: ``NAME.key.npy`` and, when 2-D, ``NAME.key.png``.
+    ``key`` of ``PSF.figures``: ``NAME.key.npy`` and, when 2-D, ``NAME.key.png``;
+    and ``metrics.csv``, one row per estimate (`write_csv`).
 
     ``extra`` maps further file names to functions that write them at the path
     given (e.g. a comparison figure), so they join the same atomic folder
@@ -164,25 +207,158 @@ def write_estimates(
         The files written, in ``out_dir``.
     """
 
+    sensors = {path: source_sensor(path) for est in estimates for path in est.sources[:1]}
+
     def write(folder: Path) -> list[str]:
-        files = [f for name, est in zip(base_names(estimates), estimates) for f in _write_one(folder, name, est)]
+        files = []
+        records = []
+        for name, est in zip(base_names(estimates), estimates):
+            sensor = sensors.get(est.sources[0]) if est.sources else None
+            files += _write_one(folder, name, est, sensor)
+            records.append({**estimate_record(est, sensor), "file": f"{name}.npy"})
+        with open(folder / "metrics.csv", "w", newline="", encoding="utf-8") as stream:
+            write_csv(records, stream)
+        files.append("metrics.csv")
         for name, write_extra in (extra or {}).items():
             write_extra(folder / name)
             files.append(name)
         return files
 
-    return write_folder(out_dir, write)
+    return write_folder(out_dir, write, force)
 
 
 def write_report(catalogue: Any, rows: list[dict], channel: str, out: Path) -> None:
-    """The field report (`psfd.figures.report_figure`) of the catalogue rows of ``channel``, written to ``out``."""
+    """The field report (`psfd.figures.report_figure`) of the catalogue rows, every channel's PSFs and the
+    MTF50 of ``channel``, written to ``out`` (PNG, PDF, SVG... by its suffix)."""
     from psfd import figures
 
-    rows = [r for r in rows if r["channel"] == channel]
-    if not rows:
+    if not any(r["channel"] == channel for r in rows):
         raise NoMatchError(f"no PSF of channel {channel} to report")
     arrays = {row["id"]: catalogue.psf(row["id"])[0] for row in rows}
-    write_file(out, lambda path: figures.save_report(rows, arrays, channel, path))
+    sensors = catalogue_sensors(catalogue, rows)
+    write_file(out, lambda path: figures.save_report(rows, arrays, channel, path, sensors))
+
+
+# ---------------------------------------------------------------- sensors and units
+
+
+def source_sensor(path: str | os.PathLike, pitch_um: float | None = None) -> Any:
+    """The `psfd.figures.Sensor` of a frame file from its EXIF (size, pitch), or None when it says neither.
+
+    ``pitch_um`` (e.g. a plan's ``[rig] pitch_um``) stands in when the file gives no pitch.
+    """
+    from psfd import exif, figures
+    from psfd.estimator.raw import RAW_SUFFIXES
+
+    meta = exif.FrameMetadata()
+    if Path(path).suffix.lower() in RAW_SUFFIXES:  # a PGM or PNG plane carries no EXIF: nothing to warn about
+        try:
+            meta = exif.read_metadata(path)
+        except (BadInputError, OSError):
+            pass
+    pitch = meta.pixel_pitch_um or pitch_um
+    if not (meta.width and meta.height):
+        return figures.Sensor(0, 0, pitch) if pitch else None
+    return figures.Sensor(int(meta.width), int(meta.height), pitch)
+
+
+def _plan_pitch(plan_text: str | None) -> float | None:
+    """A plan's ``[rig] pitch_um``, if it has one."""
+    import tomllib
+
+    try:
+        value = tomllib.loads(plan_text or "").get("rig", {}).get("pitch_um")
+    except tomllib.TOMLDecodeError:
+        return None
+    return float(value) if isinstance(value, (int, float)) and value > 0 else None
+
+
+def catalogue_sensors(catalogue: Any, rows: list[dict]) -> dict[int, Any]:
+    """The `psfd.figures.Sensor` of each catalogue row: its first frame's EXIF, the pitch of its run's plan
+    when the EXIF has none (None when neither tells anything). Files and plans are read once each."""
+    by_path: dict[str, Any] = {}
+    pitches: dict[Any, float | None] = {}
+    out: dict[int, Any] = {}
+    for row in rows:
+        run_id = row.get("run_id")
+        if run_id not in pitches:
+            pitches[run_id] = _plan_pitch(catalogue.run(run_id)["plan_text"]) if run_id is not None else None
+        frames = catalogue.psf_frames(row["id"])
+        if not frames:
+            out[row["id"]] = None
+            continue
+        path = str(frames[0]["path"])
+        key = f"{path}\0{pitches[run_id]}"
+        if key not in by_path:
+            by_path[key] = source_sensor(path, pitches[run_id])
+        out[row["id"]] = by_path[key]
+    return out
+
+
+def units(record: dict, sensor: Any) -> dict:
+    """``record`` with the pitch, picture height and MTF50 in lp/mm and LW/PH where the sensor tells them."""
+    from psfd.estimator import mtf
+
+    pitch = sensor.pitch_um if sensor else None
+    height = sensor.height if sensor and sensor.height else None
+    out = {**record, "pixel_pitch_um": pitch, "image_height_px": height}
+    for axis in ("x", "y"):
+        value = record.get(f"mtf50_{axis}")
+        known = value is not None and math.isfinite(value)
+        out[f"mtf50_{axis}_lp_mm"] = mtf.lp_per_mm(value, pitch, record["channel"]) if known and pitch else None
+        out[f"mtf50_{axis}_lw_ph"] = mtf.lw_per_ph(value, height, record["channel"]) if known and height else None
+    return out
+
+
+def estimate_record(est: PSF, sensor: Any = None) -> dict:
+    """The CSV / JSON record of one estimate: `PSF.to_json` without the array, with `units`."""
+    record = {k: v for k, v in est.to_json().items() if k != "psf"}
+    return units(plain(record), sensor)
+
+
+# ---------------------------------------------------------------- CSV
+
+# (record key, CSV header with its unit): one row per PSF, for spreadsheets and pandas.
+CSV_COLUMNS = (
+    ("id", "id"), ("file", "file"), ("camera", "camera"), ("serial", "serial"), ("lens", "lens"),
+    ("method", "method"), ("channel", "channel"), ("aperture", "aperture [f-number]"),
+    ("focal_length_mm", "focal_length [mm]"), ("focus_distance_m", "focus_distance [m]"),
+    ("field_x", "field_x [0-1 of width]"), ("field_y", "field_y [0-1 of height]"),
+    ("window", "window x0 y0 x1 y1 [channel px]"), ("s", "s [samples per channel px]"),
+    ("support", "support [samples]"),
+    ("mtf50_x", "mtf50_x [cycles/px]"), ("mtf50_y", "mtf50_y [cycles/px]"),
+    ("mtf50_x_lp_mm", "mtf50_x [lp/mm]"), ("mtf50_y_lp_mm", "mtf50_y [lp/mm]"),
+    ("mtf50_x_lw_ph", "mtf50_x [LW/PH]"), ("mtf50_y_lw_ph", "mtf50_y [LW/PH]"),
+    ("fwhm_x", "fwhm_x [channel px]"), ("fwhm_y", "fwhm_y [channel px]"),
+    ("noise_floor", "noise_floor [fraction of energy per sample, RMS]"),
+    ("residual", "residual [normalised data units, RMS]"),
+    ("pixel_pitch_um", "pixel_pitch [um]"), ("image_height_px", "image_height [px]"),
+    ("run_id", "run_id"), ("step", "step"), ("source", "source"), ("created", "created [UTC]"),
+)
+
+
+def write_csv(records: list[dict], stream: TextIO) -> None:
+    """One CSV row per PSF record (`estimate_record` or a catalogue row with `units`), units in the header.
+
+    Columns a record does not have stay empty; lists are written space-separated.
+    """
+    import csv
+
+    writer = csv.writer(stream, lineterminator="\n")
+    writer.writerow([header for _, header in CSV_COLUMNS])
+    for record in records:
+        record = {**record, "source": record.get("source") or record.get("sources")}
+        writer.writerow([_csv_cell(record.get(key)) for key, _ in CSV_COLUMNS])
+
+
+def _csv_cell(value: Any) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return ""
+    if isinstance(value, (list, tuple)):
+        return " ".join(_csv_cell(v) for v in value)
+    if isinstance(value, float):
+        return format(value, ".6g")
+    return str(value)
 
 
 # ---------------------------------------------------------------- printing
@@ -208,16 +384,34 @@ def fmt(value: float | None, spec: str = ".3f") -> str:
     return "-" if value is None or not math.isfinite(value) else format(value, spec)
 
 
+def estimate_json(est: PSF, sensor: Any = None) -> dict:
+    """The JSON object of one estimate (docs/formats.md): `estimate_record` and the kernel as ``psf``."""
+    return {**estimate_record(est, sensor), "psf": plain(est.psf)}
+
+
 def print_json(estimates: list[PSF], stream: TextIO | None = None) -> None:
-    """One JSON object per estimate per line (`PSF.to_json`)."""
+    """One JSON object per estimate per line (`estimate_json`)."""
     stream = sys.stdout if stream is None else stream
+    sensors = {path: source_sensor(path) for est in estimates for path in est.sources[:1]}
     for est in estimates:
-        stream.write(json.dumps(plain(est.to_json()), allow_nan=False) + "\n")
+        sensor = sensors.get(est.sources[0]) if est.sources else None
+        stream.write(json.dumps(estimate_json(est, sensor), allow_nan=False) + "\n")
     stream.flush()
 
 
+def log_warnings(estimates: list[PSF]) -> None:
+    """Each estimate's warnings on the log (stderr), named by source, channel and field: never inside a table."""
+    import logging
+
+    log = logging.getLogger("psfd.estimate")
+    for est in estimates:
+        source = "+".join(Path(s).name for s in est.sources) or "estimate"
+        for warning in est.warnings:
+            log.warning("%s %s at (%.2f, %.2f): %s", source, est.channel, est.field[0], est.field[1], warning)
+
+
 def print_table(estimates: list[PSF], stream: TextIO | None = None) -> None:
-    """A short human-readable table: one line per estimate, warnings below it."""
+    """A short human-readable table, one line per estimate, with its units line (warnings: `log_warnings`)."""
     stream = sys.stdout if stream is None else stream
     print(
         f"{'source':<28} {'chan':<5} {'field x,y':<11} {'MTF50 x':>8} {'MTF50 y':>8} "
@@ -234,8 +428,6 @@ def print_table(estimates: list[PSF], stream: TextIO | None = None) -> None:
             f"{fmt(m['fwhm_y'], '.2f'):>7} {fmt(est.noise_floor, '.2e'):>9}",
             file=stream,
         )
-        for warning in est.warnings:
-            print(f"  warning: {warning}", file=stream)
     print("MTF50 in cycles per channel pixel (Nyquist 0.5); FWHM in channel pixels.", file=stream)
 
 
@@ -255,8 +447,12 @@ ROW_COLUMNS = (
 
 
 def format_rows(rows: list[dict]) -> str:
-    """Aligned text table of catalogue PSF rows (MTF50 in cycles per channel pixel, FWHM in channel pixels)."""
+    """Aligned text table of catalogue PSF rows (MTF50 in cycles per channel pixel, FWHM in channel pixels;
+    MTF50 in lp/mm too when the rows carry it, `units`). The units line is `UNITS`."""
     columns = list(ROW_COLUMNS)
+    if any(r.get("mtf50_x_lp_mm") is not None or r.get("mtf50_y_lp_mm") is not None for r in rows):
+        columns.insert(-1, ("lp/mm x/y", lambda r: f"{fmt(r.get('mtf50_x_lp_mm'), '.1f')}/"
+                                                  f"{fmt(r.get('mtf50_y_lp_mm'), '.1f')}"))
     if rows and "distance" in rows[0]:
         columns.append(("dist", lambda r: f"{r['distance']:.3f}"))
     cells = [[name for name, _ in columns]] + [[cell(r) for _, cell in columns] for r in rows]

@@ -1,4 +1,9 @@
-"""`psfd query`, `psfd export`, `psfd report`: read PSFs back out of the catalogue."""
+"""`psfd query`, `psfd export`, `psfd report`, `psfd metadata`: read PSFs back out of the catalogue.
+
+What other tools read: ``query --json`` (one object per PSF, docs/formats.md), ``query --csv`` and
+``export``'s ``metrics.csv`` (one row per PSF, units in the header), and ``metadata``: the Datasette
+metadata describing the catalogue's tables and columns with their units.
+"""
 
 from __future__ import annotations
 
@@ -30,19 +35,30 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     about = "list catalogued PSFs (a table, or JSON lines with the arrays)"
     query = subparsers.add_parser("query", parents=[filters, near], help=about, description=about)
-    query.add_argument("--json", action="store_true", help="one JSON object per line, with the PSF array")
+    how = query.add_mutually_exclusive_group()
+    how.add_argument("--json", action="store_true", help="one JSON object per line, with the PSF array")
+    how.add_argument("--csv", action="store_true", help="CSV, one row per PSF, units in the header (no arrays)")
     query.set_defaults(func=run_query)
 
     about = "write catalogued PSFs to a new folder, one file each plus index.json"
     export = subparsers.add_parser("export", parents=[filters, near], help=about, description=about)
     export.add_argument("--format", default="npy", metavar="FORMAT", help=f"{' | '.join(EXPORT_FORMATS)} (default npy)")
     export.add_argument("--out", required=True, help="folder to create (must not exist or be empty)")
+    export.add_argument("--force", action="store_true", help="replace --out if it holds an earlier export")
     export.set_defaults(func=run_export)
 
-    about = "draw a figure: per aperture, the PSFs over the field and an MTF50 field map"
+    about = ("draw the field report: per aperture, every channel's PSFs over the sensor, the sagittal and "
+             "meridional MTF50 at each measured point, and MTF50 against image height")
     report = subparsers.add_parser("report", parents=[filters], help=about, description=about)
-    report.add_argument("--out", default="report.png", help="image file (default report.png)")
+    report.add_argument("--out", default="report.png",
+                        help="figure file: .png, or .pdf / .svg for vector output (default report.png)")
     report.set_defaults(func=run_report)
+
+    about = "write the Datasette metadata of the catalogue: every table and column described, with units"
+    meta = subparsers.add_parser("metadata", help=about, description=about + " (datasette CATALOGUE -m FILE)")
+    options.add_catalogue_option(meta)
+    meta.add_argument("--out", metavar="FILE", help="write here instead of printing (e.g. metadata.json)")
+    meta.set_defaults(func=run_metadata)
 
 
 # -- arguments -------------------------------------------------------------------
@@ -85,18 +101,35 @@ def run_filters(cat, options: dict[str, Any], nothing: str = ""):
 # -- query -------------------------------------------------------------------------
 
 
+def with_units(cat, rows: list[dict]) -> list[dict]:
+    """Catalogue rows with pitch, picture height and MTF50 in lp/mm and LW/PH (`psfd.cli.output.units`)."""
+    from psfd.cli import output
+
+    sensors = output.catalogue_sensors(cat, rows)
+    return [output.units(row, sensors.get(row["id"])) for row in rows]
+
+
 def run_query(args: argparse.Namespace) -> int:
-    from psfd.cli.output import format_rows
+    from psfd.cli import output
 
     filters = query_options(args)
     with open_catalogue(args) as cat:
-        result = run_filters(cat, filters)  # none: exit 1, and --json output stays empty (zero lines)
-        if args.json:
-            for row in result:
+        try:
+            result = run_filters(cat, filters)  # none: exit 1, as grep; --json output stays empty (zero lines)
+        except NoMatchError:
+            if args.csv:
+                output.write_csv([], sys.stdout)  # the header alone
+            raise
+        rows = with_units(cat, result.rows)
+        if args.csv:
+            output.write_csv(rows, sys.stdout)
+        elif args.json:
+            for row in rows:
                 array, _ = cat.psf(row["id"])
-                print(json.dumps({**row, "psf": array.tolist()}))
+                print(json.dumps(output.plain({**row, "psf": array})))
         else:
-            print(format_rows(result.rows))
+            print(output.format_rows(rows))
+            print(output.UNITS)
     return 0
 
 
@@ -133,20 +166,23 @@ def run_export(args: argparse.Namespace) -> int:
         raise BadInputError(f"unknown export format {args.format!r} (one of {', '.join(EXPORT_FORMATS)})")
     filters = query_options(args)
     out = Path(args.out)
-    output.check_out_dir(out)
+    output.check_out_dir(out, args.force)
     with open_catalogue(args) as cat:
         result = run_filters(cat, filters, "; nothing exported")
+        rows = with_units(cat, result.rows)
 
         def write(folder: Path) -> list[str]:
             index = []
-            for row in result:
+            for row in rows:
                 array, meta = cat.psf(row["id"])
-                meta = {**meta, **({"distance": row["distance"]} if "distance" in row else {})}
+                meta = output.plain({**row, **meta})
                 index.append({"file": _write_psf(folder, _file_stem(row), array, meta, args.format), **meta})
             (folder / "index.json").write_text(json.dumps({"note": result.note, "psfs": index}, indent=1))
-            return [entry["file"] for entry in index] + ["index.json"]
+            with open(folder / "metrics.csv", "w", newline="", encoding="utf-8") as stream:
+                output.write_csv(index, stream)
+            return [entry["file"] for entry in index] + ["index.json", "metrics.csv"]
 
-        output.write_folder(out, write)
+        output.write_folder(out, write, args.force)
     print(f"exported {len(result.rows)} PSFs to {out}")
     return 0
 
@@ -168,10 +204,28 @@ def run_report(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     if not figures.can_write(out):
-        raise BadInputError(f"cannot write an image named {out} (use .png, .jpg or .tif)")
+        raise BadInputError(f"cannot write a figure named {out} (use .png, or .pdf or .svg for vector output)")
     filters = query_options(args)
+    channel = filters.pop("channel")  # the report draws every channel's PSFs; --channel picks the MTF50 one
     with open_catalogue(args) as cat:
         result = run_filters(cat, filters, "; nothing to report")
-        output.write_report(cat, result.rows, pick_channel(result.rows, args.channel), out)
+        if channel and not any(r["channel"] == channel for r in result.rows):
+            raise NoMatchError(f"no PSF of channel {channel} matches the query; nothing to report")
+        output.write_report(cat, result.rows, pick_channel(result.rows, channel), out)
     print(f"report written to {out}")
+    return 0
+
+
+def run_metadata(args: argparse.Namespace) -> int:
+    from psfd.catalogue import datasette_metadata, default_path
+
+    path = Path(args.catalogue) if args.catalogue else default_path()
+    text = json.dumps(datasette_metadata(path.stem), indent=2) + "\n"
+    if args.out is None:
+        sys.stdout.write(text)
+        return 0
+    from psfd.cli import output
+
+    output.write_file(Path(args.out), lambda staging: staging.write_text(text, encoding="utf-8"))
+    print(f"wrote {args.out}: datasette {path} -m {args.out}")
     return 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from psfd.cli.options import parse_float, parse_int
 from psfd.errors import BadInputError
@@ -15,7 +16,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="write the calibration target as a print-ready PDF or a PNG",
         description=(
             "Render the Bernoulli noise target (published layout). The noise is saved beside the output "
-            "as NAME.noise.pgm; give it to `psfd estimate bernoulli --pattern` when photographing a print of it."
+            "as NAME.ORIGIN.noise.pgm (ORIGIN: seedN, published, or the --noise file's name); give it to "
+            "`psfd estimate bernoulli --pattern` when photographing a print of it. Files that exist with other "
+            "content are not replaced unless --force."
         ),
     )
     parser.add_argument("--out", required=True, help="output file, .pdf (vector, for print) or .png (raster)")
@@ -23,6 +26,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--noise", metavar="PGM", help="use this 256x256 noise pattern instead of a seed")
     parser.add_argument("--size-mm", default="700", help="side of the printed target in mm (PDF; default 700)")
     parser.add_argument("--px-per-cell", default="8", help="pixels per noise cell (PNG; default 8)")
+    parser.add_argument("--force", action="store_true", help="replace an existing target or noise file")
     parser.add_argument("--kind", default=BERNOULLI,
                         help=f"{BERNOULLI} (default) or {SHARP_EDGE} (once edges): the edge target of Joshi et al., "
                              "CVPR 2008 "
@@ -53,19 +57,20 @@ def run(args: argparse.Namespace) -> int:
 
     if args.noise is not None:
         noise = target.load_noise(args.noise)
-        origin = f"noise {args.noise}"
+        origin, name = f"noise {args.noise}", Path(args.noise).stem
     elif args.seed is not None:
         seed = parse_int(args.seed, "--seed", minimum=0)
         noise = target.seeded_noise(seed)
-        origin = f"seed {seed}"
+        origin, name = f"seed {seed}", f"seed{seed}"
     else:
         noise = target.default_noise()
-        origin = "published noise"
+        origin, name = "published noise", "published"
     cell_mm = size_mm / target.SIZE
     caption = (
         f"psfd Bernoulli target {size_mm:.5g} mm - {origin} - cell {cell_mm:.5g} mm - print at 100 % (no scaling)"
     )
-    out, pgm = printing.write_target(args.out, noise, size_mm=size_mm, caption=caption, px_per_cell=px_per_cell)
+    out, pgm = printing.write_target(args.out, noise, origin=name, size_mm=size_mm, caption=caption,
+                                     px_per_cell=px_per_cell, force=args.force)
     print(f"wrote {out} ({origin}, cell {cell_mm:.5g} mm) and its noise {pgm}")
     return 0
 
@@ -81,6 +86,7 @@ def run_edges(args: argparse.Namespace) -> int:
 
     square_mm = size_mm / sharpedge.SQUARES[0]
     caption = f"psfd sharp-edge target - square {square_mm:.4g} mm - print at 100 % (no scaling)"
-    out = printing.write_edge_target(args.out, size_mm=size_mm, caption=caption, px_per_cell=px_per_cell)
+    out = printing.write_edge_target(args.out, size_mm=size_mm, caption=caption, px_per_cell=px_per_cell,
+                                     force=args.force)
     print(f"wrote {out} (sharp-edge target, square {square_mm:.4g} mm)")
     return 0

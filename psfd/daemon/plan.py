@@ -56,8 +56,8 @@ from typing import Any
 from psfd.drivers import RAIL_DRIVERS, REAL_KEYS, SIM_KEYS
 from psfd.drivers.base import CameraSetup, RailInfo, target_distance
 from psfd.errors import BadInputError
-from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, PLAN_BYTES_MAX, TWO_PHOTO,
-                             check_grid, check_s, check_solver, check_steps, check_support)
+from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, DEFAULT_SOLVER, PLAN_BYTES_MAX,
+                             SOLVERS, TWO_PHOTO, check_grid, check_s, check_solver, check_steps, check_support)
 
 # [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys), our
 # camera settings, applied once before the first step, and the camera's setup for PSF work
@@ -555,3 +555,95 @@ def _problems(checks: list[tuple[Any, Any, str]]) -> list[str]:
         except BadInputError as exc:
             problems.append(str(exc))
     return problems
+
+
+def plan_template(simulate: bool = False) -> str:
+    """A plan with every key (`TABLES`), each explained: in use where a plan needs it, commented out
+    where its default stands (``psfd plan init``). It passes `check_text` as written.
+
+    ``simulate``: a small plan the simulated rig runs in seconds (two apertures at the centre of the
+    field, the g1 channel); else a plan for a real rig, whose rail positions must be measured first.
+    """
+    from psfd.drivers.sim import SimRig
+
+    sim = SimRig()
+    ys, zs = sim.field_offsets(3)
+    travel = ", ".join(f"{axis} = [{fmt(lo)}, {fmt(hi)}]" for axis, (lo, hi) in sim.limits.items())
+    hardware = [
+        (not simulate, 'rail_port = "/dev/psfd-rail"', "the rail's serial port (see systemd/99-psfd.rules)"),
+        (False, 'camera_port = "usb:001,004"', "gphoto2 port of the camera (default: the only one connected)"),
+    ]
+    rig = ([(True, "simulate = true", "the simulated rig, no hardware: remove this line for a real rig")]
+           if simulate else []) + hardware + [
+        (False, "simulate = false", "true: the simulated rig instead of hardware")] * (not simulate) + [
+        (False, 'recording = "session/"', "replay a recording made by `psfd record` instead of hardware"),
+        (False, "timeout = 10", "camera: seconds to wait for an answer"),
+        (False, "rail_limits = { x = [-1500, 0], y = [-150, 0] }",
+         "narrower soft limits than the controller's travel, mm; also the rail's axes"),
+        (False, "rail_baudrate = 115200", "serial speed of the rail controller"),
+        (False, "rail_feed = 1000", "rail speed, mm/min"),
+        (False, "rail_timeout = 2.0", "rail: seconds to wait for an answer"),
+        (False, 'settings = { iso = "100", shutterspeed = "1/125" }', "camera settings set before the first step"),
+        (False, 'camera = { focus = "off", settle_s = 1.0, capture_target = "ram" }',
+         "[rig.camera]: autofocus off (or manual, any), seconds to settle after a move, frames to ram or card"),
+        (False, 'rail = "grbl"', 'the rail driver: "grbl", or "simulated"'),
+        (False, "x_at_lens = 0", "rail X, mm, of a target at the lens (for the capture scale key)"),
+        (False, "x_away = 1", "1: the target goes away from the lens as X grows; -1: as X falls"),
+        (None, "the simulated rig's own keys (with simulate = true):", ""),
+        (False, 'scene = "bernoulli"', '"bernoulli" (the noise target) or "texture" (a plane for two-photo)'),
+        (False, "seed = 0", "image noise and texture"),
+        (False, "sensor = [480, 640]", "photosites, rows and columns"),
+        (False, "pitch_um = 8.0", "photosite pitch, um (MTF50 in lp/mm comes from it)"),
+        (False, "focal_mm = 50.0", "focal length, mm"),
+        (False, "cell_mm = 0.1", "printed size of one target cell, mm"),
+        (False, "texture_mm = 240.0", "side of the textured plane, mm"),
+        (False, "s = 4", "grid factor of the rendered true PSF"),
+        (False, "support = 17", "side of the rendered true PSF, samples"),
+        (False, "corner_aberration = 0.35", "astigmatism and coma at the image corners, waves"),
+        (False, "exposure = 0.75", "fraction of the raw range that white reaches"),
+        (False, f"limits = {{ {travel} }}", "its rail travel, mm"),
+    ]
+    if simulate:
+        positions = [
+            (True, f"x = [{fmt(sim.distance_for_scale())}]", "rail distances of the target, mm (a cell images to 1/4 px)"),
+            (True, "y = [0]", f"lateral positions, mm; y = {json.dumps(ys)} walks a 3x3 field grid"),
+            (True, "z = [0]", f"vertical positions, mm; z = {json.dumps(zs)} with it"),
+            (False, "scale = [0.25]", "instead of x: channel pixels per target cell; psfd puts the rail there"),
+        ]
+    else:
+        positions = [
+            (True, "x = [-1300]", "rail positions, mm, in GRBL's work coordinates (-travel to 0 after homing, "
+                                "see README): where a noise cell images to about 1/4 px"),
+            (True, "y = [0]", "lateral positions, mm, that walk the target over the field, e.g. [-40, 0, 40]"),
+            (False, "z = [0]", "vertical positions, mm (a rail with a Z axis)"),
+            (False, "scale = [0.25]", "instead of x: channel pixels per target cell; psfd puts the rail there"),
+        ]
+    target = [
+        (True, f'kind = "{BERNOULLI}"', f'"{BERNOULLI}" (the printed noise target) or "{TWO_PHOTO}" (two photos)'),
+        (False, "near = 600", f"{TWO_PHOTO}: near distance, mm (far / near must exceed s)"),
+        (False, "far = 2200", f"{TWO_PHOTO}: far distance, mm"),
+        (False, "cell_mm = 0.5", f"{BERNOULLI}: printed size of one noise cell, mm (for the capture scale key)"),
+        (False, 'printed = "target.pdf"', f"{BERNOULLI}: or the printed PDF, whose cell size psfd reads"),
+    ]
+    capture = [(True, f"apertures = {'[5.6, 11]' if simulate else '[5.6, 8, 11]'}", "f-numbers, each at every position"),
+               *positions,
+               (True, "channels = " + ('["g1"]' if simulate else '"all"'), '"all" or a list of ' + ", ".join(CHANNELS)),
+               (True, "repeats = 1", "exposures per position and aperture")]
+    estimator = [
+        (True, f"s = {DEFAULT_S[BERNOULLI]}", "super-resolution: kernel samples per pixel, 1 to 8"),
+        (False, f"support = {4 * DEFAULT_S[BERNOULLI] + 1}", "kernel side in samples, odd (default 4 s + 1)"),
+        (True, f'solver = "{DEFAULT_SOLVER}"', f"{BERNOULLI} only: {', '.join(SOLVERS)}"),
+        (True, "grid = [1, 1]", "windows across and down the target, a PSF each"),
+    ]
+    lines = [f"# psfd measurement plan ({'simulated rig' if simulate else 'real rig'}): every key and what it means.",
+             "# A line starting with # shows a default or an example: remove the # to use it.",
+             "# Check it with `psfd plan check PLAN`, run it with `psfd run PLAN` (add --resume after a stop)."]
+    for name, entries in (("rig", rig), ("target", target), ("capture", capture), ("estimator", estimator)):
+        lines += ["", f"[{name}]"]
+        for active, setting, note in entries:
+            if active is None:
+                lines.append(f"# {setting}")
+            else:
+                text = setting if active else f"# {setting}"
+                lines.append(f"{text:<34}# {note}" if len(text) < 34 else f"{text}  # {note}")
+    return "\n".join(lines) + "\n"

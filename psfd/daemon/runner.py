@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import logging
 import multiprocessing
 import os
 import shutil
@@ -69,6 +70,8 @@ FRAME_BYTES_MIN = 1 << 20
 __all__ = ["Control", "RunResult", "Runner", "default_workers", "preflight", "release_rig", "run_plan", "start_check",
            "unfinished_runs"]
 
+log = logging.getLogger(__name__)
+
 
 class Control:
     """Requests from outside a running plan (control socket, signals), read between frames."""
@@ -85,6 +88,7 @@ class Control:
             # a cancel is never downgraded to a pause
             if self._request != "cancel":
                 self._request = what
+        log.info("%s requested: stopping after the current frame", what)
 
     @property
     def requested(self) -> str | None:
@@ -123,32 +127,65 @@ class RunResult:
 
 
 class Progress:
-    """A one-line progress bar on a stream (rewritten in place on a terminal, one line per step otherwise)."""
+    """How far a run is, on a stream: a tqdm bar on a terminal, one plain line per step otherwise.
+
+    On a terminal the bar fits the terminal's width (and follows it when resized) and shows the
+    steps done, the elapsed and the remaining time; written to a file or a pipe (a log, CI,
+    journald), each step is one line with the same counts and times, and nothing is redrawn.
+    None as the stream: silent (the service reports through its status instead).
+    """
 
     def __init__(self, run_id: int, total: int, done: int, stream: IO[str] | None) -> None:
         self.run_id, self.total, self.done, self.stream = run_id, total, done, stream
         self.tty = bool(stream and hasattr(stream, "isatty") and stream.isatty())
+        self.first, self.started = done, time.monotonic()
+        self.bar = None
+        if self.tty:
+            from tqdm import tqdm  # only a terminal needs it
+
+            self.bar = tqdm(total=total, initial=done, desc=f"run {run_id}", unit="step", file=stream,
+                            dynamic_ncols=True, leave=True, smoothing=0.1)
 
     def step(self, key: str, note: str = "") -> None:
+        """One more step done (``key``), with an optional note."""
         self.done += 1
+        if self.bar is not None:
+            self.bar.update(1)
         self.show(key, note)
 
     def show(self, key: str, note: str = "") -> None:
+        """Show the step under way (or ending) without counting it."""
         if self.stream is None:
             return
-        width = 30
-        filled = round(width * self.done / max(self.total, 1))
-        line = f"run {self.run_id} [{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} {key} {note}"
-        if self.tty:
-            self.stream.write("\r" + line.ljust(100)[:100])
-        else:
-            self.stream.write(line.rstrip() + "\n")
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"{key} {note}".strip(), refresh=True)
+            return
+        self.stream.write(f"run {self.run_id}: {self.done}/{self.total} steps {key} {note}".rstrip()
+                          + self._times() + "\n")
         self.stream.flush()
 
+    def _times(self) -> str:
+        """``, 12 s elapsed, about 30 s left`` (the rate of this session's steps; nothing before the first)."""
+        elapsed = time.monotonic() - self.started
+        made = self.done - self.first
+        if made <= 0:
+            return ""
+        left = elapsed / made * (self.total - self.done)
+        return f", {_duration(elapsed)} elapsed" + (f", about {_duration(left)} left" if self.done < self.total else "")
+
     def close(self) -> None:
-        if self.stream is not None and self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _duration(seconds: float) -> str:
+    """``42 s``, ``3 min 05 s``, ``2 h 07 min``."""
+    seconds = int(round(seconds))
+    if seconds < 60:
+        return f"{seconds} s"
+    if seconds < 3600:
+        return f"{seconds // 60} min {seconds % 60:02d} s"
+    return f"{seconds // 3600} h {seconds % 3600 // 60:02d} min"
 
 
 def default_workers() -> int:
@@ -246,6 +283,9 @@ class Runner:
                 if oneshot and result.state == "paused":
                     result.state = "failed"
                     self.catalogue.finish_run(run_id, "failed")
+                # INFO: the failed step that ended a run was already a warning, with its reason
+                log.info("run %d %s: %d steps, %d PSFs in %.1f s%s", run_id, result.state, result.steps_done,
+                         result.psfs, result.elapsed_s, f" ({result.reason})" if result.reason else "")
                 return result
         finally:
             release_rig(camera, rail)
@@ -274,6 +314,8 @@ class Runner:
             self.catalogue.finish_run(run_id, "done")
             return RunResult(run_id, "done", reason="every step was already done")
         total = len(self.catalogue.steps(run_id))
+        log.info("run %d of %s: %d of %d steps to do, %d worker(s)", run_id, plan.path, len(todo), total,
+                 self.workers)
         bar = Progress(run_id, total, total - len(todo), self.progress_stream)
         bar.show("resuming" if bar.done else "starting")
         options = plan.estimator_options()
@@ -344,6 +386,7 @@ class Runner:
         self.on_step(key, state, reason)
 
     def _fail(self, result: RunResult, run_id: int, key: str, exc: PsfdError) -> None:
+        log.warning("run %d step %s failed: %s", run_id, key, exc)
         if result.error is None:
             result.error, result.reason = exc, f"step {key}: {exc}"
         try:

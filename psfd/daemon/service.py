@@ -37,12 +37,12 @@ current frame finish, commits the estimates under way, pauses the run and exits 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import queue
 import re
 import signal
 import socket
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -56,6 +56,7 @@ from psfd.errors import BadInputError, PsfdError, ServiceError, path_reason, use
 from psfd.vocabulary import REQUEST_DEPTH_MAX
 
 SOCKET_MODE = 0o660
+log = logging.getLogger(__name__)
 
 
 def notify(message: str) -> bool:
@@ -142,6 +143,8 @@ class Service:
         runner.start()
         interval = watchdog_interval()
         listener.settimeout(min(1.0, interval) if interval else 1.0)
+        log.info("psfd service listening on %s: catalogue %s, frames %s", self.socket_path, self.catalogue_path,
+                 self.frames_dir)
         notify(f"READY=1\nSTATUS=idle, listening on {self.socket_path}\nMAINPID={os.getpid()}")
         next_ping = 0.0
         try:
@@ -166,6 +169,7 @@ class Service:
                 runner.join(timeout=interval or 1.0)
                 if interval:
                     notify("WATCHDOG=1")
+            log.info("psfd service stopped")
         return 0
 
     def _open_catalogue(self) -> None:
@@ -202,6 +206,7 @@ class Service:
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         # finish the current frame, commit what is being estimated, pause the run, exit
+        log.info("%s: stopping the service after the current frame", signal.Signals(signum).name)
         self.control.request("pause")
         self.stopping.set()
 
@@ -221,6 +226,7 @@ class Service:
                 self.control = Control()
                 self.current = {"plan": job.plan.path, "step": None, "done": 0,
                                 "total": len(job.plan.steps())}
+            log.info("starting %s%s", job.plan.path, " (resuming)" if job.resume else "")
             try:
                 result = run_plan(job.plan, self.catalogue_path, self.frames_dir, resume=job.resume, new=job.new,
                                   oneshot=job.oneshot, rows=job.wait, control=self.control, progress=None,
@@ -229,8 +235,10 @@ class Service:
                 self.paused = job.plan if result.state == "paused" else None
             except PsfdError as exc:
                 job.result = {"state": "failed", "reason": str(exc), "exit_code": exc.exit_code}
+                log.error("%s failed: %s", job.plan.path, exc)
             except Exception as exc:  # noqa: BLE001 - the service outlives a broken job and says why
                 job.result = {"state": "failed", "reason": f"{type(exc).__name__}: {exc}", "exit_code": 1}
+                log.exception("%s failed", job.plan.path)
             with self.lock:
                 last = {k: v for k, v in job.result.items() if k not in ("rows", "psf_ids")}
                 self.last, self.current = {"plan": job.plan.path, **last}, None
@@ -272,7 +280,7 @@ class Service:
         try:
             return self._answer(line)
         except Exception as exc:  # noqa: BLE001 - a bug must not drop the client without an answer
-            print(f"psfd serve: request failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+            log.exception("request failed: %s: %s", type(exc).__name__, exc)
             return {"ok": False, "error": f"internal error ({type(exc).__name__}: {exc})", "error_type": "ServiceError",
                     "exit_code": ServiceError.exit_code}
 
@@ -294,6 +302,7 @@ class Service:
         try:
             return {"ok": True, **handler(req)}
         except PsfdError as exc:
+            log.warning("%s refused: %s", req["cmd"], exc)
             return _refused(exc)
 
     def _enqueue(self, plan: Plan, resume: bool, wait: bool, new: bool = False, oneshot: bool = False) -> dict:
@@ -303,9 +312,12 @@ class Service:
         job = Job(plan, resume, wait, new=new, oneshot=oneshot)
         with self.lock:
             self.queued += 1
+            queued = self.queued  # as submitted: the runner thread may take the job at once
         self.jobs.put(job)
+        log.info("plan %s submitted%s, %d queued", plan.path,
+                 " to resume" if resume else " as a new run" if new else "", queued)
         if not wait:
-            return {"queued": self.queued, "plan": plan.path}
+            return {"queued": queued, "plan": plan.path}
         while not job.done.wait(1.0):
             pass
         return {"result": job.result}
@@ -326,7 +338,8 @@ class Service:
         with self.lock:
             state = "running" if self.current else ("paused" if self.paused else "idle")
             answer = {"state": state, "current": self.current, "last": self.last, "queued": self.queued,
-                      "paused_plan": self.paused.path if self.paused else None}
+                      "paused_plan": self.paused.path if self.paused else None,
+                      "catalogue": str(self.catalogue_path)}
         # the catalogue's paused and interrupted runs (not the one running now): what --resume continues
         answer["unfinished"] = [r for r in unfinished_runs(self.catalogue_path, self.frames_dir)
                                 if r["state"] != "running"]
@@ -335,12 +348,14 @@ class Service:
     def _cmd_pause(self, req: dict) -> dict:
         if self.current is None:
             raise ServiceError("no run is in progress")
+        log.info("pause asked on the control socket")
         self.control.request("pause")
         return {"requested": "pause"}
 
     def _cmd_cancel(self, req: dict) -> dict:
         if self.current is None:
             raise ServiceError("no run is in progress")
+        log.info("cancel asked on the control socket")
         self.control.request("cancel")
         return {"requested": "cancel"}
 
@@ -349,6 +364,7 @@ class Service:
             raise ServiceError("a run is in progress")
         if self.paused is None:
             raise ServiceError("no paused run to resume")
+        log.info("resume asked on the control socket: %s", self.paused.path)
         return self._enqueue(self.paused, True, bool(req.get("wait")))
 
 

@@ -101,9 +101,11 @@ def rail_driver(config: dict) -> str:
 
 
 def _sim_rig(config: dict):
-    from psfd.drivers.sim import SimRig
+    """The simulated rig of a [rig] table; it keeps its state between commands (`psfd.drivers.sim.state_path`)."""
+    from psfd.drivers.sim import SimRig, state_path
 
     options = {k: config[k] for k in SIM_KEYS if k in config}
+    options["state_file"] = state_path()
     if "rail_limits" in config and "limits" not in options:
         options["limits"] = config["rail_limits"]
     unknown = set(config) - set(SIM_KEYS) - set(REAL_KEYS) - {"simulate"}

@@ -19,13 +19,22 @@ pixel aperture, plus astigmatism and coma along the radial direction growing
 linearly from zero at the image centre to ``corner_aberration`` waves at the
 corners. The whole target is rendered with the PSF at its centre (the target
 covers a small part of the field); `SimRig.truth` returns that PSF.
+
+State: like a real camera and rail, the rig opened by a command (`psfd.drivers.open_rig`)
+remembers its settings, its rail position and its shutter count from one
+command to the next, in a small JSON file (`state_path`:
+``$XDG_DATA_HOME/psfd/sim-rig.json``); ``psfd rail home --simulate`` removes it
+first, so the simulated rig starts afresh (default settings, shutter count 0) at home.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
+import json
 import os
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,6 +47,7 @@ from psfd.drivers.recording import free_name
 from psfd.errors import CameraError, PsfdError, RailError
 from psfd.estimator import simulate
 from psfd.exif import exposure_seconds
+from psfd.vocabulary import data_dir
 
 APERTURES = ("2.8", "4", "5.6", "8", "11", "16", "22")
 SHUTTERSPEEDS = ("1/30", "1/60", "1/125", "1/250", "1/500")
@@ -51,6 +61,8 @@ CHOICES = {
     "imageformat": IMAGEFORMATS,
     "capturetarget": CAPTURETARGETS,
 }
+DEFAULT_SETTINGS = {"aperture": "5.6", "shutterspeed": "1/125", "iso": "100", "imageformat": "RAW",
+                    "capturetarget": "Internal RAM"}
 WAVELENGTH_UM = {"r": 0.61, "g1": 0.53, "g2": 0.53, "b": 0.46}
 SCENES = ("bernoulli", "texture")
 TEXTURE_RASTER = 2048  # raster pixels per side of the textured plane
@@ -85,6 +97,8 @@ class SimRig:
         Fraction of the raw range reached by white (the camera exposes automatically).
     limits : dict
         Rail travel per axis in mm.
+    state_file : path or None
+        Where settings, rail position and shutter count are kept between processes (None: not kept).
     """
 
     scene: str = "bernoulli"
@@ -99,6 +113,7 @@ class SimRig:
     corner_aberration: float = 0.35
     exposure: float = 0.75
     limits: dict = field(default_factory=lambda: {"x": (200.0, 3000.0), "y": (-60.0, 60.0), "z": (-45.0, 45.0)})
+    state_file: str | os.PathLike | None = None
     settings: dict = field(init=False)
     pos: Position = field(init=False)
     captures: int = field(init=False, default=0)
@@ -111,13 +126,58 @@ class SimRig:
         self.limits = {k.lower(): (float(lo), float(hi)) for k, (lo, hi) in self.limits.items()}
         if "x" not in self.limits or any(lo > hi for lo, hi in self.limits.values()):
             raise ValueError(f"limits need an X axis and min <= max, got {self.limits}")
-        self.settings = {"aperture": "5.6", "shutterspeed": "1/125", "iso": "100", "imageformat": "RAW",
-                         "capturetarget": "Internal RAM"}
+        self.settings = dict(DEFAULT_SETTINGS)
         x = min(max(self.distance_for_scale(0.25), self.limits["x"][0]), self.limits["x"][1])
         self.pos = Position(x=x, y=0.0 if "y" in self.limits else None, z=0.0 if "z" in self.limits else None)
         self._faults: dict[str, list[PsfdError]] = {"camera": [], "rail": []}
         self.camera = SimCamera(self)
         self.rail = SimRail(self)
+        self._load_state()
+
+    # ------------------------------------------------------------------ state between processes
+
+    def _load_state(self) -> None:
+        """Settings, position and shutter count from `state_file`; whatever is missing, unknown or outside
+        this rig's choices and travel keeps its default (a file written by another version or rig)."""
+        if self.state_file is None:
+            return
+        try:
+            state = json.loads(Path(self.state_file).read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return
+        if not isinstance(state, dict):
+            return
+        settings = state.get("settings") if isinstance(state.get("settings"), dict) else {}
+        for name, value in settings.items():
+            if name in CHOICES and value in CHOICES[name]:
+                self.settings[name] = value
+        pos = state.get("position") if isinstance(state.get("position"), dict) else {}
+        axes = {}
+        for axis in ("x", "y", "z"):
+            value = pos.get(axis)
+            if axis in self.limits and isinstance(value, (int, float)):
+                lo, hi = self.limits[axis]
+                axes[axis] = float(value) if lo <= value <= hi else getattr(self.pos, axis)
+        self.pos = dataclasses.replace(self.pos, **axes)
+        if isinstance(state.get("captures"), int) and state["captures"] >= 0:
+            self.captures = state["captures"]
+
+    def save_state(self) -> None:
+        """Write settings, position and shutter count to `state_file` (atomically; nothing when None)."""
+        if self.state_file is None:
+            return
+        path = Path(self.state_file)
+        state = {"settings": self.settings, "position": dataclasses.asdict(self.pos), "captures": self.captures}
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=".sim-rig.", suffix=".json", dir=path.parent)
+            with os.fdopen(fd, "w", encoding="utf-8") as stream:
+                json.dump(state, stream, indent=1)
+            os.replace(tmp, path)
+        except OSError as exc:
+            with contextlib.suppress(NameError, OSError):
+                os.unlink(tmp)
+            raise CameraError(f"cannot keep the simulated rig's state in {path}: {exc.strerror or exc}") from None
 
     # ------------------------------------------------------------------ optics
 
@@ -257,6 +317,11 @@ class SimRig:
         return to_scene
 
 
+def state_path() -> Path:
+    """Where the simulated rig opened by commands keeps its state: ``$XDG_DATA_HOME/psfd/sim-rig.json``."""
+    return data_dir() / "sim-rig.json"
+
+
 @functools.lru_cache(maxsize=256)
 def _psf(fnumber: float, fx: float, fy: float, wavelength: float, channel_pitch: float, s: int,
          support: int, corner: float) -> np.ndarray:
@@ -323,6 +388,7 @@ class SimCamera:
         if not match:
             raise CameraError(f"{name} {value} is not offered by the camera (offered: {', '.join(offered)})")
         self.rig.settings[name] = match[0]
+        self.rig.save_state()
 
     def prepare(self, setup: CameraSetup) -> CameraReady:
         """RAW format and capture target as asked; the simulated lens has a fixed focus and no mirror."""
@@ -330,6 +396,7 @@ class SimCamera:
         if setup.raw and "RAW" not in self.rig.settings["imageformat"]:
             self.rig.settings["imageformat"] = "RAW"
         self.rig.settings["capturetarget"] = CAPTURETARGETS[0 if setup.capture_target == "ram" else 1]
+        self.rig.save_state()
         image_format = self.rig.settings["imageformat"]
         return CameraReady(
             image_format=image_format, files_per_exposure=2 if "JPEG" in image_format else 1,
@@ -344,6 +411,7 @@ class SimCamera:
         dest = Path(dest)
         dest.mkdir(parents=True, exist_ok=True)
         self.rig.captures += 1
+        self.rig.save_state()
         stem = f"SIM_{self.rig.captures:04d}"
         dng = free_name(dest, f"{stem}.DNG")
         truth = self.rig.render(dng)
@@ -370,8 +438,10 @@ class SimRail:
         self.rig = rig
 
     def home(self) -> Position:
+        """Go home: X at its low limit, Y and Z at 0."""
         self.rig._check_fault("rail")
         self.rig.pos = Position(x=self.rig.limits["x"][0], y=self._zero("y"), z=self._zero("z"))
+        self.rig.save_state()
         return self.rig.pos
 
     def move(self, x: float | None = None, y: float | None = None, z: float | None = None) -> Position:
@@ -390,6 +460,7 @@ class SimRail:
                 raise RailError(f"{axis.upper()}={float(value):g} mm is outside the soft limits [{lo:g}, {hi:g}] mm")
             current[axis] = float(value)
         self.rig.pos = Position(**current)
+        self.rig.save_state()
         return self.rig.pos
 
     def position(self) -> Position:

@@ -11,7 +11,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-__all__ = ["HIGH", "LOW", "band_errors", "error_table", "fwhm", "mtf50", "profiles"]
+__all__ = ["HIGH", "LOW", "band_errors", "channel_pitch_mm", "directional_profile", "error_table", "fwhm", "lp_per_mm",
+           "lw_per_ph", "mtf50", "profiles"]
 
 LOW, HIGH = "low", "high"  # frequency bands of `band_errors`: up to and above the channel Nyquist (0.5)
 PAD = 256  # FFT size for profiles: fine enough to read MTF50 by interpolation
@@ -103,3 +104,38 @@ def error_table(
         a: {b: band_errors(*kernels[a], *kernels[b]) for b in kernels if b != a}
         for a in kernels
     }
+
+
+def directional_profile(psf: np.ndarray, s: int, angle: float, freqs: np.ndarray) -> np.ndarray:
+    """MTF along the frequency direction ``angle`` (radians from the x axis, y down) at ``freqs``
+    (cycles per channel pixel), normalised to 1 at 0.
+
+    Evaluated as the discrete-time Fourier transform of the kernel's samples at the requested
+    frequencies (positions in channel pixels, 1/s apart), so any direction is exact, not read off
+    an interpolated FFT grid; by the Fourier slice theorem it is the MTF of the line spread function
+    across lines perpendicular to ``angle``.
+    """
+    rows, cols = psf.shape
+    y, x = np.mgrid[0:rows, 0:cols]
+    along = ((x - cols // 2) * np.cos(angle) + (y - rows // 2) * np.sin(angle)).ravel() / s
+    otf = np.exp(-2j * np.pi * np.outer(np.asarray(freqs, dtype=np.float64), along)) @ psf.ravel()
+    return np.abs(otf) / max(abs(float(np.sum(psf))), 1e-300)
+
+
+def channel_pitch_mm(pitch_um: float, channel: str) -> float:
+    """Pitch of a channel plane in mm: a Bayer colour plane samples every second photosite."""
+    return (pitch_um if channel == "mono" else 2.0 * pitch_um) / 1000.0
+
+
+def lp_per_mm(cycles_per_pixel: float, pitch_um: float, channel: str) -> float:
+    """Cycles per channel pixel -> line pairs (cycles) per mm on the sensor, given the photosite pitch."""
+    return cycles_per_pixel / channel_pitch_mm(pitch_um, channel)
+
+
+def lw_per_ph(cycles_per_pixel: float, height_px: int, channel: str) -> float:
+    """Cycles per channel pixel -> line widths per picture height (two line widths per cycle).
+
+    ``height_px`` is the picture height in photosites; a Bayer colour plane has half as many rows.
+    """
+    rows = height_px if channel == "mono" else height_px / 2.0
+    return 2.0 * cycles_per_pixel * rows

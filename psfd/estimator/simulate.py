@@ -23,7 +23,7 @@ from typing import Callable
 
 import cv2
 import numpy as np
-from scipy import fft, signal
+from scipy import fft
 
 from psfd.estimator import raw, target
 
@@ -270,6 +270,8 @@ def render_plane(
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=float(background),
     )
+    from scipy import signal  # here: its import alone takes a second, and `psfd rail ... --simulate` never renders
+
     conv = signal.fftconvolve(u.astype(np.float64), psf, mode="valid")  # index j <-> s-grid s*r0 + j
     out[r0:r1, c0:c1] = conv[::s, ::s]
     return out

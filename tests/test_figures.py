@@ -1,0 +1,240 @@
+"""The figures as an imaging engineer reads them: what each axis says, which scale is shared, what is drawn where.
+
+The figures are checked through matplotlib's own objects (axes, labels, norms, artists' data), so the
+checks name what a reader sees without comparing pixels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from matplotlib.collections import PathCollection, TriMesh
+from matplotlib.colors import LogNorm
+from matplotlib.image import AxesImage
+
+from psfd import figures
+from psfd.estimator import mtf
+from psfd.estimator.kernels import PSF
+
+
+def gaussian(sigma_x: float, sigma_y: float, s: int = 4, support: int = 17, angle: float = 0.0) -> np.ndarray:
+    """A unit-sum Gaussian on the s-times grid, sigmas in channel pixels along the axes rotated by ``angle``."""
+    r = (np.arange(support) - support // 2) / s
+    x, y = np.meshgrid(r, r)
+    u = x * math.cos(angle) + y * math.sin(angle)
+    v = -x * math.sin(angle) + y * math.cos(angle)
+    k = np.exp(-0.5 * (u / sigma_x) ** 2 - 0.5 * (v / sigma_y) ** 2)
+    return k / k.sum()
+
+
+def estimate(psf: np.ndarray, noise_floor: float | None = 1e-3, **extra) -> PSF:
+    return PSF(psf, 4, "bernoulli", "g1", ["/data/IMG_0001.dng"], (0.3, 0.6), (100, 50, 200, 150),
+               noise_floor=noise_floor, **extra)
+
+
+def texts(fig) -> str:
+    return " | ".join(t.get_text() for ax in fig.axes for t in (ax.title, ax.xaxis.label, ax.yaxis.label)) + \
+        " | " + (fig._suptitle.get_text() if fig._suptitle else "")
+
+
+def test_pixel_borders_surround_the_centre_sample():
+    # 17 samples at s = 4 span 4.25 channel pixels: borders half a pixel either side of the centre pixel
+    assert figures.pixel_borders(17, 4) == [-1.5, -0.5, 0.5, 1.5]
+    assert figures.pixel_borders(13, 3) == [-1.5, -0.5, 0.5, 1.5]
+    assert figures.pixel_borders(9, 1) == [-3.5, -2.5, -1.5, -0.5, 0.5, 1.5, 2.5, 3.5]
+    assert figures.kernel_extent((17, 17), 4) == [-2.125, 2.125, 2.125, -2.125]
+
+
+def test_psf_figure_linear_log_and_mtf_with_noise_band():
+    psf = gaussian(0.6, 0.9)
+    psf[0, 0] = -2e-4  # a negative sample, as unregularised least squares leaves
+    psf /= psf.sum()
+    fig = figures.psf_figure(estimate(psf), pitch_um=4.0)
+    images = [a for ax in fig.axes for a in ax.get_images()]
+    assert len(images) == 2  # linear and log views
+    linear, log = images
+    assert linear.norm.vmin == 0 and linear.norm.vmax == pytest.approx(psf.max())
+    assert isinstance(log.norm, LogNorm) and log.norm.vmin == pytest.approx(psf.max() * 1e-4)
+    assert np.ma.masked_invalid(log.get_array()).mask[0, 0]  # the negative sample is drawn as "bad" (blue), never as a small value
+    # both views on the s-grid in channel pixels, with the channel-pixel borders drawn
+    for image in images:
+        assert image.get_extent() == pytest.approx([-2.125, 2.125, 2.125, -2.125])
+        ax = image.axes
+        assert ax.get_xlabel() == "x (channel pixels)" and ax.get_ylabel() == "y (channel pixels)"
+        verticals = sorted(line.get_xdata()[0] for line in ax.get_lines() if line.get_xdata()[0] == line.get_xdata()[1])
+        assert verticals == [-1.5, -0.5, 0.5, 1.5]
+    bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    assert len(bars) == 2 and all("fraction of energy per sample" in ax.get_ylabel() for ax in bars)
+    assert all(len(ax.get_yticks()) >= 3 for ax in bars)  # colour bars with ticks
+    mtf_ax = next(ax for ax in fig.axes if ax.get_ylabel() == "MTF")
+    assert mtf_ax.get_xlabel() == figures.FREQ_LABEL
+    freqs, mx, my = mtf.profiles(psf, 4)
+    assert mtf_ax.get_ylim()[1] >= max(mx.max(), my.max())
+    assert mtf_ax.get_xlim() == pytest.approx((0, 2.0))  # up to s/2
+    band = figures.mtf_noise_band(estimate(psf))
+    assert band == pytest.approx(1e-3 * 17)  # sigma * sqrt(17 * 17 samples)
+    spans = [p for p in mtf_ax.patches if p.get_label().startswith("noise floor")]
+    assert len(spans) == 1 and spans[0].get_path().get_extents().transformed(spans[0].get_transform()).height > 0
+    legend = [t.get_text() for t in mtf_ax.get_legend().get_texts()]
+    assert any(t.startswith("x (horizontal frequency): MTF50 0.") for t in legend)
+    # lp/mm on a second axis: 1 cycle per channel pixel = 1 / (2 x 4 um) = 125 lp/mm
+    top = [child for child in mtf_ax.child_axes if child.get_xlabel() == "line pairs per mm"]
+    assert len(top) == 1
+    assert "channel g1" in fig._suptitle.get_text() and "s = 4" in fig._suptitle.get_text()
+    assert figures.mtf_noise_band(estimate(psf, noise_floor=None)) is None
+
+
+def test_comparison_figure_does_not_clip_and_its_legend_matches_the_lines():
+    truth = gaussian(0.5, 0.5, support=33)
+    sharpened = 1.6 * truth - 0.6 * gaussian(1.2, 1.2, support=33)  # negative lobes: MTF up to 1.12
+    fig = figures.comparison_figure([("truth", truth, 4), ("sharpened", sharpened, 4)], against_truth=True)
+    (ax,) = fig.axes
+    _, mx, my = mtf.profiles(sharpened, 4)
+    assert max(mx.max(), my.max()) > 1.05
+    assert ax.get_ylim()[1] >= max(mx.max(), my.max())  # nothing clipped
+    assert ax.get_ylabel() == "MTF" and ax.get_xlabel() == figures.FREQ_LABEL
+    assert "true PSF" in ax.get_title()
+    styles = {line.get_linestyle() for line in ax.get_lines() if len(line.get_xdata()) > 2}
+    assert styles == {"-", "--"}
+    legend = {t.get_text(): h.get_linestyle() for t, h in zip(ax.get_legend().get_texts(), ax.get_legend().legend_handles)}
+    assert legend["solid: x (horizontal frequency)"] == "-" and legend["dashed: y (vertical frequency)"] == "--"
+    assert "truth" in legend and "sharpened" in legend
+
+
+def test_array_figures_have_axes_units_and_a_zero_centred_scale():
+    est = estimate(gaussian(0.6, 0.6))
+    signed = np.random.default_rng(0).normal(size=(30, 40))
+    fig = figures.array_figure(signed, "residual", est)
+    image = fig.axes[0].get_images()[0]
+    assert image.norm.vmin == -image.norm.vmax  # 0 is the middle colour
+    assert image.get_extent() == [99.5, 139.5, 79.5, 49.5]  # channel pixels of the window on the plane
+    assert fig.axes[0].get_xlabel() == "x (channel pixels)" and "residual" in fig.axes[0].get_title()
+    assert any(ax.get_label() == "<colorbar>" and ax.get_ylabel() for ax in fig.axes)
+    kernel = figures.array_figure(gaussian(1.0, 1.0), "kernel", est).axes[0].get_images()[0]
+    assert kernel.norm.vmin == 0 and kernel.get_extent() == pytest.approx([-2.125, 2.125, 2.125, -2.125])
+
+
+def test_vector_and_raster_files(tmp_path):
+    est = estimate(gaussian(0.6, 0.9))
+    for name, magic in (("f.png", b"\x89PNG"), ("f.pdf", b"%PDF"), ("f.svg", b"<?xml")):
+        figures.save_psf(est, tmp_path / name)
+        assert (tmp_path / name).read_bytes().startswith(magic)
+    assert figures.can_write("a.svg") and figures.can_write("a.PDF") and not figures.can_write("a.xyz")
+    with pytest.raises(OSError, match="cannot write a figure"):
+        figures.save_psf(est, tmp_path / "f.xyz")
+
+
+def test_sagittal_and_meridional_against_an_elongated_gaussian():
+    """A Gaussian of sigma_r along the radius and sigma_t across it: MTF exp(-2 pi^2 sigma^2 f^2), so
+    MTF50 = sqrt(ln 2 / 2) / (pi sigma). Meridional (frequencies along the radius) sees sigma_r."""
+    sigma_r, sigma_t = 0.9, 0.45
+    field, aspect = (0.9, 0.85), 1.5
+    angle = math.atan2(field[1] - 0.5, (field[0] - 0.5) * aspect)
+    psf = gaussian(sigma_r, sigma_t, s=4, support=33, angle=angle)
+    sagittal, meridional = figures.sagittal_meridional(psf, 4, field, aspect)
+    expected = lambda sigma: math.sqrt(math.log(2) / 2) / (math.pi * sigma)  # noqa: E731
+    # the sampled Gaussian is truncated at 4 sigma and sampled at 1/4 pixel: 1 % covers both
+    assert meridional == pytest.approx(expected(sigma_r), rel=0.01)
+    assert sagittal == pytest.approx(expected(sigma_t), rel=0.01)
+    # along x the directional profile is the FFT profile
+    freqs, mx, _ = mtf.profiles(psf, 4)
+    np.testing.assert_allclose(mtf.directional_profile(psf, 4, 0.0, freqs), mx, atol=1e-9)
+
+
+def rows_for(apertures, points, channels=("r", "g1", "g2", "b")):
+    rows, arrays, n = [], {}, 0
+    for aperture in apertures:
+        for fx, fy in points:
+            for channel in channels:
+                n += 1
+                r2 = (fx - 0.5) ** 2 + (fy - 0.5) ** 2
+                arrays[n] = gaussian(0.3 * aperture / 4 * (1 + 3 * r2), 0.3 * aperture / 4)
+                rows.append({"id": n, "camera": "cam", "lens": "lens", "method": "bernoulli", "aperture": aperture,
+                             "channel": channel, "field_x": fx, "field_y": fy, "s": 4, "support": 17,
+                             "window": [0, 0, 10, 10]})
+    return rows, arrays
+
+
+def test_report_shows_every_channel_on_the_true_sensor_with_shared_scales():
+    grid = [(x, y) for y in (0.2, 0.5, 0.8) for x in (0.15, 0.5, 0.85)]
+    rows, arrays = rows_for((4.0, 11.0), grid)
+    sensor = figures.Sensor(6000, 4000, 3.9)
+    fig = figures.report_figure(rows, arrays, "g1", {r["id"]: sensor for r in rows})
+    psf_axes = [ax for ax in fig.axes if ax.get_title().endswith(": PSFs")]
+    assert sorted(ax.get_title() for ax in psf_axes) == sorted(
+        f"f/{a}  channel {c}: PSFs" for a in (4, 11) for c in ("r", "g1", "g2", "b"))
+    for ax in psf_axes:  # the sensor's own 3:2 in photosites, and as many tiles as PSFs, all one size
+        assert ax.get_xlim() == (0, 6000) and ax.get_ylim() == (4000, 0) and ax.get_aspect() == 1.0
+        tiles = ax.get_images()
+        assert len(tiles) == 9
+        assert {round(t.get_extent()[1] - t.get_extent()[0], 6) for t in tiles} == {600.0}  # TILE of the width
+        assert {id(t.norm) for t in tiles} == {id(psf_axes[0].get_images()[0].norm)}  # one log scale for all
+    maps = [ax for ax in fig.axes if "MTF50" in ax.get_title() and ax.get_title().startswith("f/")]
+    assert sorted(ax.get_title() for ax in maps) == sorted(
+        f"f/{a}  g1: MTF50 {k}" for a in (4, 11) for k in ("sagittal", "meridional"))
+    markers = [c for ax in maps for c in ax.collections if isinstance(c, PathCollection)]
+    assert len(markers) == 4 and len({(c.norm.vmin, c.norm.vmax) for c in markers}) == 1  # one MTF50 scale
+    for ax in maps:  # interpolation only between measured points: the mesh's vertices are the points
+        (mesh,) = [c for c in ax.collections if isinstance(c, TriMesh)]
+        (points,) = [c for c in ax.collections if isinstance(c, PathCollection)]
+        vertices = {tuple(np.round(v, 6)) for v in zip(mesh._triangulation.x, mesh._triangulation.y)}
+        assert vertices == {tuple(np.round(p, 6)) for p in points.get_offsets()}
+        assert {tuple(np.round(p, 6)) for p in points.get_offsets()} == {(fx * 6000, fy * 4000) for fx, fy in grid}
+    stated = [ax for ax in fig.axes if ax.get_label() == "<colorbar>" and "for all apertures" in ax.get_xlabel()]
+    assert len(stated) == 1
+    # mm on the sensor when the pitch is known: 6000 photosites of 3.9 um = 23.4 mm
+    mm_axes = [child for ax in maps for child in ax.child_axes if child.get_xlabel() == "x (mm)"]
+    forward, _ = mm_axes[0]._functions
+    assert forward(6000.0) == pytest.approx(23.4)
+    chart = next(ax for ax in fig.axes if ax.get_xlabel().startswith("image height"))
+    assert chart.get_ylabel() == "MTF50 of g1 (cycles/pixel)"
+    assert any(child.get_ylabel() == "line pairs per mm" for child in chart.child_axes)
+
+
+def test_report_of_one_point_and_no_pitch():
+    """One measured point: a marker, no interpolated area; no pitch: photosites only; sensor from the window."""
+    rows, arrays = rows_for((5.6,), [(0.5, 0.5)], channels=("g1",))
+    rows[0]["window"] = [300, 200, 340, 240]  # centre (320, 220) of a 640 x 440 plane at (0.5, 0.5)
+    fig = figures.report_figure(rows, arrays, "g1")
+    maps = [ax for ax in fig.axes if "MTF50" in ax.get_title() and ax.get_title().startswith("f/")]
+    assert all(not any(isinstance(c, TriMesh) for c in ax.collections) for ax in maps)
+    psf_ax = next(ax for ax in fig.axes if ax.get_title().endswith(": PSFs"))
+    assert psf_ax.get_xlim() == (0, 1280) and psf_ax.get_ylim() == (880, 0)  # Bayer plane x 2 photosites
+    assert not any(child.get_xlabel() == "x (mm)" for ax in fig.axes for child in ax.child_axes)
+
+
+def inside_figure(fig) -> list[str]:
+    """Texts and legends that fall (partly) outside the figure once drawn: a reader would see them cut."""
+    fig.canvas.draw()
+    renderer, box = fig.canvas.get_renderer(), fig.bbox
+    artists = [a for ax in fig.axes for a in (ax.title, ax.xaxis.label, ax.yaxis.label, ax.get_legend()) if a]
+    artists += [fig._suptitle] if fig._suptitle else []
+    out = []
+    for artist in artists:
+        if getattr(artist, "get_text", lambda: "x")() == "":
+            continue
+        extent = artist.get_window_extent(renderer)
+        if extent.x0 < box.x0 - 1 or extent.x1 > box.x1 + 1 or extent.y0 < box.y0 - 1 or extent.y1 > box.y1 + 1:
+            out.append(getattr(artist, "get_text", lambda: "legend")())
+    return out
+
+
+def test_nothing_is_cut_off_at_the_figure_edges():
+    label = "sharp-edge target w=2 IMG_0001_with_a_long_name.CR2"  # as `psfd compare` labels its curves
+    truth = gaussian(0.5, 0.5, support=33)
+    assert inside_figure(figures.comparison_figure([("truth", truth, 4), (label, gaussian(0.7, 0.6, support=33), 4)],
+                                                   against_truth=True)) == []
+    assert inside_figure(figures.psf_figure(estimate(gaussian(0.6, 0.9)), pitch_um=4.0)) == []
+    rows, arrays = rows_for((4.0, 11.0), [(x, y) for y in (0.2, 0.5, 0.8) for x in (0.15, 0.5, 0.85)])
+    assert inside_figure(figures.report_figure(rows, arrays, "g1")) == []
+
+
+def test_report_marks_the_image_centre_above_a_tile_measured_there():
+    rows, arrays = rows_for((5.6,), [(0.5, 0.5)], channels=("g1",))
+    fig = figures.report_figure(rows, arrays, "g1", {rows[0]["id"]: figures.Sensor(640, 480, None)})
+    for ax in (ax for ax in fig.axes if ax.get_title().startswith("f/")):
+        (centre,) = [line for line in ax.get_lines() if line.get_marker() == "+"]
+        assert tuple(centre.get_xydata()[0]) == (320, 240)
+        assert centre.get_zorder() > max(a.get_zorder() for a in ax.get_images() + ax.collections)
