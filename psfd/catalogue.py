@@ -169,8 +169,8 @@ def _database_folder(db: sqlite_utils.Database) -> Path | None:
     return None
 
 
-def _v5_relative_frame_paths(db: sqlite_utils.Database) -> None:
-    """Version 5: frame paths inside the catalogue's folder become relative to it (others stay absolute).
+def _v4_relative_frame_paths(db: sqlite_utils.Database) -> None:
+    """Version 4: frame paths inside the catalogue's folder become relative to it (others stay absolute).
 
     Paths already relative are left alone, so running it again, or after any other migration, changes nothing.
     """
@@ -204,8 +204,8 @@ FRAME_EXIF = {
 }
 
 
-def _v4_frame_exif(db: sqlite_utils.Database) -> None:
-    """Version 4: what each frame's RAW says the camera used (NULL for older frames).
+def _v3_frame_exif(db: sqlite_utils.Database) -> None:
+    """Version 3: what each frame's RAW says the camera used (NULL for older frames).
 
     Adds only the columns that are missing, so it holds whichever other migrations ran before it.
     """
@@ -215,10 +215,19 @@ def _v4_frame_exif(db: sqlite_utils.Database) -> None:
             db["frames"].add_column(column, str if column in ("exif_lens", "exif_serial") else float)
 
 
-# Schema version 3 is another change; frame EXIF is version 4 and relative frame paths version 5
-# whatever lands first (each migration checks what is already there, so the order does not matter).
+def _v5_prediction_error(db: sqlite_utils.Database) -> None:
+    """Version 5: the cross-validated prediction error beside the noise floor (NULL for older PSFs).
+
+    Adds the column only when it is missing, whatever other migrations already ran.
+    """
+    if "prediction_error" not in db["psfs"].columns_dict:
+        db["psfs"].add_column("prediction_error", float)
+
+
+# In the order they landed: a catalogue's user_version counts the migrations it ran. Each later one
+# checks its columns before adding them, so a catalogue is the same whichever of them ran first.
 MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [
-    _v1_tables, _v2_query_indexes, _v4_frame_exif, _v5_relative_frame_paths]
+    _v1_tables, _v2_query_indexes, _v3_frame_exif, _v4_relative_frame_paths, _v5_prediction_error]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -279,7 +288,7 @@ def _stops(a: float, b: float) -> float:
 _ROW_SQL = """
 SELECT p.id, p.method, p.channel, p.aperture, p.focal_length_mm, p.focus_distance_m,
        p.field_x, p.field_y, p.window_x0, p.window_y0, p.window_x1, p.window_y1, p.s, p.support,
-       p.mtf50_x, p.mtf50_y, p.fwhm_x, p.fwhm_y, p.noise_floor, p.residual, p.params,
+       p.mtf50_x, p.mtf50_y, p.fwhm_x, p.fwhm_y, p.noise_floor, p.prediction_error, p.residual, p.params,
        p.psfd_version, p.warnings, p.sources, p.created, p.rig_id, p.run_id,
        st.key AS step, r.model AS camera, r.serial, r.lens
 FROM psfs p LEFT JOIN rigs r ON r.id = p.rig_id LEFT JOIN steps st ON st.id = p.step_id
@@ -781,7 +790,8 @@ class Catalogue:
             "window_x0": x0, "window_y0": y0, "window_x1": x1, "window_y1": y1,
             "s": int(estimate.s), "support": int(array.shape[0]), "psf": _npy(array),
             **{k: _real(v) for k, v in metrics.items()},
-            "noise_floor": _real(estimate.noise_floor), "residual": _real(estimate.residual),
+            "noise_floor": _real(estimate.noise_floor), "prediction_error": _real(estimate.prediction_error),
+            "residual": _real(estimate.residual),
             "params": json.dumps(estimate.params, sort_keys=True, default=str),
             "psfd_version": __version__,
             "warnings": json.dumps(list(estimate.warnings)),

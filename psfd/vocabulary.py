@@ -39,7 +39,7 @@ CAPTURE_KINDS = (BERNOULLI, TWO_PHOTO)
 
 # Solvers of the Bernoulli method's normal equations (psfd.estimator.bernoulli.solve).
 SOLVERS = ("ls", "ls-threshold", "nnls")
-DEFAULT_SOLVER = "ls-threshold"
+DEFAULT_SOLVER = "nnls"  # unbiased: psfd.estimator.bernoulli.solve says why, with the numbers
 
 # Default super-resolution factor per method: 4 for the target methods (IJCV 2012 sec. 5);
 # 3 for two photographs, whose distance ratio must exceed s (SIAM J. Imaging Sci. 2012, Remark 2)

@@ -84,6 +84,35 @@ def test_migration_from_version_1_keeps_data_and_adds_indexes(tmp_path):
         assert cat.add_rig(CameraInfo("Old", "1", "L")) == 1  # the old row is still there
 
 
+def test_prediction_error_migration_adds_it_beside_the_noise_floor(tmp_path):
+    """A catalogue from before the prediction error (every earlier migration run) opens, its PSFs read
+    with no prediction error, and new ones store it."""
+    path = tmp_path / "old.sqlite"
+    db = sqlite_utils.Database(path)
+    before = MIGRATIONS.index(catalogue_module._v5_prediction_error)
+    for migrate in MIGRATIONS[:before]:
+        migrate(db)
+    db.execute(f"PRAGMA user_version = {before}")
+    db["psfs"].insert({"method": "bernoulli", "channel": "g1", "field_x": 0.5, "field_y": 0.5, "s": 4,
+                       "support": 17, "psf": b"", "noise_floor": 2e-3})
+    db.close()
+
+    with Catalogue(path) as cat:
+        assert cat.schema_version() == SCHEMA_VERSION > before
+        (old,) = cat.query().rows
+        assert old["noise_floor"] == 2e-3 and old["prediction_error"] is None
+        run = new_run(cat, keys=("a",))
+        estimate = make_psf()
+        estimate.prediction_error = 1.07
+        cat.commit_step(run, "a", [frame(1)], [(estimate, {"aperture": 5.6})])
+        new = next(row for row in cat.query().rows if row["id"] != old["id"])
+        assert new["prediction_error"] == 1.07 and new["noise_floor"] == 1e-4
+    # the migration checks for its column: running it again (whatever the order of landing) is harmless
+    db = sqlite_utils.Database(path)
+    catalogue_module._v5_prediction_error(db)
+    assert list(db["psfs"].columns_dict).count("prediction_error") == 1
+
+
 def test_failed_migration_is_rolled_back(tmp_path, monkeypatch):
     path = tmp_path / "cat.sqlite"
     Catalogue(path).close()

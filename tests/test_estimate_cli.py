@@ -303,13 +303,21 @@ def test_target_end_to_end_on_real_photo(capsys, data_dir):
     (record,) = [json.loads(line) for line in stdout.splitlines()]
     assert record["method"] == "bernoulli" and record["channel"] == "mono"
     assert record["source"] == str(data_dir / "img_example.pgm")
-    assert record["s"] == 4 and record["support"] == 17 and record["params"]["solver"] == "ls-threshold"
+    assert record["s"] == 4 and record["support"] == 17 and record["params"]["solver"] == "nnls"
     psf = np.array(record["psf"])
-    # physical sanity: non-negative (ls-threshold), unit sum, centred within a channel pixel
+    # physical sanity: non-negative (nnls), unit sum, centred within a channel pixel
     assert psf.min() >= 0 and psf.sum() == pytest.approx(1.0, abs=1e-9)
     cx, cy = (float(np.sum(np.arange(17) * psf.sum(axis=a))) - 8 for a in (0, 1))
     assert abs(cx) < 4 and abs(cy) < 4
     assert 0 < record["mtf50_x"] < 2 and 0 < record["mtf50_y"] < 2
+    # reported with the noise floor: the cross-validated prediction error (1.22 on this photo)
+    assert record["noise_floor"] > 0 and 1.0 < record["prediction_error"] < 1.5
+    # the table shows it too
+    code, stdout, stderr = run(capsys, "estimate", "target", data_dir / "img_example.pgm")
+    assert code == 0, stderr
+    header, row = stdout.splitlines()[:2]
+    assert header.split()[-2:] == ["noise", "pred."]
+    assert row.split()[-1] == f"{record['prediction_error']:.2f}"
 
 
 def test_thesis_spline_geometry_is_selectable_and_agrees_on_the_real_photo(capsys, data_dir):

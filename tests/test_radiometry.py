@@ -113,6 +113,16 @@ def test_crf_alpha_recovers_a_known_parabola(alpha):
     assert radiometry.apply_crf(np.array([0.0, 1.0]), found) == pytest.approx([0.0, 1.0])
 
 
+def test_crf_targets_the_printed_pattern_mean():
+    """The published noise averages 0.502, not 1/2: a linear camera must get alpha = 0 for it, and
+    forcing 1/2 would bend the response (alpha = -0.01 here, 0.25 % of the range at mid-grey)."""
+    u = blurred_noise(np.random.default_rng(5))
+    u -= u.mean() - target.default_noise().mean()  # a linear camera: the image averages the cells' mean
+    assert target.default_noise().mean() == pytest.approx(0.502, abs=5e-4)
+    assert radiometry.crf_alpha(u, target.default_noise().mean()) == pytest.approx(0.0, abs=1e-12)
+    assert abs(radiometry.crf_alpha(u)) > 0.005
+
+
 def test_crf_non_monotone_is_an_error():
     u = blurred_noise(np.random.default_rng(4))
     with pytest.raises(EstimationError, match="not monotone"):

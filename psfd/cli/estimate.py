@@ -31,8 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _common(p, BERNOULLI)
     p.add_argument("--pattern", metavar="PGM", help="noise of the printed target (default: the published one)")
     p.add_argument("--solver", default=DEFAULT_SOLVER,
-                   help=f"{', '.join(SOLVERS)}: least squares, then clip negatives, or non-negative "
-                        f"(default {DEFAULT_SOLVER})")
+                   help=f"{', '.join(SOLVERS)}: least squares; least squares with negatives clipped "
+                        f"(biased: too wide a PSF); non-negative least squares (default {DEFAULT_SOLVER})")
     p.add_argument("--tps", metavar="LAMBDA",
                    help="map the target with a thin-plate spline of this smoothing (the thesis uses 10) "
                         "instead of the default homography plus radial distortion")

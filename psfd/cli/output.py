@@ -415,7 +415,7 @@ def print_table(estimates: list[PSF], stream: TextIO | None = None) -> None:
     stream = sys.stdout if stream is None else stream
     print(
         f"{'source':<28} {'chan':<5} {'field x,y':<11} {'MTF50 x':>8} {'MTF50 y':>8} "
-        f"{'FWHM x':>7} {'FWHM y':>7} {'noise':>9}",
+        f"{'FWHM x':>7} {'FWHM y':>7} {'noise':>9} {'pred.':>5}",
         file=stream,
     )
     for est in estimates:
@@ -425,10 +425,11 @@ def print_table(estimates: list[PSF], stream: TextIO | None = None) -> None:
         print(
             f"{source:<28} {est.channel:<5} {est.field[0]:.2f},{est.field[1]:.2f}  "
             f"{fmt(m['mtf50_x']):>8} {fmt(m['mtf50_y']):>8} {fmt(m['fwhm_x'], '.2f'):>7} "
-            f"{fmt(m['fwhm_y'], '.2f'):>7} {fmt(est.noise_floor, '.2e'):>9}",
+            f"{fmt(m['fwhm_y'], '.2f'):>7} {fmt(est.noise_floor, '.2e'):>9} {fmt(est.prediction_error, '.2f'):>5}",
             file=stream,
         )
-    print("MTF50 in cycles per channel pixel (Nyquist 0.5); FWHM in channel pixels.", file=stream)
+    print("MTF50 in cycles per channel pixel (Nyquist 0.5); FWHM in channel pixels; pred.: cross-validated "
+          "prediction error over the noise level (about 1 when the model holds).", file=stream)
 
 
 ROW_COLUMNS = (

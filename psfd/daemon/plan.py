@@ -24,7 +24,7 @@ A plan has four tables::
     [estimator]
     s = 4
     support = 17                # odd; default 4 s + 1
-    solver = "ls-threshold"     # bernoulli only: "ls", "ls-threshold", "nnls" (psfd.vocabulary)
+    solver = "nnls"             # bernoulli only: "nnls" (default), "ls", "ls-threshold" (psfd.vocabulary)
     grid = [1, 1]
 
 Rail positions are checked against ``rail_limits`` (on the simulated rig, its

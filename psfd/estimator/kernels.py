@@ -45,6 +45,10 @@ class PSF:
         sigma_n * sqrt(trace((A^T A)^-1)) (Delbracio et al., IJCV 2012, sec. 2).
     residual : float or None
         RMS of the model residual on the observed samples (data units normalised to [0, 1]).
+    prediction_error : float or None
+        Cross-validated prediction error: RMS residual on each half of the
+        observations of the kernel fitted on the other half, over the noise
+        level (about 1 when the model holds; `bernoulli.cross_validated`).
     params : dict
         Estimator parameters (solver, support, grid, ...), stored with the PSF.
     warnings : list of str
@@ -62,6 +66,7 @@ class PSF:
     window: tuple[int, int, int, int] = (0, 0, 0, 0)
     noise_floor: float | None = None
     residual: float | None = None
+    prediction_error: float | None = None
     params: dict[str, Any] = dataclasses.field(default_factory=dict)
     warnings: list[str] = dataclasses.field(default_factory=list)
     figures: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
@@ -95,6 +100,7 @@ class PSF:
             **self.metrics(),
             "noise_floor": self.noise_floor,
             "residual": self.residual,
+            "prediction_error": self.prediction_error,
             "params": self.params,
             "warnings": list(self.warnings),
             "psf": self.psf.tolist(),

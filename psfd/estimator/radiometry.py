@@ -65,39 +65,45 @@ def normalise(image: np.ndarray, black: Field, white: Field, x: np.ndarray, y: n
         return np.where(span > 0, (np.asarray(image, dtype=np.float64) - b) / span, np.nan)
 
 
-def crf_alpha(values: np.ndarray) -> float:
+def crf_alpha(values: np.ndarray, mean: float = 0.5) -> float:
     """Parameter of the response parabola g(u) = alpha u^2 + (1 - alpha) u.
 
-    The Bernoulli(0.5) noise has mean 1/2 and the PSF unit mass, so the
-    corrected noise region must average 1/2 (IJCV 2012, sec. 4.1; thesis
-    App. A.4): alpha = (1/2 - mean(u)) / (mean(u^2) - mean(u)).
+    The PSF has unit mass, so the corrected noise region must average what the
+    printed noise averages under it: 1/2 for an ideal Bernoulli(0.5) pattern
+    (IJCV 2012, sec. 4.1; thesis App. A.4), 0.502 for the published one (pass
+    the pattern's own mean, ``mean``):
+    alpha = (mean - mean(u)) / (mean(u^2) - mean(u)).
 
     g is monotone on [0, 1] only for |alpha| <= 1 (g'(0) = 1 - alpha,
     g'(1) = 1 + alpha). A larger alpha means the normalised noise is far from
-    averaging 1/2 - saturation, a wrong illumination fit or not the published
-    noise - and correcting it would fold the data over, so it is an
+    averaging ``mean`` - saturation, a wrong illumination fit or not the
+    published noise - and correcting it would fold the data over, so it is an
     EstimationError rather than a warning: no PSF estimate would be meaningful.
 
     Parameters
     ----------
     values : ndarray
         Illumination-normalised values of the noise region (``normalise``).
+    mean : float
+        Mean of the printed noise cells (0 black, 1 white) under those values.
     """
     u = np.asarray(values, dtype=np.float64).ravel()
     u = u[np.isfinite(u)]
     if u.size == 0:
         raise EstimationError("no noise-region values to estimate the camera response from")
-    mean, mean_sq = u.mean(), np.mean(u * u)
-    denominator = mean_sq - mean
+    observed, observed_sq = u.mean(), np.mean(u * u)
+    denominator = observed_sq - observed
     if abs(denominator) < 1e-9:  # binary data: any alpha fits; take the identity
-        if abs(0.5 - mean) > 1e-6:
-            raise EstimationError(f"noise region is binary with mean {mean:.3f}, not 0.5: camera response undefined")
+        if abs(mean - observed) > 1e-6:
+            raise EstimationError(
+                f"noise region is binary with mean {observed:.3f}, not {mean:.3f}: camera response undefined"
+            )
         return 0.0
-    alpha = float((0.5 - mean) / denominator)
+    alpha = float((mean - observed) / denominator)
     if abs(alpha) > 1.0:
         raise EstimationError(
             f"camera response correction alpha = {alpha:.2f} is not monotone (|alpha| > 1): "
-            f"the noise region averages {mean:.3f} instead of 0.5 (saturated or badly lit target?)"
+            f"the noise region averages {observed:.3f} instead of {mean:.3f} (saturated or badly lit target?)"
         )
     return alpha
 

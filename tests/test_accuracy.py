@@ -1,0 +1,164 @@
+"""The Bernoulli-target estimator against photographs of the independent renderer (tests/render.py).
+
+Each render is estimated twice: through the whole pipeline a user runs
+(`estimate_target`: detection, geometry, illumination, response curve,
+solver), and through `estimate_plane` with the true map and the true light
+field, which leaves the solver and the model of u~_D alone. The estimate is
+compared with the truth over the s-band as `render.compare` defines it: the
+MTF error along the fx and fy axes up to s/2 cycles per pixel (s x Nyquist),
+and the mean signed MTF error over the 2-D band where the true MTF exceeds
+0.05. On a k x k support the truth is the sampled kernel plus the mass beyond
+the support as a pedestal, which is what least squares returns for it (render
+module docstring).
+
+Tolerances, from the reported noise floor F = sigma_n sqrt(trace((A^T A)^-1))
+(IJCV 2012 sec. 3.1: E||h_ls - h||^2 = F^2):
+
+- MAX_MTF = 0.02. The least-squares error e has E|DFT(e)(f)|^2 = F^2 at each
+  frequency for a near-white error (the Bernoulli Gram matrix is near a
+  multiple of the identity, IJCV 2012 sec. 3.2), so the MTF error at one
+  frequency has a standard deviation of about F / sqrt(2), and its maximum
+  over the ~k independent frequencies of the two profiles stays below
+  3 F / sqrt(2) with 99 % probability. The non-negative solution is the
+  projection of h_ls onto h >= 0 in the metric of A^T A, a convex set that
+  holds the truth, so it can only come closer. For F <= MAX_FLOOR = 0.0075
+  (asserted on each render) the noise takes at most 0.016, which leaves 0.004
+  for the model: noise-free renders with the true light field measure
+  0.001-0.003 for the kernels with no mass beyond the support. Diffraction
+  has 3-8 % there, and the pedestal describes only its mean: noise-free,
+  0.008 at f/5.6 (3 %) and 0.016 at f/22 (8 %), about a quarter of that
+  mass; half of it is added to the tolerance.
+- MAX_BIAS = 0.01. The mean signed error averages the noise over the >= 100
+  independent frequencies where the MTF exceeds 0.05: its standard deviation
+  is below F / sqrt(2 x 100) = 0.0011 even at F = 0.016, the noise floor of
+  the published photograph and of the photo-like renders here, and the
+  noise-free model bias is below 0.003. The old default (negative values
+  clipped, the rest renormalised) misses it by -0.027 at that noise: its
+  clipped tail noise becomes mass.
+- Through the whole pipeline the light model adds a known bias: it takes the
+  centres of the flat squares as pure black and white, but the kernel's tails
+  (diffraction: mass ~ 1/r) bring light into them, c_b above black and c_w
+  below white (`Render.flare`, from the truth); the normalised plane is
+  stretched by 1 / (1 - c_b - c_w) and the kernel with it. Both tolerances
+  grow by that flare, 0 for a Gaussian, 0.014 for the defocus disc, 0.045 for
+  diffraction at f/22 at 0.4 pixel per cell.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import render
+
+from psfd.estimator import bernoulli
+
+S = 4
+MAX_MTF = 0.02
+MAX_BIAS = 0.01
+MAX_FLOOR = 0.0075  # the noise floor that justifies MAX_MTF (module docstring)
+LAB = render.Exposure(electrons=30000.0)  # a base-ISO RAW: mid-grey noise 0.5 % of the black-to-white range
+PHOTO = render.Exposure(electrons=5000.0)  # the noise of the published photograph: 1.2 %
+
+
+def _render(kind: str, support: int, pixels_per_cell: float, rotation: float, seed: int = 1):
+    kernel = render.KINDS[kind]
+    view = render.View(pixels_per_cell, rotation_deg=rotation, tilt=(0.04, -0.03))
+    return render.render(kernel, view, seed=seed, exposure=LAB, name=f"{kind}-{support}"), support
+
+
+def _true_light(shot, support, **kwargs) -> dict:
+    (result,) = bernoulli.estimate_plane(shot.normalised(), shot.to_pattern, s=S, support=support, **kwargs)
+    return result
+
+
+def _check(errors: render.Errors, floor: float, kernel: render.Kernel, support: int, flare: float = 0.0) -> None:
+    assert floor <= MAX_FLOOR + flare, f"noise floor {floor:.4f}: the tolerances are not justified"
+    tail = kernel.outside(S, support) / 2  # what the pedestal leaves out of the mass beyond the support
+    assert errors.max_mtf <= MAX_MTF + tail + flare, errors
+    assert abs(errors.mean_signed) <= MAX_BIAS + flare / 2, errors
+
+
+# --------------------------------------------------------------------------- default suite: two small renders
+
+FAST = {"gaussian-17": ("gaussian", 17, 0.30, 0.0), "defocus-25": ("defocus", 25, 0.33, 180.0)}
+
+
+@pytest.fixture(scope="module", params=list(FAST))
+def fast(request):
+    """A render, its estimate with the true map and light, and through the whole pipeline (default solver)."""
+    shot, support = _render(*FAST[request.param])
+    (est,) = bernoulli.estimate_target(shot.frame, support=support)
+    return shot, support, _true_light(shot, support), est
+
+
+def test_solver_is_accurate_and_unbiased(fast):
+    """The default solver with the true map and light: MTF within 0.02, no bias (module docstring)."""
+    shot, support, result, _ = fast
+    _check(render.compare(result["psf"], shot.kernel, S), result["noise_floor"], shot.kernel, support)
+
+
+def test_whole_pipeline_is_accurate_and_unbiased(fast):
+    shot, support, _, est = fast
+    flare = sum(shot.flare())
+    assert flare < 0.015  # these kernels' tails are short: the light model's bias stays small
+    _check(render.compare(est.psf, shot.kernel, S), est.noise_floor, shot.kernel, support, flare)
+    assert est.warnings == []
+
+
+def test_no_bias_at_the_noise_of_the_published_photograph(fast):
+    """At 1.2 % noise (floor 0.008-0.016 here, img_example.pgm: 0.0098) the default stays unbiased where
+    clipping the negative values makes the PSF too wide (-0.02 to -0.05 on a 25 x 25 support,
+    bench/bench_accuracy.py; -0.009 at 17 x 17, inside the tolerance, so the contrast is shown at 25)."""
+    shot, support, _, _ = fast
+    noisy = shot.exposed(PHOTO, seed=2)
+    (est,) = bernoulli.estimate_target(noisy.frame, support=support)
+    assert est.noise_floor <= 0.016
+    errors = render.compare(est.psf, shot.kernel, S)
+    assert abs(errors.mean_signed) <= MAX_BIAS, errors
+    if support < 25:
+        return
+    (clipped,) = bernoulli.estimate_target(noisy.frame, support=support, solver="ls-threshold")
+    too_wide = render.compare(clipped.psf, shot.kernel, S)
+    assert too_wide.mean_signed < errors.mean_signed - 0.01 and too_wide.width_ratio > 1.2, too_wide
+
+
+def test_prediction_error_is_near_one_and_flags_a_kernel_that_does_not_hold(fast):
+    """Cross-validated prediction error (bernoulli.cross_validated): about sqrt(1 + k^2 / (M / 2)) with
+    the model right (1.02-1.06 here); a 0.2 % scale error of the map (misregistration up to 0.1 pixel at
+    the edges of the noise region, in opposite directions on opposite halves) raises it above 1.3."""
+    shot, support, right, _ = fast
+    expected = math.sqrt(1 + support**2 / (right["count"] / 2))
+    assert 0.97 < right["prediction_error"] < expected + 0.05
+    if support > 17:
+        return  # the misregistered fit is shown once, on the small support
+    cx, cy = (shot.frame.shape[1] - 1) / 2, (shot.frame.shape[0] - 1) / 2
+
+    def misregistered(x, y):
+        return shot.to_pattern(cx + (np.asarray(x) - cx) * 1.002, cy + (np.asarray(y) - cy) * 1.002)
+
+    (wrong,) = bernoulli.estimate_plane(shot.normalised(), misregistered, s=S, support=support)
+    assert wrong["prediction_error"] > 1.3 > right["prediction_error"]
+
+
+# --------------------------------------------------------------------------- slow: every kind
+
+SLOW = {
+    "gaussian-25": ("gaussian", 25, 0.35, 60.0),
+    "anisotropic-17": ("anisotropic", 17, 0.50, 35.0),
+    "airy-f5.6-17": ("airy-f5.6", 17, 0.37, 100.0),
+    "airy-f11-25": ("airy-f11", 25, 0.35, 160.0),
+    "airy-f22-25": ("airy-f22", 25, 0.40, 75.0),
+    "defocus-25-upright": ("defocus", 25, 0.45, 180.0),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(SLOW))
+def test_every_kind(case):
+    shot, support = _render(*SLOW[case], seed=3)
+    result = _true_light(shot, support)
+    _check(render.compare(result["psf"], shot.kernel, S), result["noise_floor"], shot.kernel, support)
+    (est,) = bernoulli.estimate_target(shot.frame, support=support)
+    _check(render.compare(est.psf, shot.kernel, S), est.noise_floor, shot.kernel, support, sum(shot.flare()))
