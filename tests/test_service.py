@@ -110,7 +110,7 @@ def test_socket_is_0660_and_bad_requests_leave_the_service_running(served, tmp_p
                          capture_output=True, text=True)
     status = json.loads(cli.stdout)  # the same shape as without the service (docs/formats.md)
     assert set(status) == {"service", "catalogue", "runs"} and status["runs"] == []
-    assert set(status["service"]) == {"socket", "state", "queued", "current", "last", "paused_plan"}
+    assert set(status["service"]) == {"socket", "state", "queued", "current", "last", "paused_plan", "unfinished"}
     assert status["service"]["state"] == "idle" and status["service"]["socket"] == str(sock)
     assert proc.poll() is None
     proc.send_signal(signal.SIGTERM)
