@@ -990,6 +990,9 @@ COLUMNS: dict[str, dict[str, str]] = {
         "fwhm_x": "full width at half maximum along x, channel pixels",
         "fwhm_y": "full width at half maximum along y, channel pixels",
         "noise_floor": "expected RMS error of each kernel sample from sensor noise, fraction of energy per sample",
+        "prediction_error": "cross-validated prediction error: the kernel fitted on one half of the noise region "
+                            "predicts the other half, RMS residual over the noise level (about 1 when the model "
+                            "holds; NULL for methods without it and older rows)",
         "residual": "RMS residual of the image model, normalised data units (0 to 1)",
         "params": "estimator parameters, JSON",
         "psfd_version": "psfd version that made the estimate",
