@@ -3,11 +3,12 @@
 Data flows one way: plan -> runner -> drivers -> RAW files -> estimator -> catalogue.
 The modules, from the bottom up (each imports only those above it in this list):
 
-- ``errors``: the typed errors a user can cause, each with its exit code.
+- ``errors``: the typed errors a user can cause, each with its exit code (the README's one table).
 - ``vocabulary``: the names and sizes every part shares: methods (``bernoulli``,
   ``two-photo``, ``sharp-edge``) and their older aliases, solvers and the default
   solver, channels, rail axes, f-numbers, the default ``s`` per method, and the one
-  check of ``s``, ``support`` and ``grid`` with their bounds.
+  check of each size a user gives with its bound (``s``, ``support``, ``grid``, image
+  pixels, workers, backlog, plan steps and bytes, control-socket requests).
 - ``exif``: a frame's metadata read from the RAW file itself (focal length, f-number,
   exposure, ISO, lens, serial, pixel pitch) and the check of requested against actual settings.
 - ``estimator/``: pure numerics, arrays in and arrays out, one module per step of the papers:

@@ -1,7 +1,8 @@
 """The PSF catalogue: one SQLite file holding rigs, runs, steps, frames and PSFs.
 
 The catalogue owns all SQL of psfd. It is opened in WAL mode so that readers
-(``psfd query``, a deblurring program) never block the daemon writing, and every
+(``psfd query``, a deblurring program) never block the daemon writing; readers open
+it read-only and need no write access (see `Catalogue`); every
 write is one transaction, so a reader never sees half of a step: either all the
 frames and PSFs of a step and its ``done`` state, or none of them. That is what
 lets the daemon resume after a crash with no PSF lost and none stored twice.
@@ -26,6 +27,7 @@ import json
 import math
 import os
 import sqlite3
+import stat
 import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -38,7 +40,7 @@ import sqlite_utils
 
 from psfd import __version__
 from psfd.drivers.base import CameraInfo
-from psfd.errors import BadInputError, CatalogueError
+from psfd.errors import BadInputError, CatalogueError, StorageError, path_reason, user_name
 from psfd.estimator.kernels import PSF
 from psfd.vocabulary import camera_fnumber, data_dir, method_name, parse_fnumber
 
@@ -233,6 +235,28 @@ SCHEMA_VERSION = len(MIGRATIONS)
 # Helpers
 
 
+def check_owner(path: Path, what: str) -> None:
+    """Refuse to write into ``path`` (a catalogue, a frame store), when it exists, unless this process's user
+    owns it: files this user made there would be theirs, and the owner (e.g. the service's user) could then
+    not write, move or remove them."""
+    try:
+        owner = path.stat().st_uid
+    except OSError:  # missing, or not reachable: the write itself says what is wrong
+        return
+    if owner != os.geteuid():
+        me, them = user_name(os.geteuid()), user_name(owner)
+        raise StorageError(f"{what} {path} belongs to {them}: writing to it as {me} would leave files {them} "
+                           f"cannot use; submit to the service, or run as {them}")
+
+
+def _storage_error(exc: sqlite3.Error, what: str) -> StorageError | None:
+    """The StorageError of an SQLite failure to write the storage: disk full (SQLITE_FULL), a read-only
+    file or file system (SQLITE_READONLY*), a failed write (SQLITE_IOERR*: EROFS after a remount)."""
+    if getattr(exc, "sqlite_errorname", "").startswith(("SQLITE_FULL", "SQLITE_READONLY", "SQLITE_IOERR")):
+        return StorageError(f"{what}: {exc}")
+    return None
+
+
 def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
@@ -287,40 +311,68 @@ class Catalogue:
     path : str or Path
         The SQLite file. Created (with its folder) when missing, unless ``create`` is False.
     create : bool
-        False for readers: a missing file raises CatalogueError instead of creating an empty catalogue.
+        False: a missing file raises CatalogueError instead of creating an empty catalogue.
     timeout : float
         Seconds a writer waits for another writer's lock (SQLite busy timeout).
+    readonly : bool
+        A reader's connection (SQLite ``mode=ro``): it creates and changes nothing, so it
+        needs no write access to the file or its folder. (A catalogue of an older schema is
+        first migrated by a writer's connection when this process may write it.)
 
     The connection may be shared between threads; calls are serialised by a lock.
+
+    Readers without write access. A WAL database can be read by a process that may not
+    write it or its folder only while its ``-wal`` and ``-shm`` files exist (SQLite, "Read-Only
+    Databases" in its WAL documentation, since 3.22); SQLite deletes them when the last
+    connection closes unless SQLITE_FCNTL_PERSIST_WAL is set, which Python's sqlite3 module
+    cannot set. A writer's `close` therefore puts them back, empty, with the catalogue's own
+    mode and owner: an empty WAL and an uninitialised index are states SQLite reads from
+    (the read-only index is then rebuilt in the reader's memory). ``immutable=1`` is not
+    used: it is only safe for a file nobody changes, and the service does.
+
+    Ownership. A writer must own an existing catalogue (`check_owner`): files another user
+    made beside it (SQLite's ``-wal`` of a root process) could not be written by its owner.
     """
 
-    def __init__(self, path: str | os.PathLike, *, create: bool = True, timeout: float = 30.0) -> None:
+    def __init__(self, path: str | os.PathLike, *, create: bool = True, timeout: float = 30.0,
+                 readonly: bool = False) -> None:
         self.path = Path(path)
+        self.readonly = readonly
         self.folder = Path(os.path.abspath(self.path)).parent  # frame paths are stored relative to it
         if not self.path.exists():
-            if not create:
+            if readonly or not create:
                 raise CatalogueError(f"no catalogue at {self.path}")
             try:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
-                raise CatalogueError(f"cannot create catalogue {self.path}: {exc.strerror or exc}") from None
+                raise CatalogueError(f"cannot create catalogue {self.path}: {path_reason(self.path.parent, exc)}"
+                                     ) from None
         elif self.path.is_dir():
             raise CatalogueError(f"{self.path} is a folder, not a catalogue file")
+        elif not readonly:
+            check_owner(self.path, "the catalogue")
         self._lock = threading.RLock()
         try:
-            conn = sqlite3.connect(str(self.path), timeout=timeout, check_same_thread=False)
+            if readonly:
+                conn = sqlite3.connect(f"{self.path.absolute().as_uri()}?mode=ro", uri=True, timeout=timeout,
+                                       check_same_thread=False)
+            else:
+                conn = sqlite3.connect(str(self.path), timeout=timeout, check_same_thread=False)
         except sqlite3.Error as exc:  # e.g. "unable to open database file" in a read-only folder
             raise CatalogueError(f"cannot open catalogue {self.path}: {exc}") from None
         self.db = sqlite_utils.Database(conn)
         try:
             self.db.execute(f"PRAGMA busy_timeout = {int(timeout * 1000)}")
             self.db.execute("PRAGMA foreign_keys = ON")
-            self._check_is_catalogue(create)
-            self.db.enable_wal()
-            self._migrate()
+            self._check_is_catalogue(create and not readonly)
+            if readonly:
+                self._check_readable_version()
+            else:  # the version was checked first: a catalogue this psfd refuses is left as it was
+                self.db.enable_wal()
+                self._migrate()
         except sqlite3.OperationalError as exc:  # read-only file or folder, locked, ...
             self.db.close()
-            raise CatalogueError(f"cannot open catalogue {self.path}: {exc}") from None
+            raise self._open_error(exc) from None
         except sqlite3.DatabaseError as exc:
             self.db.close()
             raise CatalogueError(f"{self.path} is not a psfd catalogue ({exc})") from None
@@ -328,12 +380,43 @@ class Catalogue:
             self.db.close()
             raise
 
+    def _open_error(self, exc: sqlite3.OperationalError) -> CatalogueError:
+        side = self.path.with_name(self.path.name + "-shm")
+        if self.readonly and not side.exists() and not os.access(self.path.parent, os.W_OK):
+            return CatalogueError(
+                f"cannot read {self.path} without write access to {self.path.parent}: its {side.name} and -wal "
+                "files are missing (psfd keeps them; they come back when its owner, e.g. the service, opens it)")
+        return _storage_error(exc, f"cannot open catalogue {self.path}") or CatalogueError(
+            f"cannot open catalogue {self.path}: {exc}")
+
     # -- connection and transactions ---------------------------------------
 
     def close(self) -> None:
-        """Close the connection (the WAL is checkpointed by SQLite when the last one closes)."""
+        """Close the connection; a writer then keeps the WAL files readers without write access need."""
         with self._lock:
             self.db.close()
+            if not self.readonly:
+                self._keep_wal_files()
+
+    def _keep_wal_files(self) -> None:
+        """Re-create the ``-wal`` and ``-shm`` files SQLite deleted at the last close (see the class notes),
+        empty, with the catalogue's mode and (for root) its owner, as SQLite itself creates them."""
+        try:
+            info = self.path.stat()
+        except OSError:
+            return
+        for suffix in ("-wal", "-shm"):
+            try:  # O_EXCL: a file another connection made (and uses) is never touched
+                fd = os.open(self.path.with_name(self.path.name + suffix),
+                             os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+            except OSError:
+                continue
+            try:
+                os.fchmod(fd, stat.S_IMODE(info.st_mode) & 0o666)
+                if os.geteuid() == 0:
+                    os.fchown(fd, info.st_uid, info.st_gid)
+            finally:
+                os.close(fd)
 
     def __enter__(self) -> Catalogue:
         return self
@@ -344,20 +427,36 @@ class Catalogue:
     @contextlib.contextmanager
     def _write(self) -> Iterator[sqlite_utils.Database]:
         """One write transaction. IMMEDIATE takes the write lock up front, so two writers
-        queue on the busy timeout instead of failing on a read-to-write upgrade."""
+        queue on the busy timeout instead of failing on a read-to-write upgrade.
+
+        A transaction that cannot be written (disk full, read-only file system) is rolled
+        back whole and raised as a StorageError; another SQLite failure as a CatalogueError.
+        """
         with self._lock:
+            if self.readonly:
+                raise CatalogueError(f"{self.path} is open for reading only")
             if self.db.conn.in_transaction:
                 raise CatalogueError("nested catalogue transaction")
             try:
                 self.db.execute("BEGIN IMMEDIATE")
             except sqlite3.OperationalError as exc:  # busy timeout ran out, read-only file, ...
-                raise CatalogueError(f"cannot write to {self.path}: {exc}") from None
+                raise (_storage_error(exc, f"cannot write to {self.path}")
+                       or CatalogueError(f"cannot write to {self.path}: {exc}")) from None
             try:
                 yield self.db
                 self.db.execute("COMMIT")
+            except sqlite3.OperationalError as exc:
+                self._rollback()
+                raise (_storage_error(exc, f"cannot write to {self.path}")
+                       or CatalogueError(f"cannot write to {self.path}: {exc}")) from None
             except BaseException:
-                self.db.rollback()
+                self._rollback()
                 raise
+
+    def _rollback(self) -> None:
+        if self.db.conn.in_transaction:  # SQLite may have rolled back on its own (SQLITE_FULL)
+            with contextlib.suppress(sqlite3.Error):
+                self.db.execute("ROLLBACK")
 
     @contextlib.contextmanager
     def _read(self) -> Iterator[sqlite_utils.Database]:
@@ -373,16 +472,39 @@ class Catalogue:
                 self.db.rollback()
 
     def _check_is_catalogue(self, create: bool) -> None:
-        """Refuse, before writing anything to it, a file that is not (and may not become) a catalogue."""
-        if self.schema_version() > 0:
+        """Refuse, before writing anything to it, a file that is not (and may not become) a catalogue,
+        or one of a newer psfd (whose files this one must not change, not even to WAL mode)."""
+        version = self.schema_version()
+        if version > SCHEMA_VERSION:
+            raise CatalogueError(self._newer(version))
+        if version > 0:
             return
         if self.db.table_names():
             raise CatalogueError(f"{self.path} is a SQLite file but not a psfd catalogue")
         if not create:
             raise CatalogueError(f"{self.path} is empty, not a psfd catalogue")
 
+    def _check_readable_version(self) -> None:
+        """A reader's check of the schema: a newer one is refused; an older one is migrated by a writer's
+        connection when this process may write the catalogue, and refused with what to do otherwise."""
+        version = self.schema_version()
+        if version > SCHEMA_VERSION:
+            raise CatalogueError(self._newer(version))
+        if version < SCHEMA_VERSION:
+            if os.access(self.path, os.W_OK) and os.access(self.path.parent, os.W_OK | os.X_OK):
+                Catalogue(self.path, create=False).close()
+            else:
+                raise CatalogueError(
+                    f"{self.path} has schema version {version}, older than this psfd's ({SCHEMA_VERSION}); "
+                    "it is upgraded when its owner (e.g. the service) opens it")
+
+    def _newer(self, version: int) -> str:
+        return f"{self.path} has schema version {version}, newer than this psfd ({SCHEMA_VERSION}); upgrade psfd"
+
     def _migrate(self) -> None:
         version = self.schema_version()
+        if version > SCHEMA_VERSION:
+            raise CatalogueError(self._newer(version))
         while version < SCHEMA_VERSION:
             with self._write() as db:
                 # Re-read inside the lock: another process may have migrated meanwhile.
@@ -391,11 +513,6 @@ class Catalogue:
                     MIGRATIONS[version](db)
                     version += 1
                     db.execute(f"PRAGMA user_version = {version}")
-        if version > SCHEMA_VERSION:
-            raise CatalogueError(
-                f"{self.path} has schema version {version}, newer than this psfd "
-                f"({SCHEMA_VERSION}); upgrade psfd"
-            )
 
     def schema_version(self) -> int:
         """The catalogue's ``PRAGMA user_version``."""
@@ -503,6 +620,19 @@ class Catalogue:
             )
             if cursor.rowcount == 0:
                 raise CatalogueError(f"no run {run_id}")
+
+    def close_finished_runs(self) -> list[int]:
+        """Close as ``done`` every run journalled ``running`` that has no step left: a process killed between
+        its last commit and its close. Only for a caller that holds the runs' frame store (`store_lock`), so
+        that none of them is alive. Returns their ids."""
+        with self._write() as db:
+            ids = [r[0] for r in db.execute(
+                "SELECT id FROM runs u WHERE u.state = 'running' AND NOT EXISTS "
+                "(SELECT 1 FROM steps s WHERE s.run_id = u.id AND s.state != 'done')").fetchall()]
+            if ids:
+                db.execute(f"UPDATE runs SET state = 'done', finished = ? WHERE id IN ({', '.join('?' * len(ids))})",
+                           [_now(), *ids])
+        return ids
 
     def runs(self) -> list[dict]:
         """All runs, newest first: id, plan_path, plan_hash, state, started, finished, rig and PSF count."""

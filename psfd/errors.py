@@ -1,16 +1,31 @@
 """Typed errors a user can cause, each with a one-line message and a CLI exit code.
 
-The CLI prints ``str(error)`` on one line of stderr and exits with ``error.exit_code``.
-Codes are grouped so that scripts can tell a bad input (2) from a measurement that
-the photographs cannot support (3), a hardware fault (4) and a catalogue or service
-problem (5).
+The CLI prints ``str(error)`` on one line of stderr and exits with ``error.exit_code``,
+the one table of the README: 0 done, 1 nothing matched, 2 bad input, 3 the
+photographs cannot support an estimate, 4 camera or rail, 5 catalogue or service
+(a full or read-only disk included), 130 interrupted by Ctrl-C, 143 stopped by SIGTERM
+(128 + the signal, as a shell reports a process the signal ended). The service sends an error's
+type name with its answer (`by_name`), so the same refusal exits with the same code
+whether a command ran here or through the service.
 """
 
 from __future__ import annotations
 
+import errno
+import os
+import pwd
+import signal
+from pathlib import Path
+
 
 class PsfdError(Exception):
     """Base class: a failure with a message meant for the user."""
+
+    exit_code = 1
+
+
+class NoMatchError(PsfdError):
+    """A query matched nothing (``query``, ``export`` and ``report`` alike)."""
 
     exit_code = 1
 
@@ -71,7 +86,53 @@ class CatalogueError(PsfdError):
     exit_code = 5
 
 
+class StorageError(CatalogueError):
+    """The catalogue or the frame store cannot be written: disk full, read-only file system, quota."""
+
+
 class ServiceError(PsfdError):
     """The service or its control socket refused or failed a request."""
 
     exit_code = 5
+
+
+class Interrupted(PsfdError):
+    """Stopped by Ctrl-C (exit 130) or SIGTERM (143); a run stopped so is paused and resumable."""
+
+    exit_code = 128 + signal.SIGINT
+
+    def __init__(self, message: str, signum: int = signal.SIGINT) -> None:
+        super().__init__(message)
+        self.exit_code = 128 + int(signum)
+
+
+# errno values that mean "this storage cannot take more writes now", not a fault of the device or input
+STORAGE_ERRNOS = {errno.ENOSPC, errno.EROFS, errno.EDQUOT, errno.EFBIG}
+
+
+def by_name(name: str, message: str, default: type[PsfdError] = ServiceError) -> PsfdError:
+    """The error of type ``name`` (a class of this module) with ``message``; ``default`` when there is none."""
+    kind = globals().get(name)
+    if not (isinstance(kind, type) and issubclass(kind, PsfdError)):
+        kind = default
+    return kind(message)
+
+
+def path_reason(path: str | os.PathLike, exc: OSError) -> str:
+    """Why a path could not be used, in words: a component that is a file is named (``notes is a file,
+    not a folder``) instead of the system's "File exists" or "Not a directory"."""
+    if exc.errno in (errno.EEXIST, errno.ENOTDIR):
+        for parent in [Path(path), *Path(path).parents]:
+            if parent.exists() or parent.is_symlink():
+                if not parent.is_dir():
+                    return f"{parent} is a file, not a folder"
+                break
+    return exc.strerror or str(exc)
+
+
+def user_name(uid: int) -> str:
+    """A user's login name, for messages about who owns what (``uid N`` when it has none)."""
+    try:
+        return pwd.getpwuid(uid).pw_name
+    except KeyError:
+        return f"uid {uid}"

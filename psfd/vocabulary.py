@@ -55,6 +55,20 @@ SUPPORT_MAX = 65
 # grid: windows per side. 32 x 32 windows of a 6000 x 4000 RAW's Bayer plane are still
 # 94 x 62 pixels, about the smallest that holds enough noise samples for a 17 x 17 kernel.
 GRID_MAX = 32
+# image size, checked on the file's header before it is decoded: a 151-megapixel medium-format
+# sensor (14204 x 10652) fits; each pixel costs about 40 bytes on its way through the estimators.
+MAX_PIXELS = 160_000_000
+# estimation processes: each holds numpy, OpenCV and a frame (~0.2-1 GB); more than cores gains nothing.
+WORKERS_MAX = 64
+# frames captured but not yet estimated, per run (each is a file in the store and a queued job)
+BACKLOG_MAX = 1024
+# steps of one plan: 100,000 steps are more than a day of shooting even at one step a second;
+# the journal holds one row per step, written when the run starts.
+PLAN_STEPS_MAX = 100_000
+PLAN_BYTES_MAX = 1 << 20  # a plan file: a few kB of TOML
+# control-socket requests: a plan is a few kB; a request is an object holding strings and flags.
+REQUEST_BYTES_MAX = 1 << 20
+REQUEST_DEPTH_MAX = 32
 
 AXES = ("x", "y", "z")  # rail axes, in millimetres
 CHANNELS = ("r", "g1", "g2", "b")  # Bayer planes, named after the sensor's own CFA pattern
@@ -120,6 +134,27 @@ def check_sizes(
     s = check_s(s, names.get("s", "s"))
     support = default_support(s) if support is None else check_support(support, names.get("support", "support"))
     return s, support, check_grid(grid, names.get("grid", "grid"))
+
+
+def check_count(value: Any, name: str, maximum: int) -> int:
+    """A count a user gives (``workers``, ``backlog``), an integer from 1 to ``maximum``; else a BadInputError."""
+    if not _is_int(value) or not 1 <= value <= maximum:
+        raise BadInputError(f"{name}: must be an integer from 1 to {maximum}, got {value!r}")
+    return int(value)
+
+
+def check_image_size(width: int, height: int, name: str) -> None:
+    """Refuse an image whose header announces more than `MAX_PIXELS` (or no pixels), before it is decoded."""
+    if width <= 0 or height <= 0 or width * height > MAX_PIXELS:
+        raise BadInputError(f"{name}: a {width}x{height} image is {width * height:,} pixels; psfd reads frames "
+                            f"of at most {MAX_PIXELS:,} pixels")
+
+
+def check_steps(count: int, name: str = "plan") -> None:
+    """Refuse a plan of more than `PLAN_STEPS_MAX` steps (its count, computed before it is expanded)."""
+    if count > PLAN_STEPS_MAX:
+        raise BadInputError(f"{name} expands to {count:,} steps, more than {PLAN_STEPS_MAX:,}: split it into "
+                            "several plans")
 
 
 def check_solver(solver: Any, name: str = "solver") -> str:

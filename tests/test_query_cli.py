@@ -19,6 +19,8 @@ from psfd.cli import query as query_cli
 from psfd.drivers.base import CameraInfo
 from psfd.estimator.kernels import PSF
 
+# a catalogue and the WAL files its writer keeps for readers without write access
+CATALOGUE_FILES = ["cat.sqlite", "cat.sqlite-shm", "cat.sqlite-wal"]
 GRID = [(x, y) for y in (1 / 6, 0.5, 5 / 6) for x in (1 / 6, 0.5, 5 / 6)]
 
 
@@ -125,7 +127,7 @@ def test_export_failure_leaves_nothing(capsys, catalogue, tmp_path, monkeypatch)
     code, _, err = run_cli(capsys, "export", "--catalogue", catalogue, "--out", str(tmp_path / "export"))
     assert_one_line_error(code, err, 2, "disk full")
     assert len(calls) == 3
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["cat.sqlite"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == CATALOGUE_FILES
 
 
 def test_report_as_png_and_vector(capsys, catalogue, tmp_path):
@@ -142,7 +144,7 @@ def test_report_as_png_and_vector(capsys, catalogue, tmp_path):
     code, _, _ = run_cli(capsys, "report", "--catalogue", catalogue, "--channel", "r", "--out", str(tmp_path / "r.png"))
     assert code == 0
     code, _, err = run_cli(capsys, "report", "--catalogue", catalogue, "--channel", "b", "--out", str(tmp_path / "b.png"))
-    assert code == 5 and "no PSF matches" in err and not (tmp_path / "b.png").exists()
+    assert code == 1 and "no PSF" in err and not (tmp_path / "b.png").exists()  # nothing matched
 
 
 def test_query_csv_and_units(capsys, catalogue):
@@ -160,7 +162,7 @@ def test_query_csv_and_units(capsys, catalogue):
             assert float(row["mtf50_x [cycles/px]"]) == pytest.approx(stored["mtf50_x"], rel=1e-5)
             assert row["aperture [f-number]"] == format(stored["aperture"], ".6g") and row["camera"] == "Canon EOS 400D"
     code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--channel", "b", "--csv")
-    assert code == 0 and len(out.splitlines()) == 1 and "no PSF matches" in err  # the header alone
+    assert code == 1 and len(out.splitlines()) == 1 and "no PSF matches" in err  # the header alone
 
 
 def test_bad_inputs_give_one_line_errors(capsys, catalogue, tmp_path):
@@ -172,14 +174,14 @@ def test_bad_inputs_give_one_line_errors(capsys, catalogue, tmp_path):
         (["query", "--limit", "0"], 2, "--limit"),
         (["export", "--format", "bmp", "--out", str(tmp_path / "x")], 2, "format"),
         (["query", "--method", "foo"], 2, "unknown method 'foo'"),
-        (["export", "--method", "two-photo", "--out", str(tmp_path / "empty")], 5, "no PSF matches"),
-        (["report", "--method", "two-photo", "--out", str(tmp_path / "r.png")], 5, "no PSF matches"),
+        (["export", "--method", "two-photo", "--out", str(tmp_path / "empty")], 1, "no PSF matches"),
+        (["report", "--method", "two-photo", "--out", str(tmp_path / "r.png")], 1, "no PSF matches"),
         (["report", "--out", str(tmp_path / "r.xyz")], 2, "cannot write a figure"),
     ]
     for argv, expected, text in cases:
         code, _, err = run_cli(capsys, *argv, "--catalogue", catalogue)
         assert_one_line_error(code, err, expected, text)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["cat.sqlite"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == CATALOGUE_FILES
 
     (tmp_path / "full").mkdir()
     (tmp_path / "full" / "keep.txt").write_text("mine")
@@ -216,7 +218,7 @@ def test_unwritable_outputs_are_one_line_errors(capsys, catalogue, tmp_path):
 
 def test_json_query_without_match_says_so_on_stderr(capsys, catalogue):
     code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--camera", "EOS 5D", "--json")
-    assert (code, out, err) == (0, "", "psfd: no PSF matches the query\n")
+    assert (code, out, err) == (1, "", "psfd: error: no PSF matches the query\n")  # exit 1, as grep
 
 
 def test_query_subprocess_uses_the_default_catalogue(catalogue, tmp_path):

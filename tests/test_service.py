@@ -20,7 +20,7 @@ import pytest
 from psfd.catalogue import Catalogue
 from psfd.daemon import client
 from psfd.daemon.plan import parse_plan
-from psfd.errors import ServiceError
+from psfd.errors import BadInputError, ServiceError
 
 from test_runner import check_complete, small_plan
 
@@ -92,7 +92,8 @@ def test_socket_is_0660_and_bad_requests_leave_the_service_running(served, tmp_p
     answer = raw_request(sock, b'{"cmd": "reboot"}\n')
     assert answer["ok"] is False and "unknown command 'reboot'" in answer["error"]
     answer = raw_request(sock, b'[1, 2]\n')
-    assert answer == {"ok": False, "error": 'request must be a JSON object with "cmd"'}
+    assert answer == {"ok": False, "error": 'request must be a JSON object with "cmd"', "error_type": "BadInputError",
+                      "exit_code": 2}
     answer = raw_request(sock, json.dumps({"cmd": "submit", "plan": "[target]\nkind = 'x'\n"}).encode() + b"\n")
     assert answer["ok"] is False and len(answer["problems"]) >= 2
     assert any("kind must be one of" in p for p in answer["problems"])
@@ -109,7 +110,7 @@ def test_socket_is_0660_and_bad_requests_leave_the_service_running(served, tmp_p
                          capture_output=True, text=True)
     status = json.loads(cli.stdout)  # the same shape as without the service (docs/formats.md)
     assert set(status) == {"service", "catalogue", "runs"} and status["runs"] == []
-    assert set(status["service"]) == {"socket", "state", "queued", "current", "last", "paused_plan"}
+    assert set(status["service"]) == {"socket", "state", "queued", "current", "last", "paused_plan", "unfinished"}
     assert status["service"]["state"] == "idle" and status["service"]["socket"] == str(sock)
     assert proc.poll() is None
     proc.send_signal(signal.SIGTERM)
@@ -146,11 +147,11 @@ def test_pause_resume_then_sigterm_mid_run_and_resume_from_the_cli(served, tmp_p
     assert client.request(sock, {"cmd": "pause"})["requested"] == "pause"
     status = wait_status(sock, lambda s: s["state"] == "paused")
     assert status["last"]["state"] == "paused" and status["last"]["steps_done"] < 4
-    # submitting the paused plan afresh is refused at once (no PSF stored twice) ...
-    with pytest.raises(ServiceError, match=r"is paused .*add --resume to continue it, or --new"):
+    # submitting the paused plan afresh is refused at once (no PSF stored twice), as the bad input it is ...
+    with pytest.raises(BadInputError, match=r"is paused .*add --resume to continue it, or --new"):
         client.request(sock, {"cmd": "submit", "plan": plan.text, "path": str(plan_path)})
     # ... and so is resuming a plan that has no unfinished run
-    with pytest.raises(ServiceError, match="no unfinished run of plan other.toml to resume"):
+    with pytest.raises(BadInputError, match="no unfinished run of plan other.toml to resume"):
         client.request(sock, {"cmd": "submit", "plan": plan.text + "\n# other\n", "path": "other.toml",
                                "resume": True})
     assert client.request(sock, {"cmd": "resume"})["queued"] == 1

@@ -18,6 +18,7 @@ import argparse
 import atexit
 import gc
 import os
+import select
 import signal
 import sys
 import threading
@@ -30,12 +31,17 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 # OpenCV logs its own warnings on stderr (e.g. for an unreadable image) before psfd
 # reports the error in one line; must be set before cv2 is imported.
 os.environ.setdefault("OPENCV_LOG_LEVEL", "SILENT")
+# OpenCV's own check of an image's size before it allocates, for the formats whose header psfd
+# does not read itself (psfd.estimator.raw.check_image reads PNG, PNM and TIFF headers).
+from psfd.vocabulary import MAX_PIXELS  # noqa: E402 - standard library only
+
+os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_PIXELS))
 
 import importlib  # noqa: E402
 
 from psfd import __version__  # noqa: E402 - after the environment above
 from psfd.cli import logs  # noqa: E402
-from psfd.errors import BadInputError, PsfdError  # noqa: E402
+from psfd.errors import BadInputError, PsfdError, path_reason  # noqa: E402
 
 # Command word -> the module of psfd.cli whose register() adds it, in the order of the help.
 COMMANDS = {
@@ -94,6 +100,10 @@ def _raise_terminated(signum: int, frame: object) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run one command line and return its exit code; without ``argv``, the process's own (the program).
 
+    The exit code is the README's table (`psfd.errors`): 0 done, 1 nothing matched, 2 bad input, 3 the
+    photographs cannot support an estimate, 4 camera or rail, 5 catalogue or service, 130 interrupted
+    by Ctrl-C, 143 stopped by SIGTERM (outside `psfd serve`).
+
     The program's exit skips the garbage collector's last passes over everything numpy, scipy and
     OpenCV loaded (`gc.freeze` as the last exit handler: 0.1 s idle, up to 0.7 s on a loaded machine,
     for cycles the operating system frees anyway); the other exit handlers, flushing and closing run as usual.
@@ -107,7 +117,17 @@ def main(argv: list[str] | None = None) -> int:
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here, while it can still be handled
+        return code
+    except BrokenPipeError:
+        if not _stdout_closed():
+            print("psfd: error: broken pipe", file=sys.stderr)
+            return BadInputError.exit_code
+        # The reader went away (`psfd query | head -1`): not an error. Point stdout at /dev/null so
+        # that the interpreter's own flush at exit cannot fail again (Python docs, "Note on SIGPIPE").
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except PsfdError as exc:
         print(f"psfd: error: {exc}", file=sys.stderr)
         return exc.exit_code
@@ -115,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
         # A file-system refusal the commands did not foresee (read-only disk, a file where a
         # folder should be, disk full): still the user's environment, still one line.
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"psfd: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        reason = path_reason(exc.filename, exc) if exc.filename else (exc.strerror or str(exc))
+        print(f"psfd: error: {where}{reason}", file=sys.stderr)
         return BadInputError.exit_code
     except KeyboardInterrupt as exc:
         stopped = "".join(f" ({note})" for note in getattr(exc, "__notes__", ()))
@@ -124,6 +145,16 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def _stdout_closed() -> bool:
+    """True when standard output is a pipe or socket whose reader has gone (poll reports an error on it)."""
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0))
+    except (OSError, ValueError):
+        return False
 
 
 if __name__ == "__main__":

@@ -92,10 +92,15 @@ def load_truth(path: str, s: int):
     """A true PSF from .npy: 2-D, odd-sized, finite, with positive mass."""
     import numpy as np
 
-    try:
-        psf = np.load(path, allow_pickle=False)
+    from psfd.vocabulary import check_image_size
+
+    try:  # mapped, not read: the header's shape is checked before anything is allocated
+        psf = np.load(path, allow_pickle=False, mmap_mode="r")
     except (OSError, ValueError) as exc:
         raise BadInputError(f"{path}: not a readable .npy array ({type(exc).__name__})") from None
+    if psf.ndim == 2:
+        check_image_size(psf.shape[1], psf.shape[0], path)
+    psf = np.array(psf, dtype=np.float64)
     if psf.ndim != 2 or psf.shape[0] % 2 == 0 or psf.shape[1] % 2 == 0 or not np.all(np.isfinite(psf)):
         raise BadInputError(f"{path}: a PSF must be a finite 2-D array of odd size on the {s}-times grid")
     if psf.sum() <= 0:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from psfd.cli import options
 from psfd.daemon import client
-from psfd.errors import BadInputError, ServiceError
+from psfd.errors import BadInputError, Interrupted, ServiceError, path_reason
 from psfd.vocabulary import BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, DEFAULT_SOLVER, TWO_PHOTO
 
 
@@ -91,18 +91,24 @@ def run_here(plan, catalogue: Path, frames: Path, **flags):
     from psfd.daemon.runner import Control, run_plan
 
     control = Control()
+    stopped: list[int] = []
 
     def stop(signum, frame):  # first Ctrl-C or SIGTERM: finish the current frame and pause
-        signal.signal(signum, signal.default_int_handler)
+        signal.signal(signum, previous[signum])  # the second one stops the command where it is
         print("\npsfd: stopping after the current frame (again to abort)", file=sys.stderr)
+        stopped.append(signum)
         control.request("pause")
 
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        return run_plan(plan, catalogue, frames, control=control, **flags)
+        result = run_plan(plan, catalogue, frames, control=control, **flags)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    if stopped and result.error is None and result.state != "done":  # stopped by the user: exit 130 or 143
+        result.reason = f"interrupted by {signal.Signals(stopped[0]).name}"
+        result.error = Interrupted(result.reason, stopped[0])
+    return result
 
 
 def plural(n: int, word: str) -> str:
@@ -145,7 +151,7 @@ def writable_folder(path: Path, option: str) -> Path:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise BadInputError(f"{option} {path}: cannot create the folder ({exc.strerror or exc})") from None
+        raise BadInputError(f"{option} {path}: cannot create the folder ({path_reason(path, exc)})") from None
     if not os.access(path, os.W_OK | os.X_OK):
         raise BadInputError(f"{option} {path}: not a writable folder")
     return path
@@ -166,8 +172,6 @@ def run_plan_file(args: argparse.Namespace) -> int:
               f"follow it with: {follow}")
         return 0
     runner = options.runner_options(args)
-    if args.resume and not catalogue.exists():
-        raise BadInputError(f"no unfinished run of plan {args.plan} to resume (no catalogue at {catalogue})")
     result = run_here(plan, catalogue, frames, resume=args.resume, new=args.new, **runner)
     return _report(result.to_dict(), _again(args, "run", args.plan, "--resume"))
 
@@ -253,7 +257,7 @@ def run_capture(args: argparse.Namespace) -> int:
 
 
 STATUS_KEYS = ("service", "catalogue", "runs")  # `psfd status --json`, with or without the service (docs/formats.md)
-SERVICE_KEYS = ("socket", "state", "queued", "current", "last", "paused_plan")
+SERVICE_KEYS = ("socket", "state", "queued", "current", "last", "paused_plan", "unfinished")
 
 
 def status(args: argparse.Namespace) -> dict:
@@ -275,7 +279,7 @@ def status(args: argparse.Namespace) -> dict:
     runs: list[dict] = []
     if catalogue.exists():
         try:
-            with Catalogue(catalogue, create=False) as cat:
+            with Catalogue(catalogue, readonly=True) as cat:
                 runs = [cat.run_summary(r["id"]) for r in cat.runs()[:10]]
         except CatalogueError:
             if service is None:
@@ -300,6 +304,9 @@ def run_status(args: argparse.Namespace) -> int:
             last = service["last"]
             print(f"  last: {last['plan']} run {last.get('run_id', '-')} {last['state']}"
                   + (f" ({last['reason']})" if last.get("reason") else ""))
+        for run in service["unfinished"] or []:  # paused and interrupted runs: what --resume continues
+            print(f"  run {run['id']} of {run['plan_path']} is {run['state']} ({run['done']}/{run['total']} steps "
+                  f"done); continue with: {_again(args, 'run', run['plan_path'], '--resume')}")
         return 0
     _, _, sock = options.paths(args)
     if info["catalogue"] is None:
@@ -317,10 +324,7 @@ def run_plan_check(args: argparse.Namespace) -> int:
     from psfd.daemon import plan as plans
 
     path = Path(args.plan)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise BadInputError(f"cannot read plan {path}: {exc}") from None
+    text = plans.read_plan_text(path)
     problems = plans.check_text(text)
     for problem in problems:
         print(f"{path}: {problem}", file=sys.stderr)
@@ -458,7 +462,7 @@ def _demo_outputs(catalogue: Path, workdir: Path) -> None:
     from psfd.cli import output
     from psfd.cli.query import with_units
 
-    with Catalogue(catalogue, create=False) as cat:
+    with Catalogue(catalogue, readonly=True) as cat:
         for name, near in (("centre", (0.5, 0.5)), ("corner", (0.0, 0.0))):
             print(f"\n$ psfd query --catalogue {catalogue} --channel g1 --near {near[0]:g},{near[1]:g}   # {name}")
             print(output.format_rows(with_units(cat, cat.query(channel="g1", near=near).rows)))

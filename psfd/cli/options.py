@@ -201,14 +201,18 @@ def add_service_options(p: argparse.ArgumentParser) -> None:
 
 
 def add_runner_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--workers", help="estimation processes (default: cores - 1, at least 1)")
-    p.add_argument("--backlog", help="frames that may wait for estimation before the rig waits (default 4 per worker)")
+    p.add_argument("--workers", help=f"estimation processes, 1 to {vocabulary.WORKERS_MAX} (default: cores - 1, "
+                                     "at least 1)")
+    p.add_argument("--backlog", help=f"frames that may wait for estimation before the rig waits, 1 to "
+                                     f"{vocabulary.BACKLOG_MAX} (default 4 per worker)")
 
 
 def runner_options(args: argparse.Namespace) -> dict[str, int]:
-    """The Runner's ``workers`` and ``backlog`` given on the command line (the others keep its defaults)."""
-    return {name: parse_int(getattr(args, name), f"--{name}", minimum=1)
-            for name in ("workers", "backlog") if getattr(args, name) is not None}
+    """The Runner's ``workers`` and ``backlog`` given on the command line (the others keep its defaults),
+    each within its bound (`vocabulary.WORKERS_MAX`, `vocabulary.BACKLOG_MAX`)."""
+    bounds = {"workers": vocabulary.WORKERS_MAX, "backlog": vocabulary.BACKLOG_MAX}
+    return {name: vocabulary.check_count(parse_int(getattr(args, name), f"--{name}", minimum=1), f"--{name}", bound)
+            for name, bound in bounds.items() if getattr(args, name) is not None}
 
 
 def paths(args: argparse.Namespace) -> tuple[Path, Path, Path]:

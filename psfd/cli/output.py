@@ -29,7 +29,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from psfd.errors import BadInputError, CatalogueError
+from psfd.errors import BadInputError, NoMatchError, path_reason
 from psfd.estimator.kernels import PSF
 
 UNITS = ("units: f/ f-number; field normalised (0,0 top-left, 1,1 bottom-right); size: kernel side in samples "
@@ -100,7 +100,7 @@ def parent_folder(out: Path) -> Path:
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise BadInputError(f"cannot create {out.parent}: {exc.strerror}") from None
+        raise BadInputError(f"cannot create {out.parent}: {path_reason(out.parent, exc)}") from None
     return out.parent
 
 
@@ -233,7 +233,7 @@ def write_report(catalogue: Any, rows: list[dict], channel: str, out: Path) -> N
     from psfd import figures
 
     if not any(r["channel"] == channel for r in rows):
-        raise CatalogueError(f"no PSF of channel {channel} to report")
+        raise NoMatchError(f"no PSF of channel {channel} to report")
     arrays = {row["id"]: catalogue.psf(row["id"])[0] for row in rows}
     sensors = catalogue_sensors(catalogue, rows)
     write_file(out, lambda path: figures.save_report(rows, arrays, channel, path, sensors))

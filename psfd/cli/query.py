@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from psfd.cli import options
-from psfd.errors import BadInputError, CatalogueError
+from psfd.errors import BadInputError, NoMatchError
 from psfd.vocabulary import CHANNELS, METHODS, MONO, method_name
 
 EXPORT_FORMATS = ("npy", "tiff", "json")
@@ -68,7 +68,7 @@ def open_catalogue(args: argparse.Namespace):
     """The catalogue named by ``--catalogue`` (default: the user's), which must exist."""
     from psfd.catalogue import Catalogue, default_path
 
-    return Catalogue(args.catalogue or default_path(), create=False)
+    return Catalogue(args.catalogue or default_path(), readonly=True)
 
 
 def query_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -85,11 +85,16 @@ def query_options(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
-def run_filters(cat, options: dict[str, Any]):
-    """Run a query (`psfd.catalogue.QueryResult`); its note (nearest aperture used) goes to stderr."""
+def run_filters(cat, options: dict[str, Any], nothing: str = ""):
+    """Run a query (`psfd.catalogue.QueryResult`); its note (nearest aperture used) goes to stderr.
+
+    Raises NoMatchError (exit 1, as for every reader) when no PSF matches; ``nothing`` ends its message.
+    """
     result = cat.query(**options)
     if result.note:
         print(f"psfd: note: {result.note}", file=sys.stderr)
+    if not result.rows:
+        raise NoMatchError(f"no PSF matches the query{nothing}")
     return result
 
 
@@ -109,18 +114,20 @@ def run_query(args: argparse.Namespace) -> int:
 
     filters = query_options(args)
     with open_catalogue(args) as cat:
-        result = run_filters(cat, filters)
+        try:
+            result = run_filters(cat, filters)  # none: exit 1, as grep; --json output stays empty (zero lines)
+        except NoMatchError:
+            if args.csv:
+                output.write_csv([], sys.stdout)  # the header alone
+            raise
         rows = with_units(cat, result.rows)
         if args.csv:
-            output.write_csv(rows, sys.stdout)  # the header alone when nothing matched
-        if not rows:
-            # on stderr, so that --json output stays empty (zero JSON lines) and parseable
-            print("psfd: no PSF matches the query", file=sys.stderr)
+            output.write_csv(rows, sys.stdout)
         elif args.json:
             for row in rows:
                 array, _ = cat.psf(row["id"])
                 print(json.dumps(output.plain({**row, "psf": array})))
-        elif not args.csv:
+        else:
             print(output.format_rows(rows))
             print(output.UNITS)
     return 0
@@ -161,9 +168,7 @@ def run_export(args: argparse.Namespace) -> int:
     out = Path(args.out)
     output.check_out_dir(out, args.force)
     with open_catalogue(args) as cat:
-        result = run_filters(cat, filters)
-        if not result.rows:
-            raise CatalogueError("no PSF matches the query; nothing exported")
+        result = run_filters(cat, filters, "; nothing exported")
         rows = with_units(cat, result.rows)
 
         def write(folder: Path) -> list[str]:
@@ -203,9 +208,9 @@ def run_report(args: argparse.Namespace) -> int:
     filters = query_options(args)
     channel = filters.pop("channel")  # the report draws every channel's PSFs; --channel picks the MTF50 one
     with open_catalogue(args) as cat:
-        result = run_filters(cat, filters)
-        if not result.rows or (channel and not any(r["channel"] == channel for r in result.rows)):
-            raise CatalogueError("no PSF matches the query; nothing to report")
+        result = run_filters(cat, filters, "; nothing to report")
+        if channel and not any(r["channel"] == channel for r in result.rows):
+            raise NoMatchError(f"no PSF of channel {channel} matches the query; nothing to report")
         output.write_report(cat, result.rows, pick_channel(result.rows, channel), out)
     print(f"report written to {out}")
     return 0

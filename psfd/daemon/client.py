@@ -2,20 +2,33 @@
 
 Standard library only, so that any command can ask whether the service is up
 without loading the service itself (see `psfd.daemon.service` for the protocol).
+
+No socket file means no service: the command works without it. A socket that
+exists but refuses the caller is an error, never a reason to run locally behind
+the service's back: permission denied is reported at once; a refused connect (a
+service restarting) and a full connection queue (a burst of clients) are retried
+for `CONNECT_PATIENCE` seconds first.
 """
 
 from __future__ import annotations
 
+import errno
+import grp
 import json
 import os
 import socket
+import stat
+import time
 from pathlib import Path
 
-from psfd.errors import ServiceError
+from psfd.errors import ServiceError, by_name
+from psfd.vocabulary import REQUEST_BYTES_MAX
 
-__all__ = ["MAX_REQUEST", "default_socket_path", "request", "service_up", "submit"]
+__all__ = ["CONNECT_PATIENCE", "MAX_REQUEST", "connect", "default_socket_path", "request", "service_up", "submit"]
 
-MAX_REQUEST = 1 << 20  # a plan is a few kB; refuse anything absurd instead of buffering it
+MAX_REQUEST = REQUEST_BYTES_MAX  # a plan is a few kB; refuse anything absurd instead of buffering it
+CONNECT_PATIENCE = 5.0  # seconds a refused or busy connect is retried before it is an error
+RETRY = (errno.ECONNREFUSED, errno.EAGAIN, errno.ETIMEDOUT)
 
 
 def default_socket_path() -> Path:
@@ -29,18 +42,76 @@ def default_socket_path() -> Path:
     return Path(f"/tmp/psfd-{os.getuid()}") / "control.sock"
 
 
+def connect(path: str | os.PathLike, timeout: float | None = 10.0,
+            patience: float = CONNECT_PATIENCE) -> socket.socket | None:
+    """A socket connected to the service; None when there is no socket file (no service).
+
+    Raises
+    ------
+    ServiceError
+        The path is not a socket, the socket refuses this user, or it stayed refused or
+        busy for ``patience`` seconds.
+    """
+    path = Path(path)
+    try:
+        mode = path.stat().st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    except OSError as exc:
+        raise ServiceError(f"cannot reach the service at {path}: {exc.strerror}") from None
+    if not stat.S_ISSOCK(mode):
+        raise ServiceError(f"{path} is not a control socket (it is a file or a folder)")
+    deadline, pause = time.monotonic() + patience, 0.01
+    while True:
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
+        sock.settimeout(timeout)
+        try:
+            sock.connect(str(path))
+            return sock
+        except FileNotFoundError:  # removed meanwhile: a service that stopped
+            sock.close()
+            return None
+        except OSError as exc:
+            sock.close()
+            code = errno.ETIMEDOUT if isinstance(exc, TimeoutError) else exc.errno
+            if code not in RETRY or time.monotonic() + pause > deadline:
+                raise ServiceError(_refusal(path, code, exc, patience)) from None
+        time.sleep(pause)
+        pause = min(2 * pause, 0.25)
+
+
+def _refusal(path: Path, code: int | None, exc: OSError, patience: float) -> str:
+    """Why a socket that exists would not take this connection, and what to do about it."""
+    if code in (errno.EACCES, errno.EPERM):
+        try:
+            group = grp.getgrgid(path.stat().st_gid).gr_name
+        except (OSError, KeyError):
+            group = "its group"
+        return f"the control socket {path} refuses you: Permission denied (members of group {group} may use it)"
+    if code == errno.ECONNREFUSED:
+        return (f"the control socket {path} exists but its connection was refused for {patience:g} s: the service "
+                f"stopped or is restarting; start it, or remove {path} to work without it")
+    if code in (errno.EAGAIN, errno.ETIMEDOUT):
+        return f"the service at {path} is busy: its connection queue stayed full for {patience:g} s; try again"
+    return f"cannot reach the service at {path}: {exc.strerror or exc}"
+
+
 def request(path: str | os.PathLike, payload: dict, timeout: float | None = 10.0) -> dict:
     """Send one request to the service and return its answer.
 
     Raises
     ------
+    PsfdError
+        The service's refusal as the error type it named (a bad plan is a BadInputError here as
+        in a local run, with its exit code), ServiceError when it named none.
     ServiceError
-        The socket cannot be reached or the service refused the request.
+        No service, or the socket refused the connection (`connect`).
     """
+    sock = connect(path, timeout)
+    if sock is None:
+        raise ServiceError(f"cannot reach the service at {path}: no such socket")
     try:
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-            sock.settimeout(timeout)
-            sock.connect(str(path))
+        with sock:
             sock.sendall(json.dumps(payload).encode() + b"\n")
             with sock.makefile("rb") as reader:
                 line = reader.readline(MAX_REQUEST)
@@ -50,19 +121,20 @@ def request(path: str | os.PathLike, payload: dict, timeout: float | None = 10.0
         raise ServiceError(f"the service at {path} closed the connection without answering")
     answer = json.loads(line)
     if not answer.get("ok"):
-        raise ServiceError(answer.get("error", "request refused"))
+        raise by_name(answer.get("error_type", ""), answer.get("error", "request refused"))
     return answer
 
 
 def service_up(path: str | os.PathLike) -> bool:
-    """True when something accepts connections on the control socket."""
-    try:
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-            sock.settimeout(2.0)
-            sock.connect(str(path))
-        return True
-    except OSError:
+    """True when the service answers on the control socket, False when there is no socket.
+
+    Raises ServiceError when the socket exists but refuses (`connect`): that is never "no service".
+    """
+    sock = connect(path, timeout=2.0)
+    if sock is None:
         return False
+    sock.close()
+    return True
 
 
 def submit(path: str | os.PathLike, plan_text: str, plan_path: str, *, resume: bool = False, new: bool = False,

@@ -29,7 +29,8 @@ A plan has four tables::
 
 Rail positions are checked against ``rail_limits`` (on the simulated rig, its
 default travel when none are given), and a pair's far/near ratio against ``s``;
-``s``, ``support`` and ``grid`` against their bounds (`psfd.vocabulary.check_sizes`).
+``s``, ``support`` and ``grid`` against their bounds (`psfd.vocabulary.check_sizes`), and the
+number of steps, counted before the plan is expanded, against `psfd.vocabulary.PLAN_STEPS_MAX`.
 `check_text` returns every problem found, one sentence each, so that
 ``psfd plan check`` can list them all at once; `load_plan` raises one
 BadInputError naming the first and counting the rest.
@@ -55,9 +56,8 @@ from typing import Any
 from psfd.drivers import RAIL_DRIVERS, REAL_KEYS, SIM_KEYS
 from psfd.drivers.base import CameraSetup, RailInfo, target_distance
 from psfd.errors import BadInputError
-from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, TWO_PHOTO,
-                             check_grid,
-                             check_s, check_solver, check_support)
+from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, DEFAULT_SOLVER, PLAN_BYTES_MAX,
+                             SOLVERS, TWO_PHOTO, check_grid, check_s, check_solver, check_steps, check_support)
 
 # [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys), our
 # camera settings, applied once before the first step, and the camera's setup for PSF work
@@ -187,12 +187,19 @@ def load_plan(path: str | Path) -> Plan:
         The file cannot be read or the plan has problems (the first is named,
         ``psfd plan check`` lists them all).
     """
+    return parse_plan(read_plan_text(path), str(path))
+
+
+def read_plan_text(path: str | Path) -> str:
+    """The text of a plan file, refused (BadInputError) when unreadable or longer than `PLAN_BYTES_MAX`."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        if path.stat().st_size > PLAN_BYTES_MAX:
+            raise BadInputError(f"plan {path} is {path.stat().st_size:,} bytes, more than a plan needs "
+                                f"({PLAN_BYTES_MAX:,} at most)")
+        return path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise BadInputError(f"cannot read plan {path}: {exc}") from None
-    return parse_plan(text, str(path))
 
 
 def parse_plan(text: str, path: str = "<plan>") -> Plan:
@@ -254,6 +261,7 @@ def check_text(text: str) -> list[str]:
         if kind == BERNOULLI and scene != "bernoulli":
             problems.append('[rig] a simulated bernoulli target needs scene = "bernoulli" (the default)')
     problems += _check_capture(tables["capture"], kind, "capture" in data)
+    problems += _check_count(tables["capture"], kind)
     problems += _check_optics(tables["rig"], tables["target"], tables["capture"])
     problems += _check_limits(tables["rig"], tables["target"], tables["capture"], kind)
     problems += _check_estimator(tables["estimator"], kind)
@@ -376,6 +384,23 @@ def _check_capture(capture: dict, kind: Any, present: bool) -> list[str]:
     if not isinstance(repeats, int) or isinstance(repeats, bool) or repeats < 1:
         problems.append(f"[capture] repeats must be a positive integer, got {repeats!r}")
     return problems
+
+
+def _check_count(capture: dict, kind: Any) -> list[str]:
+    """The number of steps `Plan.steps` would make, counted before anything is expanded (`check_steps`)."""
+    def length(key: str) -> int:
+        value = capture.get(key)
+        return len(value) if isinstance(value, list) and value else 1
+
+    repeats = capture.get("repeats", 1)
+    repeats = repeats if isinstance(repeats, int) and repeats > 0 else 1
+    distances = length("x") * length("scale")  # a plan gives one of them (the other counts 1)
+    count = length("apertures") * (1 if kind == TWO_PHOTO else distances) * length("y") * length("z") * repeats
+    try:
+        check_steps(count, "[capture]")
+    except BadInputError as exc:
+        return [str(exc)]
+    return []
 
 
 def _rail_limits(rig: dict) -> Any:

@@ -21,9 +21,18 @@ lock (`store.store_busy`): a ``running`` run whose store is free was killed, and
 resumable like a paused one (`interrupted`). Starting a plan that has an
 unfinished run (`Catalogue.unfinished_run`) is refused unless the caller
 resumes it or asks for a new run, so that no position is measured twice by accident.
+A run is closed whenever it has no step left: a resumed run with nothing to do, and
+at the start of every run, any run killed between its last commit and its close
+(`Catalogue.close_finished_runs`), a `psfd capture` included.
 
-`run_plan` is the one way to run a plan: open the catalogue and the plan's rig,
-run, and fetch the stored rows; the command line and the service both call it.
+A frame or a commit the storage refuses (disk full, read-only file system) is a
+`StorageError`: the step is not committed, the run pauses (or, when even that
+cannot be written, is left interrupted) and ``--resume`` continues once there is room.
+
+`run_plan` is the one way to run a plan: check what would refuse it before
+anything is created (`preflight`), take the frame store, open the catalogue and
+the plan's rig, run, and fetch the stored rows; the command line and the service
+both call it.
 """
 
 from __future__ import annotations
@@ -43,18 +52,23 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Any, Callable
 
-from psfd.catalogue import Catalogue, FrameRecord
+from psfd.catalogue import UNFINISHED_STATES, Catalogue, FrameRecord, check_owner
 from psfd.daemon import work
 from psfd.daemon.plan import Plan, Step
-from psfd.daemon.store import INCOMING, shown_state, store_frame, store_lock, sweep_frames
+from psfd.daemon.store import (INCOMING, check_room, shown_state, storage_error, store_frame, store_lock,
+                               sweep_frames)
 from psfd.drivers import open_rig
 from psfd.drivers.base import Camera, CameraReady, CameraSetup, Rail, settle
-from psfd.errors import BadInputError, CameraError, EstimationError, HardwareError, PsfdError
+from psfd.errors import BadInputError, CameraError, EstimationError, HardwareError, PsfdError, StorageError
 from psfd.estimator.raw import RAW_SUFFIXES
 from psfd.exif import check_settings, read_metadata
-from psfd.vocabulary import camera_fnumber
+from psfd.vocabulary import BACKLOG_MAX, WORKERS_MAX, camera_fnumber, check_count
 
-__all__ = ["Control", "RunResult", "Runner", "default_workers", "release_rig", "run_plan", "start_check"]
+# Below this much free space, a failed download is put down to the storage: no RAW file is smaller.
+FRAME_BYTES_MIN = 1 << 20
+
+__all__ = ["Control", "RunResult", "Runner", "default_workers", "preflight", "release_rig", "run_plan", "start_check",
+           "unfinished_runs"]
 
 log = logging.getLogger(__name__)
 
@@ -224,12 +238,13 @@ class Runner:
     ) -> None:
         self.catalogue = catalogue
         self.frames_dir = Path(frames_dir)
-        self.workers = workers or default_workers()
+        self.workers = default_workers() if workers is None else check_count(workers, "workers", WORKERS_MAX)
         self.control = control or Control()
         self.progress_stream = progress
         self.on_step = on_step or (lambda key, state, reason: None)
         self.estimate = estimate
-        self.backlog = backlog or 4 * self.workers
+        self.backlog = 4 * self.workers if backlog is None else check_count(backlog, "backlog", BACKLOG_MAX)
+        self._frame_bytes = 0  # the largest frame this run stored: the room the store needs for the next
         self.ready: CameraReady | None = None  # what `Camera.prepare` did for the current run
 
     # -- public -------------------------------------------------------------------------------
@@ -279,8 +294,11 @@ class Runner:
 
     def _open_run(self, plan: Plan, camera: Camera, resume: bool, new: bool) -> int:
         sweep_frames(self.frames_dir, self.catalogue.frame_hashes())
-        # we hold the store lock, so a run journalled "running" here was killed: it is interrupted
+        # we hold the store lock, so a run journalled "running" here was killed: it is interrupted,
+        # and done if it was killed between its last commit and its close (the one resumed here too:
+        # it is reopened below and closed by _execute, so that its resume reports it done)
         unfinished = start_check(self.catalogue, plan, resume, new)
+        self.catalogue.close_finished_runs()
         if unfinished is not None:
             self.catalogue.finish_run(unfinished, "running")
             return unfinished
@@ -292,7 +310,8 @@ class Runner:
         result = RunResult(run_id, "done")
         started = time.monotonic()
         todo = self.catalogue.steps(run_id, ("pending", "running", "failed"))
-        if not todo:
+        if not todo:  # killed after its last commit: only the close was missing
+            self.catalogue.finish_run(run_id, "done")
             return RunResult(run_id, "done", reason="every step was already done")
         total = len(self.catalogue.steps(run_id))
         log.info("run %d of %s: %d of %d steps to do, %d worker(s)", run_id, plan.path, len(todo), total,
@@ -323,13 +342,12 @@ class Runner:
                     if self.control.requested:
                         break
                     step = Step.from_payload(row["payload"])
-                    self._set_state(run_id, step.key, "running")
                     t0 = time.monotonic()
                     try:
+                        self._set_state(run_id, step.key, "running")
                         records = self._capture(plan, step, camera, rail)
                     except (PsfdError, OSError) as exc:  # camera gone, rail alarm, disk full
-                        error = exc if isinstance(exc, PsfdError) else HardwareError(f"storing the frame: {exc}")
-                        self._fail(result, run_id, step.key, error)
+                        self._fail(result, run_id, step.key, _step_error(exc))
                         break
                     result.capture_s += time.monotonic() - t0
                     paths = [r.path for r in records]
@@ -349,12 +367,18 @@ class Runner:
                     self._commit_first(run_id, focal, inflight, result, bar)
         bar.close()
         result.elapsed_s = time.monotonic() - started
-        requested = self.control.requested
+        # a stop that came after the last commit has nothing left to pause or cancel: the run is done
+        finished = result.error is None and not self.catalogue.steps(run_id, ("pending", "running", "failed"))
+        requested = None if finished else self.control.requested
         if requested == "cancel" or (requested and result.error is None):
             result.state, result.reason = ("cancelled" if requested == "cancel" else "paused"), f"{requested} requested"
         elif result.error is not None:
             result.state = "paused"
-        self.catalogue.finish_run(run_id, result.state)
+        try:
+            self.catalogue.finish_run(run_id, result.state)
+        except StorageError as exc:  # the journal keeps "running": the run shows as interrupted, resumable
+            if result.error is None:
+                result.state, result.error, result.reason = "paused", exc, f"closing the run: {exc}"
         return result
 
     def _set_state(self, run_id: int, key: str, state: str, reason: str | None = None) -> None:
@@ -363,9 +387,12 @@ class Runner:
 
     def _fail(self, result: RunResult, run_id: int, key: str, exc: PsfdError) -> None:
         log.warning("run %d step %s failed: %s", run_id, key, exc)
-        self._set_state(run_id, key, "failed", str(exc))
         if result.error is None:
             result.error, result.reason = exc, f"step {key}: {exc}"
+        try:
+            self._set_state(run_id, key, "failed", str(exc))
+        except StorageError:  # a full disk refuses this too: the step stays "running", redone on resume
+            pass
 
     @staticmethod
     def _apply_settings(camera: Camera, settings: dict) -> None:
@@ -394,13 +421,25 @@ class Runner:
         return records
 
     def _expose(self, camera: Camera) -> tuple[Path, str]:
-        """One exposure downloaded into a temporary folder of the store, its RAW file stored by hash."""
+        """One exposure downloaded into a temporary folder of the store, its RAW file stored by hash.
+
+        The store must have room for a frame as large as the largest of this run before the camera
+        writes (`check_room`); a download that fails on a file system that is full or read-only
+        afterwards is the storage's failure, whatever error the camera driver made of it.
+        """
+        check_room(self.frames_dir, self._frame_bytes)
         incoming = Path(tempfile.mkdtemp(prefix=INCOMING, dir=self.frames_dir))
         try:
-            files = [p for p in camera.capture(incoming) if p.suffix.lower() in RAW_SUFFIXES]
-            if not files:
-                raise CameraError("the camera produced no RAW file: set imageformat to RAW")
-            return store_frame(files[0], self.frames_dir)
+            try:
+                files = [p for p in camera.capture(incoming) if p.suffix.lower() in RAW_SUFFIXES]
+                if not files:
+                    raise CameraError("the camera produced no RAW file: set imageformat to RAW")
+                path, sha = store_frame(files[0], self.frames_dir)
+            except (PsfdError, OSError):
+                check_room(self.frames_dir, max(self._frame_bytes, FRAME_BYTES_MIN))
+                raise
+            self._frame_bytes = max(self._frame_bytes, path.stat().st_size)
+            return path, sha
         finally:
             shutil.rmtree(incoming, ignore_errors=True)
 
@@ -435,13 +474,26 @@ class Runner:
             "focus_distance_m": exif.get("focus_distance_m"),  # what the lens reports, else unknown
             "frame_indices": list(range(len(records))),
         }
-        ids = self.catalogue.commit_step(run_id, step.key, records, [(psf, dict(meta)) for psf in estimates])
+        try:
+            ids = self.catalogue.commit_step(run_id, step.key, records, [(psf, dict(meta)) for psf in estimates])
+        except StorageError as exc:  # rolled back whole: the step is redone on resume, its frames are not kept
+            self._fail(result, run_id, step.key, exc)
+            self._discard(records)
+            bar.show(step.key, f"failed: {exc}")
+            return
         self.on_step(step.key, "done", None)
         result.steps_done += 1
         result.frames += len(records)
         result.psfs += len(ids)
         result.psf_ids += list(ids)
         bar.step(step.key)
+
+
+def _step_error(exc: PsfdError | OSError) -> PsfdError:
+    """A step's failure as a typed error: an OSError is storage (disk full, read-only) or, else, the rig's."""
+    if isinstance(exc, PsfdError):
+        return exc
+    return storage_error(exc, "storing the frame") or HardwareError(f"storing the frame: {exc}")
 
 
 def prepare_camera(camera: Camera, plan: Plan) -> CameraReady:
@@ -491,6 +543,49 @@ def start_check(catalogue: Catalogue, plan: Plan, resume: bool, new: bool,
     return None
 
 
+def preflight(plan: Plan, catalogue_path: str | os.PathLike, frames_dir: str | os.PathLike, resume: bool,
+              new: bool) -> None:
+    """Refuse what the run would refuse, reading only, before anything is created or changed.
+
+    The catalogue (when it exists) is opened read-only: one this psfd cannot use (a newer
+    schema, not a catalogue) is refused untouched, and so is a plan `start_check` refuses;
+    a catalogue or frame store of another user is refused (`check_owner`), and so is a
+    path where a file stands in place of a folder; ``resume`` without a catalogue has
+    nothing to resume.
+    """
+    catalogue_path, frames_dir = Path(catalogue_path), Path(frames_dir)
+    _check_folder(catalogue_path.parent, "the catalogue's folder")
+    _check_folder(frames_dir, "the frame store")
+    if catalogue_path.exists():
+        with Catalogue(catalogue_path, readonly=True) as catalogue:
+            check_owner(catalogue_path, "the catalogue")
+            start_check(catalogue, plan, resume, new, frames_dir)
+    elif resume:
+        raise BadInputError(f"no unfinished run of plan {plan.path} to resume (no catalogue at {catalogue_path})")
+    check_owner(frames_dir, "the frame store")
+
+
+def _check_folder(folder: Path, what: str) -> None:
+    """Refuse a folder that cannot exist because a file stands where it, or one of its parents, should be."""
+    for part in (folder, *folder.parents):
+        if part.exists():
+            if not part.is_dir():
+                raise BadInputError(f"cannot use {folder} as {what}: {part} is a file, not a folder")
+            return
+
+
+def unfinished_runs(catalogue_path: str | os.PathLike, frames_dir: str | os.PathLike) -> list[dict]:
+    """The catalogue's runs that are not closed, newest first, as `Catalogue.run_summary` with their state
+    as a user reads it (`shown_state`: ``running``, ``paused`` or ``interrupted``); none without a catalogue."""
+    if not Path(catalogue_path).exists():
+        return []
+    with Catalogue(catalogue_path, readonly=True) as catalogue:
+        runs = [catalogue.run_summary(r["id"]) for r in catalogue.runs() if r["state"] in UNFINISHED_STATES]
+    for run in runs:
+        run["state"] = shown_state(run["state"], frames_dir)
+    return runs
+
+
 def run_plan(
     plan: Plan,
     catalogue_path: str | os.PathLike,
@@ -504,13 +599,15 @@ def run_plan(
 ) -> RunResult:
     """Run a plan on the rig its ``[rig]`` table names, into a catalogue and a frame store.
 
-    The one way to run a plan: open the catalogue (created when missing), open the
-    rig, `Runner.run` (``resume``, ``new`` and ``oneshot`` as there), and with
-    ``rows`` put the stored PSF rows (metadata, no arrays) into the result.
-    ``runner_options`` go to `Runner` (``workers``, ``backlog``, ``control``,
-    ``progress``, ``on_step``).
+    The one way to run a plan: `preflight`, then take the frame store (a path that
+    cannot be one is refused before a catalogue is created), open the catalogue
+    (created when missing) and the rig, `Runner.run` (``resume``, ``new`` and
+    ``oneshot`` as there), and with ``rows`` put the stored PSF rows (metadata,
+    no arrays) into the result. ``runner_options`` go to `Runner` (``workers``,
+    ``backlog``, ``control``, ``progress``, ``on_step``).
     """
-    with Catalogue(catalogue_path) as catalogue:
+    preflight(plan, catalogue_path, frames_dir, resume, new)
+    with store_lock(Path(frames_dir)), Catalogue(catalogue_path) as catalogue:
         camera, rail = open_rig(plan.rig_config())
         result = Runner(catalogue, frames_dir, **runner_options).run(plan, camera, rail, resume=resume, new=new,
                                                                      oneshot=oneshot)

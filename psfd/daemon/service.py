@@ -17,8 +17,16 @@ this module). ``resume`` and ``new`` mean what they mean to `Runner.run`; a subm
 catalogue refuses (nothing to resume, or an unfinished run without ``new``)
 is answered with the error at once instead of queued.
 
-Answers carry ``"ok": true`` or ``"ok": false`` with ``"error"`` (and
-``"problems"`` for a bad plan). A bad request never stops the service.
+Answers carry ``"ok": true`` or ``"ok": false`` with ``"error"``, ``"error_type"`` and
+``"exit_code"`` (the `psfd.errors` type, so the client raises the same error and the
+command exits with the same code as a local run) and ``"problems"`` for a bad plan. A
+bad request never stops the service, and every request gets an answer: lines longer
+than `REQUEST_BYTES_MAX` or nested deeper than `REQUEST_DEPTH_MAX` are refused before
+they are parsed. The listen queue is the system's largest (SOMAXCONN), and the client
+retries a full one briefly, so a burst of clients all get answers.
+
+The service's socket folder must belong to the service's user and not be writable by
+everyone: anyone who can write the folder could put their own socket in its place.
 
 systemd: READY=1, STATUS=... and WATCHDOG=1 datagrams go to $NOTIFY_SOCKET
 through the standard library's socket module (the protocol is one datagram of
@@ -32,6 +40,7 @@ import json
 import logging
 import os
 import queue
+import re
 import signal
 import socket
 import threading
@@ -40,10 +49,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from psfd.daemon.client import MAX_REQUEST, service_up
+from psfd.daemon.client import MAX_REQUEST
 from psfd.daemon.plan import Plan, check_text, parse_plan
-from psfd.daemon.runner import Control, run_plan, start_check
-from psfd.errors import BadInputError, PsfdError, ServiceError
+from psfd.daemon.runner import Control, preflight, run_plan, unfinished_runs
+from psfd.errors import BadInputError, PsfdError, ServiceError, path_reason, user_name
+from psfd.vocabulary import REQUEST_DEPTH_MAX
 
 SOCKET_MODE = 0o660
 log = logging.getLogger(__name__)
@@ -121,6 +131,12 @@ class Service:
     def serve(self) -> int:
         """Listen until SIGTERM/SIGINT; returns the exit status."""
         listener = self._listen()
+        try:
+            self._open_catalogue()
+        except BaseException:
+            listener.close()
+            self.socket_path.unlink(missing_ok=True)
+            raise
         signal.signal(signal.SIGTERM, self._on_signal)
         signal.signal(signal.SIGINT, self._on_signal)
         runner = threading.Thread(target=self._run_jobs, name="runner")
@@ -156,11 +172,23 @@ class Service:
             log.info("psfd service stopped")
         return 0
 
+    def _open_catalogue(self) -> None:
+        """Create or migrate the catalogue now, as the service's user: readers then find it at the current
+        schema, with the files SQLite needs to read it without write access (`psfd.catalogue`)."""
+        from psfd.catalogue import Catalogue
+
+        Catalogue(self.catalogue_path).close()
+
     def _listen(self) -> socket.socket:
         path = self.socket_path
-        path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
+        except OSError as exc:
+            reason = path_reason(path.parent, exc)
+            raise ServiceError(f"cannot create the socket folder {path.parent}: {reason}") from None
+        _check_socket_folder(path.parent)
         if path.exists() or path.is_symlink():
-            if service_up(path):
+            if _answers(path):
                 raise ServiceError(f"a service is already listening on {path}")
             path.unlink()  # stale socket of a service that died
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
@@ -173,7 +201,7 @@ class Service:
         finally:
             os.umask(old)
         os.chmod(path, SOCKET_MODE)
-        sock.listen(16)
+        sock.listen(socket.SOMAXCONN)  # a burst of clients waits in the queue (the client retries a full one)
         return sock
 
     def _on_signal(self, signum: int, frame: Any) -> None:
@@ -249,37 +277,38 @@ class Service:
 
     def handle_line(self, line: bytes) -> dict:
         """Answer one request line; never raises (a bad request gets ``ok: false``)."""
+        try:
+            return self._answer(line)
+        except Exception as exc:  # noqa: BLE001 - a bug must not drop the client without an answer
+            log.exception("request failed: %s: %s", type(exc).__name__, exc)
+            return {"ok": False, "error": f"internal error ({type(exc).__name__}: {exc})", "error_type": "ServiceError",
+                    "exit_code": ServiceError.exit_code}
+
+    def _answer(self, line: bytes) -> dict:
         if len(line) > MAX_REQUEST:
-            return {"ok": False, "error": f"request longer than {MAX_REQUEST} bytes"}
+            return _refused(BadInputError(f"request longer than {MAX_REQUEST} bytes"))
+        if nesting(line) > REQUEST_DEPTH_MAX:  # json.loads recurses once per level
+            return _refused(BadInputError(f"request nested deeper than {REQUEST_DEPTH_MAX} levels"))
         try:
             req = json.loads(line)
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            return {"ok": False, "error": f"request is not JSON: {exc}"}
+            return _refused(BadInputError(f"request is not JSON: {exc}"))
         if not isinstance(req, dict) or not isinstance(req.get("cmd"), str):
-            return {"ok": False, "error": 'request must be a JSON object with "cmd"'}
+            return _refused(BadInputError('request must be a JSON object with "cmd"'))
         handler = getattr(self, f"_cmd_{req['cmd']}", None)
         if handler is None:
-            return {"ok": False, "error": f"unknown command {req['cmd']!r} "
-                                          "(expected submit, status, pause, resume, cancel)"}
+            return _refused(BadInputError(f"unknown command {req['cmd']!r} "
+                                          "(expected submit, status, pause, resume, cancel)"))
         try:
             return {"ok": True, **handler(req)}
         except PsfdError as exc:
             log.warning("%s refused: %s", req["cmd"], exc)
-            out = {"ok": False, "error": str(exc)}
-            if getattr(exc, "problems", None):
-                out["problems"] = exc.problems
-            return out
+            return _refused(exc)
 
     def _enqueue(self, plan: Plan, resume: bool, wait: bool, new: bool = False, oneshot: bool = False) -> dict:
         if self.stopping.is_set():
             raise ServiceError("the service is stopping")
-        if self.catalogue_path.is_file():  # refuse now what the runner would refuse later
-            from psfd.catalogue import Catalogue
-
-            with Catalogue(self.catalogue_path, create=False) as catalogue:
-                start_check(catalogue, plan, resume, new, self.frames_dir)
-        elif resume:
-            raise BadInputError(f"no unfinished run of plan {plan.path} to resume")
+        preflight(plan, self.catalogue_path, self.frames_dir, resume, new)  # refuse now what the runner would later
         job = Job(plan, resume, wait, new=new, oneshot=oneshot)
         with self.lock:
             self.queued += 1
@@ -308,9 +337,13 @@ class Service:
     def _cmd_status(self, req: dict) -> dict:
         with self.lock:
             state = "running" if self.current else ("paused" if self.paused else "idle")
-            return {"state": state, "current": self.current, "last": self.last, "queued": self.queued,
-                    "paused_plan": self.paused.path if self.paused else None,
-                    "catalogue": str(self.catalogue_path)}
+            answer = {"state": state, "current": self.current, "last": self.last, "queued": self.queued,
+                      "paused_plan": self.paused.path if self.paused else None,
+                      "catalogue": str(self.catalogue_path)}
+        # the catalogue's paused and interrupted runs (not the one running now): what --resume continues
+        answer["unfinished"] = [r for r in unfinished_runs(self.catalogue_path, self.frames_dir)
+                                if r["state"] != "running"]
+        return answer
 
     def _cmd_pause(self, req: dict) -> dict:
         if self.current is None:
@@ -333,3 +366,54 @@ class Service:
             raise ServiceError("no paused run to resume")
         log.info("resume asked on the control socket: %s", self.paused.path)
         return self._enqueue(self.paused, True, bool(req.get("wait")))
+
+
+def _refused(exc: PsfdError) -> dict:
+    """The answer to a refused request: the message, and the error's type and exit code for the client."""
+    out = {"ok": False, "error": str(exc), "error_type": type(exc).__name__, "exit_code": exc.exit_code}
+    if getattr(exc, "problems", None):
+        out["problems"] = exc.problems
+    return out
+
+
+_JSON_STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"')
+
+
+def nesting(line: bytes) -> int:
+    """How deep the arrays and objects of a JSON text nest (brackets inside strings are text).
+
+    Counted without parsing, so that a hostile line is refused before `json.loads`
+    recurses into it; the count stops one level past `REQUEST_DEPTH_MAX`.
+    """
+    depth = deepest = 0
+    for byte in _JSON_STRING.sub(b"", line):
+        if byte in b"[{":
+            depth += 1
+            deepest = max(deepest, depth)
+            if deepest > REQUEST_DEPTH_MAX:
+                break
+        elif byte in b"]}":
+            depth -= 1
+    return deepest
+
+
+def _answers(path: Path) -> bool:
+    """True when something accepts connections on ``path`` (one try: a refused one is a stale socket)."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(2.0)
+        try:
+            sock.connect(str(path))
+        except OSError:
+            return False
+    return True
+
+
+def _check_socket_folder(folder: Path) -> None:
+    """Refuse a socket folder that another user owns or everyone may write: either could swap the socket."""
+    info = folder.stat()
+    if info.st_uid != os.geteuid():
+        raise ServiceError(f"the socket folder {folder} belongs to {user_name(info.st_uid)}, not to "
+                           f"{user_name(os.geteuid())}: its owner could replace the socket; use a folder of your own")
+    if info.st_mode & 0o002:
+        raise ServiceError(f"the socket folder {folder} is writable by everyone: anyone could replace the socket "
+                           "(chmod o-w, or use another folder)")

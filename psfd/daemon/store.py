@@ -7,22 +7,31 @@ holds the store (`store_lock`, an flock a killed process never leaves
 behind), so a run journalled ``running`` whose store nobody holds was killed
 (`shown_state`: ``interrupted``). `sweep_frames` removes what a crash left:
 temporary folders and frames the catalogue does not know.
+
+Only the store's owner writes to it: another user's files and folders in it (a root
+``psfd capture`` in the service's store) would be ones the service cannot use.
+A write the file system refuses for lack of room (disk full, quota, read-only)
+is a `StorageError`: the run pauses and resumes once there is room.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import hashlib
 import os
 import re
 import shutil
+import threading
 from pathlib import Path
 from typing import Iterator
 
-from psfd.errors import BadInputError, ServiceError
+from psfd.catalogue import check_owner
+from psfd.errors import STORAGE_ERRNOS, BadInputError, ServiceError, StorageError, path_reason
 
-__all__ = ["INCOMING", "frames_dir_for", "shown_state", "store_busy", "store_frame", "store_lock", "sweep_frames"]
+__all__ = ["INCOMING", "check_room", "frames_dir_for", "shown_state", "storage_error", "store_busy", "store_frame",
+           "store_lock", "sweep_frames"]
 
 FRAME_NAME = re.compile(r"^[0-9a-f]{64}\.[A-Za-z0-9]+$")
 INCOMING = ".incoming-"  # prefix of the temporary folders a capture downloads into
@@ -66,26 +75,78 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+def check_room(frames_dir: Path, needed: int) -> None:
+    """Refuse (StorageError) to store a frame where the file system is read-only or has fewer than ``needed``
+    bytes free: said before the camera writes, or after a write failed for that reason whatever error the
+    driver made of it (libgphoto2 reports a full disk as its own I/O error, numpy as a short write)."""
+    try:
+        fs = os.statvfs(frames_dir)
+    except OSError:
+        return  # the write itself will say what is wrong
+    if fs.f_flag & os.ST_RDONLY:
+        raise StorageError(f"cannot store frames in {frames_dir}: {os.strerror(errno.EROFS)}")
+    free = fs.f_bavail * fs.f_frsize
+    if free < needed:
+        raise StorageError(f"cannot store a frame in {frames_dir}: {os.strerror(errno.ENOSPC)} ({free / 1e6:.1f} MB "
+                           f"free, a frame takes {needed / 1e6:.1f} MB)")
+
+
+def storage_error(exc: OSError, what: str) -> StorageError | None:
+    """The StorageError of a write the file system refused for lack of room (disk full, read-only, quota),
+    naming ``what`` was being written; None for another failure."""
+    if exc.errno not in STORAGE_ERRNOS:
+        return None
+    where = f" ({exc.filename})" if exc.filename else ""
+    return StorageError(f"{what}: {exc.strerror}{where}")
+
+
+_held: dict[Path, int] = {}  # stores this process holds, and how many times (store_lock is re-entrant)
+_held_lock = threading.Lock()
+
+
 @contextlib.contextmanager
 def store_lock(frames_dir: Path) -> Iterator[None]:
     """Hold the frame store for one run at a time.
 
     Another run's sweep would take this run's stored-but-not-yet-committed
-    frames for orphans. The lock is an flock, so a killed run never leaves it behind.
+    frames for orphans. The lock is an flock, so a killed run never leaves it
+    behind. Re-entrant within a process: `run_plan` takes the store before it
+    creates a catalogue, and the runner takes it again.
     """
+    key = Path(os.path.abspath(frames_dir))
+    with _held_lock:
+        if key in _held:
+            _held[key] += 1
+            held = True
+        else:
+            held = False
+    if held:
+        try:
+            yield
+        finally:
+            with _held_lock:
+                _held[key] -= 1
+        return
+    check_owner(frames_dir, "the frame store")
     try:
         frames_dir.mkdir(parents=True, exist_ok=True)
         fh = open(frames_dir / ".lock", "a")
     except OSError as exc:
-        raise BadInputError(f"cannot use {frames_dir} as the frame store: {exc.strerror or exc}") from None
+        error = storage_error(exc, f"cannot use {frames_dir} as the frame store")
+        raise error or BadInputError(f"cannot use {frames_dir} as the frame store: "
+                                     f"{path_reason(frames_dir, exc)}") from None
     with fh:
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             raise ServiceError(f"the frame store {frames_dir} is in use by another run") from None
+        with _held_lock:
+            _held[key] = 1
         try:
             yield
         finally:
+            with _held_lock:
+                del _held[key]
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 

@@ -46,6 +46,9 @@ __all__ = [
 
 Map = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 SCALE_RANGE = (0.7, 2.0)  # s/t range of near-optimal conditioning, IJCV 2012 sec. 3.3, Fig. 4b
+# Half the target is white (noise cells, white squares, margin): a frame more than half clipped has
+# lost them, whether or not the marks can still be found, and detection on it fails for that reason.
+OVEREXPOSED = 0.5
 
 
 # --------------------------------------------------------------------------- u~_D
@@ -951,6 +954,10 @@ def _detections(frames: list[Frame]):
     for i in order:
         frame = frames[i]
         image = np.asarray(frame.data)
+        clipped = float(np.mean(frame.saturated)) if frame.saturated.size else 0.0
+        if clipped > OVEREXPOSED:  # the cause, named before the detection it defeats fails
+            raise SaturatedError(f"{frame.source} ({frame.channel}): {clipped:.0%} of the frame is saturated; "
+                                 "lower the exposure")
         try:
             if frame.from_mosaic and frame.source in found:
                 first, detection = found[frame.source]
@@ -1129,9 +1136,8 @@ def _corrected(
     on_target = (X >= 0) & (X < target.SIZE) & (Y >= 0) & (Y < target.SIZE)
     clipped = int(np.count_nonzero(frame.saturated[y0:y1, x0:x1] & on_target))
     if clipped:
-        raise SaturatedError(
-            f"{frame.source}: {clipped} saturated pixels on the target in channel {frame.channel}; lower the exposure"
-        )
+        # estimate_target's message names the frame and the channel
+        raise SaturatedError(f"{clipped} saturated pixels on the target; lower the exposure")
     # illumination: v' = (v - B) / (W - B), quadratic B and W from the flat squares (IJCV 2012 sec. 4)
     black, white = radiometry.illumination(image, to_image)
     v = radiometry.normalise(image[y0:y1, x0:x1], black, white, xx, yy)

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
+import struct
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -21,9 +23,10 @@ import cv2
 import numpy as np
 
 from psfd.errors import BadInputError
-from psfd.vocabulary import CHANNELS, MONO
+from psfd.vocabulary import CHANNELS, MONO, check_image_size
 
-__all__ = ["CHANNELS", "MONO", "RAW_SUFFIXES", "Frame", "load_frame", "load_frames", "write_dng"]
+__all__ = ["CHANNELS", "MONO", "RAW_SUFFIXES", "Frame", "check_image", "image_size", "load_frame", "load_frames",
+           "read_image", "write_dng"]
 
 RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".orf", ".rw2", ".raf", ".pef", ".srw", ".raw"}
 IMAGE_SUFFIXES = {".pgm", ".pnm", ".png", ".tif", ".tiff"}
@@ -135,7 +138,10 @@ def _load_raw(path: Path, wanted: str | None = None) -> dict[str, Frame]:
     import rawpy  # imported here: LibRaw is only needed for RAW input
 
     try:
-        with _quiet_stderr(), rawpy.imread(str(path)) as raw:
+        with _quiet_stderr(), rawpy.RawPy() as raw:
+            raw.open_file(str(path))  # reads the header only: the size is checked before the data is unpacked
+            check_image_size(raw.sizes.raw_width, raw.sizes.raw_height, str(path))
+            raw.unpack()
             # the photosites as decoded (uint16): each plane is converted on its own, and only the
             # 2 x 2 colour pattern is read (raw_colors_visible would build a second full-size array)
             mosaic = raw.raw_image_visible.copy()
@@ -191,8 +197,52 @@ def _libraw_reason(exc: Exception) -> str:
     return "LibRaw could not decode it"
 
 
+def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """(width, height) an image file's header announces, read without decoding it.
+
+    PNG (the IHDR chunk), PNM/PGM (the text header) and TIFF (its first IFD, through
+    tifffile); None for another format or a header that does not parse, which the
+    decoder then judges (OpenCV applies OPENCV_IO_MAX_IMAGE_PIXELS, set by the command line).
+    """
+    with open(path, "rb") as fh:
+        head = fh.read(512)
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":  # PNG spec, sec. 11.2.2
+        return struct.unpack(">II", head[16:24])
+    if re.match(rb"P[1-6]\s", head):  # Netpbm: magic, width, height (and maxval), comments start with #
+        fields = re.sub(rb"#[^\n]*", b" ", head).split()
+        if len(fields) >= 3 and fields[1].isdigit() and fields[2].isdigit():
+            return int(fields[1]), int(fields[2])
+        return None
+    if head[:4] in (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"):
+        import tifffile
+
+        try:
+            with tifffile.TiffFile(path) as tif:
+                page = tif.pages[0]
+                return int(page.imagewidth), int(page.imagelength)
+        except Exception:  # noqa: BLE001 - a TIFF tifffile cannot parse: the decoder says why
+            return None
+    return None
+
+
+def check_image(path: str | os.PathLike) -> None:
+    """Refuse an image whose header announces more pixels than psfd reads (`vocabulary.MAX_PIXELS`)."""
+    size = image_size(path)
+    if size is not None:
+        check_image_size(size[0], size[1], str(path))
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray | None:
+    """``cv2.imread(path, IMREAD_UNCHANGED)`` after `check_image`; None when OpenCV cannot decode it."""
+    check_image(path)
+    try:
+        return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error:  # OpenCV's own size limit on a header `image_size` does not parse
+        raise BadInputError(f"{path}: the image is larger than psfd reads") from None
+
+
 def _load_single_channel(path: Path) -> Frame:
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    image = read_image(path)
     if image is None:
         raise BadInputError(f"{path}: not a readable image")
     if image.ndim != 2:

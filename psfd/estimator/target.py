@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from psfd.errors import BadInputError
+from psfd.estimator.raw import read_image
 
 __all__ = [
     "BLACK_BLOCKS", "BLOCK", "BLOCKS", "NOISE", "NOISE_START", "NOISE_STOP", "ORIENTATION_CORNER", "SIZE",
@@ -60,7 +61,7 @@ def load_noise(path: str | os.PathLike) -> np.ndarray:
     """Read a 256 x 256 noise realisation from an image (dark = 0, light = 1)."""
     if not Path(path).is_file():  # otherwise imread's None reads as a bad image
         raise BadInputError(f"{path}: no such file")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    image = read_image(path)  # its header's size checked before it is decoded
     if image is None or image.ndim != 2:
         raise BadInputError(f"{path}: not a single-channel noise pattern image")
     if image.shape != (NOISE, NOISE):

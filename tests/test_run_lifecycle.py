@@ -1,0 +1,342 @@
+"""A run's life cycle under failure: lost closes, refusals that write nothing, a full or read-only disk, kills.
+
+Each test reproduces a way a lab loses or duplicates work, or is left stuck: a run killed after its
+last commit, a refused command that still creates files, a disk that fills up or turns read-only
+mid-run, and SIGKILL in every phase of a run.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import os
+import random
+import shutil
+import signal
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from psfd.catalogue import SCHEMA_VERSION, Catalogue
+from psfd.cli import main
+from psfd.daemon.plan import parse_plan
+from psfd.daemon.runner import Control, Runner
+from psfd.daemon.store import frames_dir_for
+from psfd.drivers import open_rig
+from psfd.errors import StorageError
+
+from test_runner import check_complete, small_plan
+
+HERE = Path(__file__).resolve().parent
+ONE_STEP = small_plan().replace("apertures = [4, 11]", "apertures = [4]").split("y = [")[0] + 'channels = ["g1"]\n'
+TWO_STEPS = small_plan().split("y = [")[0] + 'channels = ["g1"]\n'
+
+
+def write_plan(folder: Path, text: str) -> Path:
+    path = folder / "plan.toml"
+    path.write_text(text)
+    return path
+
+
+def cli(capsys, *argv) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def states(db: Path) -> list[str]:
+    with Catalogue(db, readonly=True) as cat:
+        return [r["state"] for r in cat.runs()]
+
+
+# -- 1. a run whose close was lost ---------------------------------------------------------------------
+
+
+def test_resume_closes_a_run_killed_after_its_last_commit(tmp_path, capsys):
+    """Every step committed, then the process died before the run was closed: the journal says running."""
+    plan = write_plan(tmp_path, ONE_STEP)
+    db, sock = tmp_path / "cat.sqlite", tmp_path / "none.sock"
+    common = ["--catalogue", db, "--socket", sock, "--workers", "1"]
+    assert cli(capsys, "run", plan, *common)[0] == 0
+    with Catalogue(db) as cat:
+        cat.finish_run(1, "running")  # what a kill between the last commit and the close leaves
+    code, out, err = cli(capsys, "status", "--catalogue", db, "--socket", sock)
+    assert " interrupted " in out
+    code, out, err = cli(capsys, "run", plan, "--resume", *common)
+    assert code == 0 and "run 1 done" in out, err
+    assert states(db) == ["done"]
+    code, out, err = cli(capsys, "status", "--catalogue", db, "--socket", sock)
+    assert " done " in out and "interrupted" not in out
+    # the plan is done, so a plain run starts afresh (a new run, as after any finished run)
+    code, out, err = cli(capsys, "run", plan, *common)
+    assert code == 0 and "run 2 done" in out, err
+    assert states(db) == ["done", "done"]
+
+
+def test_a_killed_capture_is_not_left_interrupted(tmp_path, capsys):
+    """`psfd capture` cannot be resumed by hand: a close it lost is recovered by the next command that runs."""
+    db, sock = tmp_path / "cat.sqlite", tmp_path / "none.sock"
+    common = ["--catalogue", db, "--socket", sock, "--workers", "1"]
+    assert cli(capsys, "capture", "--aperture", "4", "--simulate", "--channels", "g1", *common)[0] == 0
+    with Catalogue(db) as cat:
+        cat.finish_run(1, "running")  # killed after its commit
+    assert cli(capsys, "capture", "--aperture", "8", "--simulate", "--channels", "g1", *common)[0] == 0
+    assert states(db) == ["done", "done"]
+    code, out, err = cli(capsys, "status", "--catalogue", db, "--socket", sock)
+    assert "interrupted" not in out
+
+
+@pytest.mark.parametrize("request_", ["pause", "cancel"])
+def test_a_stop_that_comes_after_the_last_commit_leaves_the_run_done(tmp_path, request_):
+    """Ctrl-C or `systemctl stop` once every step is committed: nothing is left to resume, so the run is done
+    (not paused, which a plain `psfd run` would then refuse and only --new would get past)."""
+    plan = parse_plan(TWO_STEPS, "two.toml")
+    keys = [s.key for s in plan.steps()]
+    control = Control()
+
+    def on_step(key, state, reason):
+        if state == "done" and key == keys[-1]:
+            control.request(request_)
+
+    camera, rail = open_rig(plan.rig_config())
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        result = Runner(cat, tmp_path / "frames", workers=1, progress=None, control=control,
+                        on_step=on_step).run(plan, camera, rail)
+        assert (result.state, result.steps_done) == ("done", 2), result.reason
+        assert [r["state"] for r in cat.runs()] == ["done"]
+
+
+# -- 5. refusing writes nothing -------------------------------------------------------------------------
+
+
+def test_a_refused_frame_store_leaves_no_catalogue(tmp_path, capsys):
+    plan = write_plan(tmp_path, ONE_STEP)
+    (tmp_path / "a-file").write_text("mine")
+    db = tmp_path / "cat.sqlite"
+    code, out, err = cli(capsys, "run", plan, "--frames", tmp_path / "a-file", "--catalogue", db,
+                         "--socket", tmp_path / "none.sock")
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "a-file" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a-file", "plan.toml"]
+
+
+def test_a_newer_catalogue_is_refused_untouched(tmp_path, capsys):
+    db = tmp_path / "newer.sqlite"
+    with sqlite3.connect(db) as conn:  # a catalogue of a newer psfd, in rollback-journal mode
+        conn.execute("CREATE TABLE runs (id INTEGER PRIMARY KEY)")
+        conn.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
+    conn.close()
+    before = hashlib.sha256(db.read_bytes()).hexdigest()
+    plan = write_plan(tmp_path, ONE_STEP)
+    none = ["--socket", tmp_path / "none.sock"]
+    for argv in (["query"], ["status", *none], ["run", plan, *none],
+                 ["capture", "--aperture", "4", "--simulate", *none]):
+        code, out, err = cli(capsys, *argv, "--catalogue", db)
+        assert code == 5 and "newer" in err and len(err.strip().splitlines()) == 1, (argv, err)
+    assert hashlib.sha256(db.read_bytes()).hexdigest() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["newer.sqlite", "plan.toml"]  # no -wal, no frames
+    with sqlite3.connect(db) as conn:
+        assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "delete"
+    conn.close()
+
+
+def test_resume_without_catalogue_creates_none(tmp_path, capsys):
+    plan = write_plan(tmp_path, ONE_STEP)
+    code, out, err = cli(capsys, "run", plan, "--resume", "--catalogue", tmp_path / "c.sqlite",
+                         "--socket", tmp_path / "none.sock")
+    assert code == 2 and "no unfinished run" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.toml"]
+
+
+# -- 9. disk full and read-only file systems -------------------------------------------------------------
+
+
+class FullDiskCamera:
+    """The simulated camera whose download fails with ``code`` (ENOSPC, EROFS) from the ``after``-th capture on,
+    as a camera driver's write of the RAW file into the store's folder would."""
+
+    def __init__(self, camera, after: int, code: int) -> None:
+        self.camera, self.left, self.code = camera, after, code
+
+    def __getattr__(self, name):
+        return getattr(self.camera, name)
+
+    def capture(self, dest):
+        if self.left == 0:
+            (Path(dest) / "IMG_0001.DNG").write_bytes(b"half a frame")  # what a failed write leaves
+            raise OSError(self.code, os.strerror(self.code), str(Path(dest) / "IMG_0001.DNG"))
+        self.left -= 1
+        return self.camera.capture(dest)
+
+
+@pytest.mark.parametrize("code, words", [(errno.ENOSPC, "No space left on device"),
+                                         (errno.EROFS, "Read-only file system")])
+def test_a_frame_write_that_fails_for_lack_of_space_pauses_and_resume_continues(tmp_path, code, words):
+    plan = parse_plan(small_plan(), "small.toml")
+    db, frames = tmp_path / "cat.sqlite", tmp_path / "frames"
+    camera, rail = open_rig(plan.rig_config())
+    with Catalogue(db) as cat:
+        result = Runner(cat, frames, workers=1, progress=None).run(plan, FullDiskCamera(camera, 2, code), rail)
+        assert result.state == "paused" and isinstance(result.error, StorageError)
+        assert result.error.exit_code == 5 and words in result.reason and "--resume" not in result.reason
+        summary = cat.run_summary(result.run_id)
+        assert (summary["done"], summary["failed"], summary["pending"]) == (2, 1, 1)
+        (failed,) = cat.steps(result.run_id, ("failed",))
+        assert words in failed["reason"]
+        assert not list(frames.glob(".incoming-*"))  # the half-written download is gone
+        camera, rail = open_rig(plan.rig_config())
+        again = Runner(cat, frames, workers=1, progress=None).run(plan, camera, rail, resume=True)
+        assert again.state == "done" and again.steps_done == 2
+    check_complete(db, frames, plan)
+
+
+def test_a_catalogue_commit_that_finds_the_disk_full_pauses_and_resume_continues(tmp_path):
+    """SQLite's own limit on the file's size (max_page_count) makes its commit fail with SQLITE_FULL,
+    as a full disk does: the step stays uncommitted, the run pauses, and resumes once there is room."""
+    plan = parse_plan(small_plan(), "small.toml")
+    db, frames = tmp_path / "cat.sqlite", tmp_path / "frames"
+    control = Control()
+    camera, rail = open_rig(plan.rig_config())
+    with Catalogue(db) as cat:
+        # one step committed, then stop: the catalogue's size is known
+        runner = Runner(cat, frames, workers=1, progress=None, control=control,
+                        on_step=lambda key, state, reason: state == "running" and control.request("pause"))
+        first = runner.run(plan, camera, rail)
+        assert first.state == "paused" and first.steps_done == 1
+        pages = cat.db.execute("PRAGMA page_count").fetchone()[0]
+        cat.db.execute(f"PRAGMA max_page_count = {pages + 1}")  # room for the journal, not for a step's PSFs
+        camera, rail = open_rig(plan.rig_config())
+        result = Runner(cat, frames, workers=1, progress=None).run(plan, camera, rail, resume=True)
+        assert result.state == "paused" and isinstance(result.error, StorageError), result.reason
+        assert "full" in result.reason
+        assert cat.integrity_check() == []
+        assert cat.run_summary(first.run_id)["done"] == 1  # nothing half-committed
+        cat.db.execute("PRAGMA max_page_count = 1073741823")  # space is back
+        camera, rail = open_rig(plan.rig_config())
+        again = Runner(cat, frames, workers=1, progress=None).run(plan, camera, rail, resume=True)
+        assert again.state == "done", again.reason
+    check_complete(db, frames, plan)
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 4 MiB tmpfs (root only): a real file system that fills up and can be remounted read-only."""
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("mounting a size-limited tmpfs needs root")
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m,mode=0755", "tmpfs", str(mount)],
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], check=False)
+
+
+def _psfd(*argv, timeout=600) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "psfd", *map(str, argv)], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_a_full_file_system_pauses_the_run_and_resume_continues_once_space_is_back(small_disk, tmp_path):
+    plan_path = write_plan(tmp_path, small_plan())
+    plan = parse_plan(plan_path.read_text(), str(plan_path))
+    db = small_disk / "cat.sqlite"
+    common = ["--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1"]
+    # leave room for the catalogue and about two frames (a simulated frame is ~0.6 MB)
+    filler = small_disk / "filler"
+    free = shutil.disk_usage(small_disk).free
+    with open(filler, "wb") as fh:
+        fh.write(b"\0" * (free - 1_600_000))
+    full = _psfd("run", plan_path, *common)
+    assert full.returncode == 5, full.stderr
+    last = full.stderr.strip().splitlines()[-1]
+    assert "No space left on device" in last and "continue with: psfd run" in last and "--resume" in last
+    with Catalogue(db, readonly=True) as cat:
+        assert cat.integrity_check() == []
+        assert 0 < cat.run_summary(1)["done"] < 4
+    assert not list(frames_dir_for(db).glob(".incoming-*"))
+    filler.unlink()  # space is back
+    again = _psfd("run", plan_path, "--resume", *common)
+    assert again.returncode == 0, again.stderr
+    assert states(db) == ["done"]
+    check_complete(db, frames_dir_for(db), plan)
+
+
+def test_a_read_only_file_system_is_refused_in_one_line_and_resume_continues(small_disk, tmp_path):
+    plan_path = write_plan(tmp_path, TWO_STEPS)
+    plan = parse_plan(plan_path.read_text(), str(plan_path))
+    db = small_disk / "cat.sqlite"
+    common = ["--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1"]
+    camera, rail = open_rig(plan.rig_config())
+    control = Control()
+    with Catalogue(db) as cat:  # one step done, then paused
+        Runner(cat, frames_dir_for(db), workers=1, progress=None, control=control,
+               on_step=lambda key, state, reason: state == "running" and control.request("pause")).run(plan, camera,
+                                                                                                        rail)
+    subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], check=True)
+    try:
+        refused = _psfd("run", plan_path, "--resume", *common)
+        assert refused.returncode == 5 and len(refused.stderr.strip().splitlines()) == 1, refused.stderr
+        assert "Read-only file system" in refused.stderr or "read-only" in refused.stderr
+        readable = _psfd("query", "--catalogue", db)
+        assert readable.returncode == 0, readable.stderr  # reading needs no write
+    finally:
+        subprocess.run(["mount", "-o", "remount,rw", str(small_disk)], check=True)
+    again = _psfd("run", plan_path, "--resume", *common)
+    assert again.returncode == 0, again.stderr
+    check_complete(db, frames_dir_for(db), plan)
+
+
+# -- 10. SIGKILL in every phase of a run ----------------------------------------------------------------
+
+PHASES = ("capture", "store", "estimate", "commit", "last-commit", "close-down")
+
+
+def killed_run(plan_path: Path, db: Path, phase: str, nth: int, resume: bool, tmp_path: Path) -> int:
+    """`psfd run` in its own session, killed (the whole group, like a power cut) at the ``nth`` time it
+    reaches ``phase`` (tests/kill_at.py); returns the exit status."""
+    argv = [sys.executable, str(HERE / "kill_at.py"), f"{phase}:{nth}", "run", str(plan_path), "--catalogue",
+            str(db), "--socket", str(tmp_path / "none.sock"), "--workers", "1", "--backlog", "1"]
+    proc = subprocess.run(argv + ["--resume"] * resume, start_new_session=True, capture_output=True, text=True,
+                          timeout=600)
+    return proc.returncode
+
+
+def kill_and_resume(tmp_path: Path, plan_text: str, phase: str, nth: int) -> None:
+    plan_path = write_plan(tmp_path, plan_text)
+    plan = parse_plan(plan_text, str(plan_path))
+    db = tmp_path / "cat.sqlite"
+    code = killed_run(plan_path, db, phase, nth, False, tmp_path)
+    assert code == -signal.SIGKILL, f"{phase}:{nth} was not reached (exit {code})"
+    with Catalogue(db, readonly=True) as cat:
+        assert cat.integrity_check() == []
+        state = cat.runs()[0]["state"]
+    if state != "done":  # the kill came before the close
+        resumed = _psfd("run", plan_path, "--resume", "--catalogue", db, "--socket", tmp_path / "none.sock",
+                        "--workers", "1")
+        assert resumed.returncode == 0, resumed.stderr
+    status = _psfd("status", "--catalogue", db, "--socket", tmp_path / "none.sock")
+    assert " done " in status.stdout and "interrupted" not in status.stdout, status.stdout
+    assert states(db) == ["done"]
+    check_complete(db, frames_dir_for(db), plan)
+
+
+@pytest.mark.parametrize("phase", ["commit", "last-commit"])
+def test_sigkill_in_a_phase_then_resume(tmp_path, phase):
+    """The default suite's share of the sweep below: mid-commit and between the last commit and the close."""
+    kill_and_resume(tmp_path, TWO_STEPS, phase, 2 if phase == "commit" else 1)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("phase", PHASES)
+def test_sigkill_sweep_over_every_phase(tmp_path, phase, seed):
+    """Every phase, at a reproducible random occurrence of it, then resume: every PSF once, the run done."""
+    plan = small_plan()
+    nth = 1 if phase in ("last-commit", "close-down") else random.Random(f"{phase}-{seed}").randint(1, 4)
+    kill_and_resume(tmp_path, plan, phase, nth)
