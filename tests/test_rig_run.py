@@ -208,3 +208,31 @@ def test_psfd_run_refuses_a_camera_without_raw_before_the_rail_moves(tmp_path):
     assert position[0] == pytest.approx(0.0)  # the machine position the controller booted with
     with Catalogue(tmp_path / "c.sqlite") as cat:
         assert cat.frame_hashes() == set()
+
+
+def test_psfd_run_refuses_a_plan_outside_the_rails_travel_before_anything(tmp_path):
+    """The controller's own travel ($130: X in [-300, 0] after + end homing) is asked before the run opens:
+    a plan reaching past it is refused at once (exit 2), not at the step that cannot be reached."""
+    store = tmp_path / "vcamera"
+    store.mkdir()
+    (tmp_path / "home").mkdir()
+    assert cv2.imwrite(str(store / "frame.jpg"), np.zeros((48, 64), np.uint8))
+    env = dict(os.environ, VCAMERADIR=str(store), HOME=str(tmp_path / "home"), XDG_DATA_HOME=str(tmp_path / "data"))
+    firmware = FakeGrbl({110: 6000, 120: 200, 130: 300}, homing_cycles=((0,),), start=(-100.0, -50.0, -50.0))
+    try:
+        plan = tmp_path / "plan.toml"
+        plan.write_text(f'[rig]\nrail_port = "{firmware.port}"\n\n'
+                        '[target]\nkind = "bernoulli"\n\n[capture]\napertures = [5.6]\nx = [-40, -400]\n')
+        proc = subprocess.run(
+            [sys.executable, "-m", "psfd", "run", str(plan), "--local", "--catalogue", str(tmp_path / "c.sqlite"),
+             "--workers", "1"],
+            env=env, capture_output=True, text=True, timeout=180)
+        lines = list(firmware.lines)
+    finally:
+        firmware.close()
+    assert proc.returncode == 2, proc.stderr
+    assert "x = -400 outside the travel of the rail" in proc.stderr and "x: [-300, 0]" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert not [line for line in lines if line.startswith(("G0", "G1", "G90", "$J", "$H"))], lines
+    if (tmp_path / "c.sqlite").exists():  # the catalogue may be made by the checks before, but holds no run
+        assert sqlite3.connect(tmp_path / "c.sqlite").execute("SELECT count(*) FROM runs").fetchone()[0] == 0

@@ -54,7 +54,7 @@ from typing import IO, Any, Callable
 
 from psfd.catalogue import UNFINISHED_STATES, Catalogue, FrameRecord, check_owner
 from psfd.daemon import work
-from psfd.daemon.plan import Plan, Step
+from psfd.daemon.plan import Plan, Step, check_rail
 from psfd.daemon.store import (INCOMING, check_room, shown_state, storage_error, store_frame, store_lock,
                                sweep_frames)
 from psfd.drivers import open_rig
@@ -269,9 +269,13 @@ class Runner:
         Raises
         ------
         BadInputError
-            ``resume`` with no unfinished run, or an unfinished run and neither ``resume`` nor ``new``.
+            ``resume`` with no unfinished run, or an unfinished run and neither ``resume`` nor ``new``;
+            a position the rail says it cannot reach (`rail_problems`).
         """
         try:
+            problems = rail_problems(plan, rail)
+            if problems:  # refused before the run is opened and before any motion, not at the step
+                raise BadInputError(f"{plan.path}: {'; '.join(problems)}")
             with store_lock(self.frames_dir):
                 run_id = self._open_run(plan, camera, resume, new)
                 try:
@@ -494,6 +498,19 @@ def _step_error(exc: PsfdError | OSError) -> PsfdError:
     if isinstance(exc, PsfdError):
         return exc
     return storage_error(exc, "storing the frame") or HardwareError(f"storing the frame: {exc}")
+
+
+def rail_problems(plan: Plan, rail: Rail) -> list[str]:
+    """Positions of the plan that the rail says it cannot reach (`plan.check_rail`); none when it cannot say.
+
+    A rail that does not answer ``info`` (an older recording) is left to refuse each move itself.
+    """
+    try:
+        info = rail.info()
+    except PsfdError as exc:
+        log.debug("rail not asked for its travel: %s", exc)
+        return []
+    return check_rail(plan, info)
 
 
 def prepare_camera(camera: Camera, plan: Plan) -> CameraReady:
