@@ -52,10 +52,24 @@ def make_frame(path: Path, pixels_per_cell: float) -> None:
     subprocess.run([sys.executable, "-c", code, str(path)], check=True)
 
 
-def timed(command: list[str], env: dict | None = None) -> float:
+def timed(command: list[str], env: dict, cwd: Path) -> float:
     start = time.perf_counter()
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL, env=env)
-    return time.perf_counter() - start
+    # stderr kept aside: the large frame warns about its scale for each of its 400 PSFs
+    done = subprocess.run(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env, cwd=cwd)
+    seconds = time.perf_counter() - start
+    if done.returncode:
+        sys.exit(f"{' '.join(command)} failed:\n{done.stderr[-2000:]}")
+    return seconds
+
+
+def checkout_env(checkout: Path) -> dict:
+    """The environment that makes ``python -m psfd`` run the psfd of ``checkout``.
+
+    The commands run in the frames' folder: ``-m`` puts the working directory
+    first on the module path, which from a checkout's root would shadow the
+    PYTHONPATH (both commands would time the same code).
+    """
+    return {**os.environ, "PYTHONPATH": str(checkout.resolve())}
 
 
 def main() -> None:
@@ -65,11 +79,10 @@ def main() -> None:
     parser.add_argument("--keep", metavar="DIR", help="write (or reuse) the frames here instead of a temporary folder")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        folder = Path(args.keep or tmp)
+        folder = Path(args.keep or tmp).resolve()
         folder.mkdir(parents=True, exist_ok=True)
-        reference_env = None
-        if args.reference:
-            reference_env = {**os.environ, "PYTHONPATH": str(Path(args.reference).resolve())}
+        our_env = checkout_env(Path(__file__).resolve().parents[1])
+        reference_env = checkout_env(Path(args.reference)) if args.reference else None
         print(f"{'frame':>8} {'psfd s':>7} {'ref s':>7} {'ratio':>6} {'goal s':>7}   reference")
         for name, (pixels_per_cell, extra, goal) in FRAMES.items():
             frame = folder / f"{name}.dng"
@@ -78,9 +91,9 @@ def main() -> None:
             command = [sys.executable, "-m", "psfd", "estimate", "target", str(frame), *extra]
             ours, theirs = [], []
             for _ in range(args.repeat):  # interleaved: both see the same load
-                ours.append(timed(command))
+                ours.append(timed(command, our_env, folder))
                 if reference_env is not None:
-                    theirs.append(timed(command, reference_env))
+                    theirs.append(timed(command, reference_env, folder))
             mine = statistics.median(ours)
             if reference_env is not None:
                 ref, label = statistics.median(theirs), f"psfd at {args.reference}"

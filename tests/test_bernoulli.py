@@ -434,6 +434,50 @@ def test_fast_path_equals_the_per_window_band_limiting(tmp_path):
             assert gap < 0.01 * slow["noise_floor"], (frame.channel, k, gap, slow["noise_floor"])
 
 
+def test_s_band_equals_the_inequalities_on_every_coefficient():
+    """`s_band` finds each row's interval by bisection: the masks are those of testing |J^T f| < s/2 (IJCV
+    2012 sec. 3.1) on every coefficient of the box, for turned, sheared, mirrored and upright Jacobians."""
+    rng = np.random.default_rng(5)
+    jacobians = [np.diag([3.0, 3.0]), np.array([[3.0, 0.0], [0.0, 2.5]])]
+    jacobians += [rng.normal(size=(2, 2)) * 0.5 + np.eye(2) * rng.uniform(0.8, 4) for _ in range(12)]
+    for n, jacobian in enumerate(jacobians):
+        factor, s = (4, 8, 10)[n % 3], 4
+        shape = (320 * factor, 320 * factor)
+        same, cross = bernoulli.s_band(shape, factor, s, jacobian)
+        # the definition, on a box larger than the band
+        f_y = np.arange(shape[0])[:, None] * (factor / (2.0 * shape[0]))
+        f_x = np.arange(shape[1])[None, :] * (factor / (2.0 * shape[1]))
+        (a, b), (c, d) = jacobian
+        for sign, got in ((1.0, same), (-1.0, cross)):
+            want = (np.abs(a * f_x + c * sign * f_y) < s / 2) & (np.abs(b * f_x + d * sign * f_y) < s / 2)
+            assert not want[same.shape[0]:].any() and not want[:, same.shape[1]:].any()
+            assert np.array_equal(got, want[: same.shape[0], : same.shape[1]])
+
+
+def test_dct_band_part_equals_the_synthesis_of_the_difference():
+    """`resample.dct_band_part` (sparse difference, either order of the products) equals `dct_synthesise`
+    of the coefficients where the bands differ, on any crop of the grid."""
+    rng = np.random.default_rng(2)
+    size, keep = (96, 80), (40, 36)
+    coeffs = rng.normal(size=keep)
+    for few_rows in (True, False):  # few differing rows: products by rows; few columns: by columns
+        same = np.zeros(keep, dtype=np.int8)
+        cross = np.zeros(keep, dtype=np.int8)
+        spread = rng.integers(0, keep[1], 30)
+        at = (rng.choice(3, 30), spread) if few_rows else (spread, rng.choice(3, 30))
+        same[at] = rng.choice([-1, 1], 30)
+        cross[at[0][::2], at[1][::2]] = 1
+        want = resample.dct_synthesise(coeffs, size, same.astype(float), cross.astype(float))
+        for rows, cols in ((slice(0, 96), slice(0, 80)), (slice(10, 30), slice(50, 79))):
+            got = resample.dct_band_part(coeffs, same, cross, size, rows, cols)
+            assert np.allclose(got, want[rows, cols], atol=1e-12)
+            i, j = np.nonzero(same | cross)
+            a, b = same[i, j].astype(float), cross[i, j].astype(float)
+            tabulated = resample.dct_sparse_part(coeffs, i, j, (a + b) / 2, (b - a) / 2, size, rows, cols,
+                                                 resample.dct_bases(size, keep))
+            assert np.allclose(tabulated, want[rows, cols], atol=1e-12)
+
+
 def test_pattern_band_window_equals_u_tilde():
     """A window's u~ read from the shared band equals `u_tilde` for its own Jacobian, to float32 rounding."""
     noise = target.default_noise()

@@ -29,7 +29,7 @@ from typing import Callable
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy import fft, linalg, optimize
+from scipy import fft, linalg
 
 from psfd.errors import BadInputError, EstimationError, SaturatedError
 from psfd.estimator import detect, geometry, kernels, radiometry, resample, target
@@ -109,23 +109,73 @@ def s_band(shape: tuple[int, int], factor: int, s: int, jacobian: np.ndarray) ->
         smallest box holding both.
     """
     rows, cols = shape
-    # only the box the band can reach (`band_reach`) is evaluated
-    reach = np.abs(np.linalg.inv(jacobian)).sum(axis=0) * (s / 2)
-    box_r = min(rows, int(reach[1] * 2 * rows / factor) + 2)
-    box_c = min(cols, int(reach[0] * 2 * cols / factor) + 2)
-    f_y = np.arange(box_r)[:, None] * (factor / (2.0 * rows))
-    f_x = np.arange(box_c)[None, :] * (factor / (2.0 * cols))
+    (lo_same, hi_same), (lo_cross, hi_cross) = _s_band_rows(shape, factor, s, jacobian)
+    keep_r, keep_c = _band_box(hi_same - lo_same, hi_cross - lo_cross, hi_same, hi_cross)
+    j = np.arange(keep_c)[None, :]
+    same = (j >= lo_same[:keep_r, None]) & (j < hi_same[:keep_r, None])
+    cross = (j >= lo_cross[:keep_r, None]) & (j < hi_cross[:keep_r, None])
+    return same, cross
+
+
+def _band_box(width_same, width_cross, hi_same, hi_cross) -> tuple[int, int]:
+    """(rows, cols) of the smallest box from index 0 holding every row interval of both masks."""
+    used = (width_same > 0) | (width_cross > 0)
+    if not used.any():
+        return 1, 1
+    keep_r = int(np.nonzero(used)[0].max()) + 1
+    keep_c = int(max(hi_same[width_same > 0].max(initial=0), hi_cross[width_cross > 0].max(initial=0)))
+    return keep_r, max(keep_c, 1)
+
+
+def _s_band_rows(shape, factor, s, jacobian):
+    """For each row i of the DCT coefficients the box can reach, the columns [lo, hi) inside `s_band`'s masks.
+
+    For a fixed row, both inequalities of `s_band` are |alpha f_x + beta| < s / 2
+    with f_x increasing along the row: the kept columns are one interval.
+    Its ends are found by bisection on the very floating-point expression
+    `s_band` states (the rounded sum is monotone in f_x too), so the masks
+    are exactly those of evaluating it on the whole box, at a few
+    operations per row instead of per coefficient.
+    """
+    rows, cols = shape
+    box_r, box_c = _reach_box(shape, factor, s, jacobian)
+    f_y = np.arange(box_r) * (factor / (2.0 * rows))
+    f_x = np.arange(box_c) * (factor / (2.0 * cols))
     (a, b), (c, d) = jacobian
-
-    def inside(sign: float) -> np.ndarray:
+    half = s / 2
+    out = []
+    for sign in (1.0, -1.0):
         # xi = J^T f; strict inequality as the rectangular truncation keeps indices below s/2
-        return (np.abs(a * f_x + c * sign * f_y) < s / 2) & (np.abs(b * f_x + d * sign * f_y) < s / 2)
+        lo, hi = np.zeros(box_r, dtype=np.intp), np.full(box_r, box_c, dtype=np.intp)
+        for alpha, beta in ((a, c * sign * f_y), (b, d * sign * f_y)):
+            if alpha < 0:  # |x + beta| = |-x - beta| exactly in floating point: make the sum increasing
+                alpha, beta = -alpha, -beta
+            x = alpha * f_x
+            lo = np.maximum(lo, _first(x, beta, lambda v: v > -half))
+            hi = np.minimum(hi, _first(x, beta, lambda v: v >= half))
+        out.append((lo, np.maximum(hi, lo)))
+    return out[0], out[1]
 
-    same, cross = inside(1.0), inside(-1.0)
-    either = same | cross
-    keep_r = int(np.nonzero(either.any(axis=1))[0].max()) + 1 if either.any() else 1
-    keep_c = int(np.nonzero(either.any(axis=0))[0].max()) + 1 if either.any() else 1
-    return same[:keep_r, :keep_c], cross[:keep_r, :keep_c]
+
+def _reach_box(shape: tuple[int, int], factor: int, s: int, jacobian: np.ndarray) -> tuple[int, int]:
+    """(rows, cols) of DCT coefficients from index 0 that hold `s_band` of ``jacobian`` (`band_reach`), a
+    bound on its masks' shape."""
+    rows, cols = shape
+    reach = np.abs(np.linalg.inv(jacobian)).sum(axis=0) * (s / 2)
+    return min(rows, int(reach[1] * 2 * rows / factor) + 2), min(cols, int(reach[0] * 2 * cols / factor) + 2)
+
+
+def _first(x: np.ndarray, beta: np.ndarray, test: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """Per row, the first index j with ``test(x[j] + beta[row])`` (false, then true, along j); len(x) if none."""
+    lo, hi = np.zeros(beta.size, dtype=np.intp), np.full(beta.size, x.size, dtype=np.intp)
+    while True:
+        open_ = lo < hi
+        if not open_.any():
+            return lo
+        mid = (lo + hi) // 2
+        ok = test(x[np.minimum(mid, x.size - 1)] + beta) & open_
+        hi = np.where(ok, mid, hi)
+        lo = np.where(open_ & ~ok, mid + 1, lo)
 
 
 def u_tilde(
@@ -224,12 +274,17 @@ class PatternBand:
 
     Every window has its own band (`s_band` of its local Jacobian), so
     `u_tilde` would low-pass the whole raster once per window; the bands of
-    one target differ in a few hundred of millions of coefficients. The
-    synthesis is linear in the band, so a window's u~ is the u~ of one
-    reference band (synthesised once) plus the image of the coefficients
-    where its band differs from the reference (`resample.dct_band_part`),
-    evaluated only on the part of the raster that the window reads. The
-    result equals `u_tilde`'s up to float rounding.
+    one target differ in a few hundred to a few hundred thousand of millions
+    of coefficients (perspective and lens distortion change the Jacobian by a
+    few per cent across a target). The synthesis is linear in the band, so a
+    window's u~ is the u~ of one reference band (synthesised once) plus the
+    image of the coefficients where its band differs from the reference
+    (`difference`, from the bands' row intervals; `resample.dct_sparse_part`),
+    evaluated only on the part of the raster that the window reads, or its
+    own band synthesised whole when that costs less. The result equals
+    `u_tilde`'s up to float rounding. Sharing one band between windows whose
+    Jacobians differ by 0.3 % already moves their PSFs by 13 % of the noise
+    floor (measured on a 24-megapixel frame), so no window skips its own band.
 
     Parameters
     ----------
@@ -247,40 +302,70 @@ class PatternBand:
         # float32: 4x faster on the raster, rounding far below sensor noise (as in `u_tilde`)
         cells = target.cells(noise, factor).astype(np.float32)
         self.factor, self.s, self.shape = factor, s, cells.shape
-        ref = s_band(cells.shape, factor, s, reference)
-        # only the shapes are kept: 400 windows' masks would hold gigabytes
-        shapes = [ref[0].shape] + [s_band(cells.shape, factor, s, j)[0].shape for j in jacobians]
+        # a bound on every window's band (the masks of 400 windows would hold gigabytes, and even their
+        # exact sizes cost milliseconds each); the coefficients past a band are zero in its masks
+        shapes = [_reach_box(cells.shape, factor, s, j) for j in [reference, *jacobians]]
         self.keep = (max(r for r, _ in shapes), max(c for _, c in shapes))
         self.coeffs = resample.dct_coefficients(cells, self.keep)
-        self.reference = self._padded(ref)
-        self.base = resample.dct_synthesise(self.coeffs, self.shape, *self.reference)
+        ref = s_band(cells.shape, factor, s, reference)
+        self.base = resample.dct_synthesise(self.coeffs[: ref[0].shape[0], : ref[0].shape[1]], self.shape, *ref)
+        self.reference = self.rows(reference)
+        # the basis functions the differences are synthesised from (tens of MB): tabulated once, before
+        # the workers fork, when many windows will read them; computed per window for a few
+        self.bases = resample.dct_bases(self.shape, self.keep) if len(jacobians) > 4 else None
 
-    def _padded(self, band: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    def rows(self, jacobian: np.ndarray) -> tuple[np.ndarray, ...]:
+        """`s_band` of ``jacobian`` as row intervals over the kept rows: lo, hi of ``same``, then of ``cross``."""
+        (lo_same, hi_same), (lo_cross, hi_cross) = _s_band_rows(self.shape, self.factor, self.s, jacobian)
         out = []
-        for m in band:
-            full = np.zeros(self.keep, dtype=np.int8)
-            full[: m.shape[0], : m.shape[1]] = m
+        for end in (lo_same, hi_same, lo_cross, hi_cross):
+            full = np.zeros(self.keep[0], dtype=np.intp)  # rows past the band: empty intervals
+            n = min(end.size, self.keep[0])  # rows past `keep` are empty in every band
+            full[:n] = end[:n]
             out.append(full)
-        return out[0], out[1]
+        return tuple(out)
 
     def window(self, jacobian: np.ndarray) -> "WindowBand":
         """The band of the window whose local linear part of D is ``jacobian``."""
-        band = s_band(self.shape, self.factor, self.s, jacobian)
-        same, cross = self._padded(band)
-        return WindowBand(self, same - self.reference[0], cross - self.reference[1], band)
+        return WindowBand(self, jacobian)
+
+    def difference(self, jacobian: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The coefficients where the band of ``jacobian`` differs from the reference band, as
+        (i, j, cosine weight, sine weight) for `resample.dct_sparse_part`: built from the row
+        intervals, never from masks of the whole band."""
+        own, ref = self.rows(jacobian), self.reference
+        parts = []
+        # (a, b) = (same, cross) enter as cos (a + b) / 2 and sin (b - a) / 2 (`resample.dct_synthesise`)
+        for k, (cos_w, sin_w) in ((0, (0.5, -0.5)), (2, (0.5, 0.5))):
+            lo, hi, lo_ref, hi_ref = own[k], own[k + 1], ref[k], ref[k + 1]
+            for sign, (a, b, c, d) in ((1.0, (lo, hi, lo_ref, hi_ref)), (-1.0, (lo_ref, hi_ref, lo, hi))):
+                # [a, b) minus [c, d): [a, min(b, c)) and [max(a, d), b)
+                for start, stop in ((a, np.minimum(b, c)), (np.maximum(a, d), b)):
+                    i, j = _runs(start, stop)
+                    parts.append((i, j, np.full(i.size, sign * cos_w), np.full(i.size, sign * sin_w)))
+        return tuple(np.concatenate(column) for column in zip(*parts))
+
+
+def _runs(start: np.ndarray, stop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) of every column in [start[row], stop[row]) of every row."""
+    length = np.maximum(stop - start, 0)
+    rows = np.repeat(np.arange(start.size), length)
+    first = np.cumsum(length) - length  # where each row's run begins in the output
+    return rows, np.arange(rows.size) - np.repeat(first - start, length)
 
 
 class WindowBand:
     """One window's u~ (`PatternBand.window`), read by `u_tilde_d` where the window needs it."""
 
-    def __init__(self, band: PatternBand, same: np.ndarray, cross: np.ndarray, own: tuple) -> None:
-        self.band, self.same, self.cross, self.own = band, same, cross, own
+    def __init__(self, band: PatternBand, jacobian: np.ndarray) -> None:
+        self.band, self.jacobian = band, jacobian
 
     def sample(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
         """Keys' bicubic interpolation (a = -0.5) of u~ at pattern cells (X, Y), as `u_tilde_d`."""
-        factor = self.band.factor
+        band = self.band
+        factor = band.factor
         x, y = X * factor - 0.5, Y * factor - 0.5
-        rows, cols = self.band.shape
+        rows, cols = band.shape
         finite = np.isfinite(x) & np.isfinite(y)
         if not finite.any():
             return np.full(x.shape, np.nan, dtype=np.float32)
@@ -290,19 +375,20 @@ class WindowBand:
         r1 = int(np.clip(np.floor(y[finite].max()) + 3, r0, rows))
         c0 = int(np.clip(np.floor(x[finite].min()) - 1, 0, cols))
         c1 = int(np.clip(np.floor(x[finite].max()) + 3, c0, cols))
-        crop = self.band.base[r0:r1, c0:c1]
-        differ = int(np.count_nonzero(self.same | self.cross))
-        if differ:
-            # the difference costs about (crop rows + differing coefficients) x crop columns products,
-            # the window's own band a synthesis of the whole raster: take the cheaper
-            if (r1 - r0 + differ) * (c1 - c0) * 4 < rows * cols * np.log2(rows * cols):
-                part = resample.dct_band_part(self.band.coeffs, self.same, self.cross, self.band.shape,
-                                              slice(r0, r1), slice(c0, c1))
+        crop = band.base[r0:r1, c0:c1]
+        i, j, cos_w, sin_w = band.difference(self.jacobian)
+        cost = resample.band_part_cost(i, j, r1 - r0, c1 - c0)
+        if cost:
+            # the difference costs `band_part_cost` multiply-adds on the crop, the window's own band
+            # a synthesis of the whole raster by FFTs, measured ~4x slower per rows x cols x log2(rows x cols)
+            if cost < 4 * rows * cols * np.log2(rows * cols):
+                part = resample.dct_sparse_part(band.coeffs, i, j, cos_w, sin_w, band.shape,
+                                                slice(r0, r1), slice(c0, c1), band.bases)
                 crop = (crop + part).astype(np.float32)
             else:
-                same, cross = self.own
-                coeffs = self.band.coeffs[: same.shape[0], : same.shape[1]]
-                crop = resample.dct_synthesise(coeffs, self.band.shape, same, cross)[r0:r1, c0:c1]
+                same, cross = s_band(band.shape, factor, band.s, self.jacobian)
+                coeffs = band.coeffs[: same.shape[0], : same.shape[1]]
+                crop = resample.dct_synthesise(coeffs, band.shape, same, cross)[r0:r1, c0:c1]
         return resample.keys_bicubic(crop, x - c0, y - r0, a=-0.5)
 
 
@@ -506,6 +592,8 @@ def nnls_normal(q: np.ndarray, c: np.ndarray, passive: np.ndarray | None = None)
             free[last] = ~free[last]
         h, y = kkt(free)
     # not reached in exact arithmetic (Murty's rule terminates); the slow solver as a safeguard
+    from scipy import optimize  # 0.15-0.3 s of imports: only here
+
     lower = linalg.cholesky(q, lower=True, check_finite=False)
     return optimize.nnls(lower.T, linalg.solve_triangular(lower, c, lower=True), maxiter=50 * n)[0]
 

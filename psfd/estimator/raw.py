@@ -142,8 +142,11 @@ def _load_raw(path: Path, wanted: str | None = None) -> dict[str, Frame]:
             raw.open_file(str(path))  # reads the header only: the size is checked before the data is unpacked
             check_image_size(raw.sizes.raw_width, raw.sizes.raw_height, str(path))
             raw.unpack()
-            mosaic = raw.raw_image_visible.astype(np.float64)
-            colors = raw.raw_colors_visible
+            # the photosites as decoded (uint16): each plane is converted on its own, and only the
+            # 2 x 2 colour pattern is read (raw_colors_visible would build a second full-size array)
+            mosaic = raw.raw_image_visible.copy()
+            top, left = raw.sizes.top_margin, raw.sizes.left_margin
+            colors = np.array([[raw.raw_color(top + dy, left + dx) for dx in (0, 1)] for dy in (0, 1)])
             desc = raw.color_desc.decode("ascii", "replace")
             blacks = list(raw.black_level_per_channel)
             white = float(raw.white_level)
