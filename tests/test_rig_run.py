@@ -184,20 +184,10 @@ def test_frame_exif_migration_adds_only_the_missing_columns(tmp_path):
 
 def test_psfd_run_refuses_a_camera_without_raw_before_the_rail_moves(tmp_path):
     """libgphoto2's virtual camera shoots JPEG only: the run stops at the camera setup, the rail never moves."""
-    store = tmp_path / "vcamera"
-    store.mkdir()
-    (tmp_path / "home").mkdir()
-    assert cv2.imwrite(str(store / "frame.jpg"), (np.random.default_rng(1).random((48, 64)) * 255).astype(np.uint8))
-    env = dict(os.environ, VCAMERADIR=str(store), HOME=str(tmp_path / "home"), XDG_DATA_HOME=str(tmp_path / "data"))
     firmware = FakeGrbl({110: 6000, 120: 200}, homing_cycles=((0,),), start=(-100.0, -50.0, -50.0))
     try:
-        plan = tmp_path / "plan.toml"
-        plan.write_text(f'[rig]\nrail_port = "{firmware.port}"\nrail_limits = {{ x = [-150, -10] }}\n\n'
-                        '[target]\nkind = "bernoulli"\n\n[capture]\napertures = [5.6]\nx = [-40, -60]\n')
-        proc = subprocess.run(
-            [sys.executable, "-m", "psfd", "run", str(plan), "--local", "--catalogue", str(tmp_path / "c.sqlite"),
-             "--workers", "1"],
-            env=env, capture_output=True, text=True, timeout=180)
+        proc = _run_on_virtual_camera(tmp_path, f'rail_port = "{firmware.port}"\nrail_limits = {{ x = [-150, -10] }}',
+                                      "x = [-40, -60]")
         lines = list(firmware.lines)
         position = firmware.machine_position()
     finally:
@@ -213,20 +203,9 @@ def test_psfd_run_refuses_a_camera_without_raw_before_the_rail_moves(tmp_path):
 def test_psfd_run_refuses_a_plan_outside_the_rails_travel_before_anything(tmp_path):
     """The controller's own travel ($130: X in [-300, 0] after + end homing) is asked before the run opens:
     a plan reaching past it is refused at once (exit 2), not at the step that cannot be reached."""
-    store = tmp_path / "vcamera"
-    store.mkdir()
-    (tmp_path / "home").mkdir()
-    assert cv2.imwrite(str(store / "frame.jpg"), np.zeros((48, 64), np.uint8))
-    env = dict(os.environ, VCAMERADIR=str(store), HOME=str(tmp_path / "home"), XDG_DATA_HOME=str(tmp_path / "data"))
     firmware = FakeGrbl({110: 6000, 120: 200, 130: 300}, homing_cycles=((0,),), start=(-100.0, -50.0, -50.0))
     try:
-        plan = tmp_path / "plan.toml"
-        plan.write_text(f'[rig]\nrail_port = "{firmware.port}"\n\n'
-                        '[target]\nkind = "bernoulli"\n\n[capture]\napertures = [5.6]\nx = [-40, -400]\n')
-        proc = subprocess.run(
-            [sys.executable, "-m", "psfd", "run", str(plan), "--local", "--catalogue", str(tmp_path / "c.sqlite"),
-             "--workers", "1"],
-            env=env, capture_output=True, text=True, timeout=180)
+        proc = _run_on_virtual_camera(tmp_path, f'rail_port = "{firmware.port}"', "x = [-40, -400]")
         lines = list(firmware.lines)
     finally:
         firmware.close()
@@ -236,3 +215,18 @@ def test_psfd_run_refuses_a_plan_outside_the_rails_travel_before_anything(tmp_pa
     assert not [line for line in lines if line.startswith(("G0", "G1", "G90", "$J", "$H"))], lines
     if (tmp_path / "c.sqlite").exists():  # the catalogue may be made by the checks before, but holds no run
         assert sqlite3.connect(tmp_path / "c.sqlite").execute("SELECT count(*) FROM runs").fetchone()[0] == 0
+
+
+def _run_on_virtual_camera(tmp_path: Path, rig: str, capture: str) -> subprocess.CompletedProcess:
+    """The whole `psfd run` process on libgphoto2's virtual camera (one JPEG in its store) and the ``rig`` table."""
+    store = tmp_path / "vcamera"
+    store.mkdir()
+    (tmp_path / "home").mkdir()
+    assert cv2.imwrite(str(store / "frame.jpg"), (np.random.default_rng(1).random((48, 64)) * 255).astype(np.uint8))
+    env = dict(os.environ, VCAMERADIR=str(store), HOME=str(tmp_path / "home"), XDG_DATA_HOME=str(tmp_path / "data"))
+    plan = tmp_path / "plan.toml"
+    plan.write_text(f'[rig]\n{rig}\n\n[target]\nkind = "bernoulli"\n\n[capture]\napertures = [5.6]\n{capture}\n')
+    return subprocess.run(
+        [sys.executable, "-m", "psfd", "run", str(plan), "--local", "--catalogue", str(tmp_path / "c.sqlite"),
+         "--workers", "1"],
+        env=env, capture_output=True, text=True, timeout=180)

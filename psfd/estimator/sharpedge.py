@@ -256,6 +256,11 @@ def detect_edges(image: np.ndarray, sigma: float = 1.0, threshold: float | None 
         keep = strength >= threshold
         parts.append((py[hit][keep] * cols + px[hit][keep], x[keep], y[keep], nx[hit][keep], ny[hit][keep],
                       strength[keep]))
+    return _sorted_edgels(parts)
+
+
+def _sorted_edgels(parts: list[tuple[np.ndarray, ...]]) -> Edgels:
+    """Edgels from per-tile (key, x, y, nx, ny, strength) arrays, in raster order of ``key``, levels unknown."""
     if not parts:
         empty = np.zeros(0)
         return Edgels(empty, empty.copy(), empty.copy(), empty.copy(), empty.copy(), empty.copy(), empty.copy())
@@ -826,13 +831,7 @@ def _target_edges(known: "KnownPattern", origin: tuple[int, int], s: int, grid: 
         if progress is not None:
             progress()
     parts = [p for p in parts if p[0].size]
-    if not parts:
-        empty = np.zeros(0)
-        return Edgels(empty, empty.copy(), empty.copy(), empty.copy(), empty.copy(), empty.copy(), empty.copy())
-    key, x, y, nx, ny, strength = (np.concatenate(column) for column in zip(*parts))
-    order = np.argsort(key, kind="stable")
-    nan = np.full(key.size, np.nan)
-    return Edgels(x[order], y[order], nx[order], ny[order], strength[order], nan, nan.copy())
+    return _sorted_edgels(parts)
 
 
 class _TargetPrediction:
