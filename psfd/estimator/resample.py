@@ -13,7 +13,7 @@ import numpy as np
 from scipy import fft
 
 __all__ = [
-    "band_part_cost", "dct_band_part", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_sparse_part",
+    "band_part_cost", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_sparse_part",
     "dct_synthesise", "erode", "keys_bicubic", "keys_grid", "keys_upsample", "keys_weights",
 ]
 
@@ -117,22 +117,6 @@ def dct_synthesise(
         sine = fft.idst(anti, type=2, norm="ortho", axis=0, n=out_r, workers=-1)
         lowpassed += fft.idst(sine, type=2, norm="ortho", axis=1, n=out_c, workers=-1)
     return lowpassed
-
-
-def dct_band_part(
-    coeffs: np.ndarray, same: np.ndarray, cross: np.ndarray, size: tuple[int, int], rows: slice, cols: slice
-) -> np.ndarray:
-    """`dct_synthesise` of a sparse band, evaluated on ``rows`` x ``cols`` of the grid only.
-
-    The synthesis is linear in the band, so the image of one band equals that
-    of another plus the image of their difference: here the coefficients
-    where ``same`` and ``cross`` (the difference, same shape as ``coeffs``)
-    are not zero (`dct_sparse_part` of their coordinates). float64.
-    """
-    i, j = np.nonzero((same != 0) | (cross != 0))
-    a, b = same[i, j].astype(np.float64), cross[i, j].astype(np.float64)
-    # the pairs of coefficient (i, j): see `dct_synthesise`
-    return dct_sparse_part(coeffs, i, j, (a + b) / 2, (b - a) / 2, size, rows, cols)
 
 
 def dct_sparse_part(
