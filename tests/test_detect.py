@@ -273,6 +273,20 @@ def test_target_in_a_cluttered_8bit_plane(seed):
     _check_plane_scene(scenes.plane_scene(seed), psf=seed == 0)
 
 
+# From the smallest scale of the cluttered frames to a target shot close up:
+# the estimator accepts any scale and advises s/t in [0.7, 2] (IJCV 2012
+# sec. 3.3), 0.09-2 px/cell for s = 8 .. 1, and a lab user at the bench may
+# fill the frame (5 px/cell is a 1600-pixel target in a 3000 x 2000 plane).
+@pytest.mark.parametrize(
+    ("scale", "angle", "shape"),
+    [(0.3, 305.0, (1301, 1953)), (1.0, 20.0, (1301, 1953)), (3.0, 135.0, (2000, 3000)), (5.0, 268.0, (2000, 3000))],
+)
+def test_target_at_any_scale_in_a_cluttered_plane(scale, angle, shape):
+    # The small one outdoors under a clipped sky, the others shot close up indoors.
+    scene = scenes.plane_scene(int(10 * scale) + 50, shape=shape, scale=scale, angle=angle, fill=scale > 0.5)
+    _check_plane_scene(scene, psf=False)
+
+
 @pytest.fixture(scope="module")
 def cluttered_raw(tmp_path_factory):
     """A 24-megapixel RGGB DNG of a cluttered scene, written by psfd's DNG writer."""
