@@ -28,6 +28,7 @@ planes can share one search.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import cv2
@@ -39,10 +40,12 @@ from psfd.estimator import target
 
 # Smoothing of the saddle detector, in pixels of each pyramid level. With levels
 # a factor 2 apart, level L smooths by 3 to 8 cells for targets imaged at
-# 2**L / 8 to 2**L / 3 pixels per cell (levels 0-3 cover 0.125 to 2.7 px/cell):
-# the hourglass is an exact saddle out to 16 cells while the noise averages out.
+# 2**L / 8 to 2**L / 3 pixels per cell (0.2-0.5 px/cell on level 0, 2-5 on
+# level 4): the hourglass is an exact saddle out to 16 cells while the noise
+# averages out. Levels go on while a target fits: the smallest a level sees,
+# 320 cells at 1/8 px/cell, is 40 px across.
 _SIGMA = 1.0
-_MAX_LEVEL = 3
+_SMALLEST = 40
 _MIN_SEED_HITS = 7  # marks a seed similarity must already explain to be grown
 _STRENGTH_RATIO = 0.4  # weakest mark / strongest mark accepted in one target
 _REFINE_CELLS = 8.0  # half-size of the sub-pixel refinement window, in cells
@@ -256,8 +259,8 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
     """
     found: list[np.ndarray] = []
     lv, finer = _Level.of(norm), None
-    for level in range(_MAX_LEVEL + 1):
-        if min(lv.image.shape) < 24:
+    for level in itertools.count():
+        if min(lv.image.shape) < _SMALLEST:
             break
         to_full = np.diag([2.0**level, 2.0**level, 1.0])  # pyrDown keeps pixel i at 2i
 
