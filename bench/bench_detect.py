@@ -4,7 +4,9 @@ Frames (tests/scenes.py): a 24-megapixel RGGB DNG of a cluttered outdoor
 scene (foliage against a clipped sky, a chain-link fence, checkerboards,
 text) with the target at 0.4 px/cell, whose g1 plane (3000 x 2000) is what
 `find_target` sees for one channel of such a RAW; an 8-bit 1953 x 1301
-plane of the same kind; and the real 328 x 292 example photo.
+plane of the same kind; the real 328 x 292 example photo; and a 3000 x 2000
+indoor plane with the target shot close up at 5 px/cell (beyond the
+previous detector's pyramid).
 
 Reference: the previous detector (commit PREVIOUS: per-tile candidates
 judged by their ring, every candidate through the ring tests, four pyramid
@@ -87,11 +89,13 @@ def main() -> None:
         scenes.raw_scene(dng, seed=2, scale=0.4, angle=200.0)
         planes = {p.channel: p for p in raw.load_frames(dng)}
         plane = scenes.plane_scene(seed=5, scale=0.36, angle=75.0)
+        close = scenes.plane_scene(seed=100, shape=(2000, 3000), scale=5.0, angle=268.0, fill=True)
         photo = cv2.imread(str(ROOT / "tests" / "data" / "img_example.pgm"), cv2.IMREAD_UNCHANGED).astype(np.float64)
         frames = {
             "3000x2000 g1 plane of a cluttered 24 MP RAW": (planes["g1"].data, planes["g1"].saturated),
             "1953x1301 cluttered 8-bit plane": (plane.image.astype(np.float64), plane.image >= 255),
             "328x292 real example photo": (photo, None),
+            "3000x2000 plane, target close up at 5 px/cell": (close.image.astype(np.float64), close.image >= 255),
         }
         found = detect.find_target(*frames["3000x2000 g1 plane of a cluttered 24 MP RAW"])
         others = [(planes[c].data, found, planes[c].saturated, detect.plane_shift(planes["g1"].offset, planes[c].offset))
@@ -114,7 +118,7 @@ def main() -> None:
     print(f"target detection, wall median (min) and CPU median of {args.repeat} interleaved runs")
     for name in frames:
         new, new_cpu = np.array(times[name, "new"]), np.median(cpu[name, "new"])
-        line = f"  {name:44s} new {np.median(new):6.3f} s ({new.min():.3f}) cpu {new_cpu:.3f} {outcome[name, 'new']}"
+        line = f"  {name:46s} new {np.median(new):6.3f} s ({new.min():.3f}) cpu {new_cpu:.3f} {outcome[name, 'new']}"
         if old:
             prev, prev_cpu = np.array(times[name, "previous"]), np.median(cpu[name, "previous"])
             line += (f" | previous {np.median(prev):6.3f} s ({prev.min():.3f}) cpu {prev_cpu:.3f}"
