@@ -28,6 +28,7 @@ planes can share one search.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -446,10 +447,11 @@ def _x_shape(img: np.ndarray, points: np.ndarray, radii) -> tuple[np.ndarray, np
     radius = np.repeat(np.asarray(radii, dtype=np.float64), _RING_SAMPLES)
     dx, dy = (radius * np.cos(theta)).astype(np.float32), (radius * np.sin(theta)).astype(np.float32)
     ring = _remap(img, points[:, 0], points[:, 1], dx, dy)
-    level = ring.mean(axis=1)
+    # Mean and second harmonic in one product (the harmonic sums to zero over
+    # each circle, so it needs no mean removed first).
+    weights = np.column_stack([np.full(len(theta), 1.0 / len(theta)), np.cos(2 * theta), np.sin(2 * theta)])
+    level, re, im = (ring @ weights.astype(np.float32)).T
     ring -= level[:, None]
-    re = ring @ np.cos(2 * theta).astype(np.float32)
-    im = ring @ np.sin(2 * theta).astype(np.float32)
     power = re * re + im * im
     shape = 2.0 * power / (len(theta) * np.einsum("ij,ij->i", ring, ring) + 1e-30)
     # Profile ~ a cos(2 (theta - light)): a = 2 |harmonic| / n, and a square
@@ -467,7 +469,7 @@ def _remap(img: np.ndarray, xs: np.ndarray, ys: np.ndarray, dx: np.ndarray | Non
     """
     xs, ys = np.asarray(xs, dtype=np.float32), np.asarray(ys, dtype=np.float32)
     shape = xs.shape if dx is None else (xs.size, len(dx))
-    count = int(np.prod(shape))
+    count = math.prod(shape)
     # cv2.remap takes maps of under 32767 rows and columns: lay them out in
     # rows of 4096 (padded), which also keeps each point's samples together.
     width = 4096
