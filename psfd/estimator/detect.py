@@ -349,13 +349,17 @@ def _saddles(lv: _Level, finer: _Level | None, coarser: np.ndarray, taken: list[
     targets (homographies pattern cells -> this level's pixels).
     """
     ixx, iyy, ixy = lv.ixx, lv.iyy, lv.ixy
-    neg_det = cv2.subtract(cv2.multiply(ixy, ixy), cv2.multiply(ixx, iyy))
+    # Two level-sized buffers for the whole peak search: on a 24-megapixel
+    # plane each fresh array costs as much again in page faults as the
+    # arithmetic that fills it.
+    neg_det, spare = np.multiply(ixy, ixy), np.multiply(ixx, iyy)
+    np.subtract(neg_det, spare, out=neg_det)
     border = int(np.ceil(max(3 * _SIGMA, _RING_RADII[-1] + 2)))
     neg_det[:border] = neg_det[-border:] = 0.0
     neg_det[:, :border] = neg_det[:, -border:] = 0.0
     floor = (_MIN_STRENGTH * _IDEAL / _SIGMA**2) ** 2
-    peaks = cv2.compare(neg_det, cv2.dilate(neg_det, np.ones((3, 3), np.uint8)), cv2.CMP_GE)
-    peaks &= cv2.compare(neg_det, floor, cv2.CMP_GT)
+    peaks = cv2.compare(neg_det, cv2.dilate(neg_det, np.ones((3, 3), np.uint8), dst=spare), cv2.CMP_GE)
+    peaks &= cv2.compare(neg_det, floor, cv2.CMP_GT, dst=spare.view(np.uint8)[:, : neg_det.shape[1]])
     nonzero = cv2.findNonZero(peaks)  # a few times faster than np.nonzero
     xs, ys = np.reshape(nonzero, (-1, 2)).T if nonzero is not None else (np.zeros(0, np.intp),) * 2
     at = ys * neg_det.shape[1] + xs
