@@ -9,13 +9,15 @@ thesis App. A.1, "Sub-pixel corner refinement").
 The coarse search differs from the thesis, which groups LSD line segments into
 the shape of the marks: here the X-corners are found directly as saddle
 points of the smoothed image, which needs no segment model of the marks and
-works at any rotation and at 0.2 to 2 px/cell alike. At a smoothing of
-several cells the Bernoulli noise averages out while each hourglass mark stays
-a perfect saddle. A real scene has many more saddles than the target (foliage
+works at any rotation and at any scale, from 0.2 px/cell to a target
+filling the frame (a pyramid level per octave). At a smoothing of several
+cells the Bernoulli noise averages out while each hourglass mark stays a
+perfect saddle. A real scene has many more saddles than the target (foliage
 against the sky, fences, letters), often stronger ones, so nothing is ranked
-over the whole frame. Each saddle is judged by its own surroundings, an
-X-corner at any contrast or not (`_x_shape`), and only the best few of every
-small tile are kept. Two candidates become a hypothesis when they could be
+over the whole frame. Each saddle is judged by its own surroundings: against
+the contrast around it (a mark is an X-corner of its own black and white),
+then whether it is an X-corner at any contrast or not (`_x_shape`), and only
+the best few of every small tile are kept. Two candidates become a hypothesis when they could be
 neighbouring marks of a row of the ring: similar, their dark axes across the
 row, and a flat black and a flat white square between them. Every such
 hypothesis (a similarity) is ranked by how many of the other ten marks it
@@ -40,12 +42,12 @@ from psfd.estimator import target
 
 # Smoothing of the saddle detector, in pixels of each pyramid level. With levels
 # a factor 2 apart, level L smooths by 3 to 8 cells for targets imaged at
-# 2**L / 8 to 2**L / 3 pixels per cell (0.2-0.5 px/cell on level 0, 2-5 on
-# level 4): the hourglass is an exact saddle out to 16 cells while the noise
-# averages out. Levels go on while a target fits: the smallest a level sees,
-# 320 cells at 1/8 px/cell, is 40 px across.
+# 2**L / 8 to 2**L / 3 pixels per cell (the hourglass is an exact saddle out
+# to 16 cells while the noise averages out); neighbouring levels overlap, and
+# level 0 finds targets from 0.2 px/cell (measured). Levels go on while a
+# target fits (5-6 px/cell fill a 3000 x 2000 plane, level 4 or 5).
 _SIGMA = 1.0
-_SMALLEST = 40
+_SMALLEST = 40  # px: the smallest target a level sees, 320 cells at 1/8 px/cell
 _MIN_SEED_HITS = 7  # marks a seed similarity must already explain to be grown
 _STRENGTH_RATIO = 0.4  # weakest mark / strongest mark accepted in one target
 _REFINE_CELLS = 8.0  # half-size of the sub-pixel refinement window, in cells
@@ -134,6 +136,9 @@ def find_target(image: np.ndarray, saturated: np.ndarray | None = None) -> Detec
     about 3 cells (sigma; e.g. 0.8 px at 0.25 px/cell, f/32 on a small
     target) the blurred neighbouring squares reach the refinement window and
     the error grows to 0.15-0.5 px: place the target closer for such apertures.
+    Any scale from 0.2 px/cell to a target filling the frame is found; in
+    cluttered 3000 x 2000 planes at 0.8-6 px/cell the corners came within
+    0.03-0.19 px (8-bit planes).
 
     Nothing is ranked over the whole frame, so a busy scene around the
     target (foliage against a clipped sky, fences, signs) does not hide it;
