@@ -275,6 +275,11 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
     level sees as a field of X-corners in step with its cells (a target
     close up at a few px/cell), would seed hundreds of hypotheses to grow
     and refuse (seconds on a 3000 x 2000 plane, measured).
+
+    The first search takes only saddles about as strong as the contrast
+    around them (see `_saddles`), half of a cluttered scene's. A target in
+    shade beside a bright window or sky is weaker than the contrast around
+    its outer marks, so when that finds nothing, every saddle is searched.
     """
     levels: list[tuple[_Level, _Level | None, np.ndarray]] = []
     lv, finer = _Level.of(norm), None
@@ -282,6 +287,11 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
         coarser = cv2.pyrDown(lv.image)
         levels.append((lv, finer, coarser))
         finer, lv = lv, _Level.of(coarser)
+    return _search_levels(norm, levels, True) or _search_levels(norm, levels, False)
+
+
+def _search_levels(norm: np.ndarray, levels: list, local: bool) -> list[np.ndarray]:
+    """`_search` on pyramid ``levels``, with or without the candidates' local-contrast test."""
     found: list[np.ndarray] = []
     for level in reversed(range(len(levels))):
         to_full = np.diag([2.0**level, 2.0**level, 1.0])  # pyrDown keeps pixel i at 2i
@@ -293,7 +303,7 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
             return any(_same_target(to_full @ h, g) for g in found)
 
         taken = [np.linalg.inv(to_full) @ g for g in found]
-        for h in _find_at_level(_saddles(*levels[level], taken), verify, known):
+        for h in _find_at_level(_saddles(*levels[level], taken, local), verify, known):
             if not known(h, np.eye(3)):  # grown from a seed that did not look like it
                 found.append(h)
     return found
@@ -339,7 +349,9 @@ class _Saddles:
         self.tree = cKDTree(self.points)
 
 
-def _saddles(lv: _Level, finer: _Level | None, coarser: np.ndarray, taken: list[np.ndarray] = ()) -> _Saddles:
+def _saddles(
+    lv: _Level, finer: _Level | None, coarser: np.ndarray, taken: list[np.ndarray] = (), local: bool = True
+) -> _Saddles:
     """X-corner candidates of one pyramid level, chosen locally.
 
     Saddle points of the smoothed image (sigma^2 sqrt(-det Hess), scale
@@ -351,7 +363,8 @@ def _saddles(lv: _Level, finer: _Level | None, coarser: np.ndarray, taken: list[
     Of the candidates that pass, only the best few of every small tile are
     kept: a busy region elsewhere in the frame never pushes a mark out.
     ``coarser`` is the next level's image; none is taken on the ``taken``
-    targets (homographies pattern cells -> this level's pixels).
+    targets (homographies pattern cells -> this level's pixels); ``local``
+    asks for the local-contrast test below.
     """
     ixx, iyy, ixy = lv.ixx, lv.iyy, lv.ixy
     # Two level-sized buffers for the whole peak search: on a 24-megapixel
@@ -379,11 +392,13 @@ def _saddles(lv: _Level, finer: _Level | None, coarser: np.ndarray, taken: list[
     # hold a mark's own black and white): marks 0.5-0.9 of the ideal (rendered
     # and cluttered frames, 0.2-2 px/cell, blur up to 3 cells), about half of a
     # cluttered scene's saddles below 0.3. This halves the candidates, before
-    # the costlier tests below, whatever the target's own contrast.
+    # the costlier tests below, whatever the target's own contrast, unless a
+    # much brighter area lies beside the target (`_search` then goes without).
     # (Read on the next coarser level, ``coarser``, whose pyrDown smoothing
     # is about _SIGMA here: a quarter of the pixels to reduce.)
-    around = _local_range(coarser, _TILE // 2)[ys // _TILE, xs // _TILE]
-    keep &= strength >= _LOCAL_STRENGTH * _IDEAL / _SIGMA**2 * around
+    if local:
+        around = _local_range(coarser, _TILE // 2)[ys // _TILE, xs // _TILE]
+        keep &= strength >= _LOCAL_STRENGTH * _IDEAL / _SIGMA**2 * around
     points = np.column_stack([xs[keep], ys[keep]]).astype(np.float32)
     points = points[~_inside(points, list(taken))]  # on a target found on a coarser level
     # Centre on the saddle (gradient zero) of the finer level, where the
