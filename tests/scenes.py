@@ -329,7 +329,7 @@ def _place(
 
 
 def _fill_place(rng: np.random.Generator, shape: tuple[int, int], homography: np.ndarray, margin: float) -> tuple[float, float]:
-    """A centre where the whole target (``homography`` centred at 0) fits in the frame, sky or not."""
+    """A centre, anywhere, where the whole target (``homography``, centred at 0) fits in the frame."""
     rim = np.array([[-margin, -margin], [SIZE + margin, -margin], [SIZE + margin, SIZE + margin], [-margin, SIZE + margin]])
     outline = _apply(homography, rim)
     lo, hi = -outline.min(axis=0) + 4, np.array([shape[1], shape[0]]) - outline.max(axis=0) - 4
@@ -365,13 +365,13 @@ def _layout_scene(
     homographies, centres = [], []
     for k in range(targets):
         tilt = tuple(rng.uniform(-0.08, 0.08, 2))
-        turn = angle if k == 0 else float(rng.uniform(0, 360))
-        if fill:
-            centre = _fill_place(rng, shape, target_homography((0.0, 0.0), scale * unit, turn, tilt), margin)
+        if fill:  # one target, turned by ``angle``
+            centre = _fill_place(rng, shape, target_homography((0.0, 0.0), scale * unit, angle, tilt), margin)
         else:
             extent = (SIZE + 2 * margin) * scale * unit * 1.5
             centre = _place(rng, shape, horizon, extent, centres)
         centres.append(np.array(centre))
+        turn = angle if k == 0 else float(rng.uniform(0, 360))
         h = target_homography(centre, scale * unit, turn, tilt)
         black, white = float(rng.uniform(0.02, 0.06)), float(rng.uniform(0.55, 0.85))  # ink and paper
         draw_target(canvas, h, black=black, white=white, gradient=float(rng.uniform(-0.15, 0.15)), margin=margin,
