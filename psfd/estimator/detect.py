@@ -471,11 +471,10 @@ def _x_shape(img: np.ndarray, points: np.ndarray, radii) -> tuple[np.ndarray, np
     radius = np.repeat(np.asarray(radii, dtype=np.float64), _RING_SAMPLES)
     dx, dy = (radius * np.cos(theta)).astype(np.float32), (radius * np.sin(theta)).astype(np.float32)
     ring = _remap(img, points[:, 0], points[:, 1], dx, dy)
-    # Mean and second harmonic in one product (the harmonic sums to zero over
-    # each circle, so it needs no mean removed first).
-    weights = np.column_stack([np.full(len(theta), 1.0 / len(theta)), np.cos(2 * theta), np.sin(2 * theta)])
-    level, re, im = (ring @ weights.astype(np.float32)).T
+    level = ring.mean(axis=1)
     ring -= level[:, None]
+    re = ring @ np.cos(2 * theta).astype(np.float32)
+    im = ring @ np.sin(2 * theta).astype(np.float32)
     power = re * re + im * im
     shape = 2.0 * power / (len(theta) * np.einsum("ij,ij->i", ring, ring) + 1e-30)
     # Profile ~ a cos(2 (theta - light)): a = 2 |harmonic| / n, and a square
