@@ -52,7 +52,7 @@ _MIN_SEED_HITS = 7  # marks a seed similarity must already explain to be grown
 _STRENGTH_RATIO = 0.4  # weakest mark / strongest mark accepted in one target
 _REFINE_CELLS = 8.0  # half-size of the sub-pixel refinement window, in cells
 _AXIS_TOL = np.deg2rad(20.0)  # dark axis of a mark vs the pattern's y axis (perspective, noise)
-# Saddle strength (see _saddles) below which a point is not a candidate, as a
+# Saddle strength (see _proposals) below which a point is not a candidate, as a
 # fraction of the strength of an ideal contrast-1 X-corner: low, so that a
 # dim target is not lost; the shape test below does the selection.
 _MIN_STRENGTH = 0.03
@@ -67,7 +67,7 @@ _RING_SAMPLES = 12
 # about half of a cluttered scene's X-like saddles are below 0.8.
 _MIN_SHAPE = 0.8
 _OUTER_SHAPE = 0.6  # the same on the outer circle alone, a cheaper first pass
-_LOCAL_STRENGTH = 0.3  # saddle strength / that of an ideal X-corner of the contrast around it (_saddles)
+_LOCAL_STRENGTH = 0.3  # saddle strength / that of an ideal X-corner of the contrast around it (_proposals)
 _MIN_CONTRAST = 0.02  # of the image's range: the marks' black on white is 10 times more
 # Local choice: the best two candidates (contrast times shape) of every 8 x 8
 # tile, under the spacing of adjacent marks (12-32 level px).
@@ -277,9 +277,12 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
     and refuse (seconds on a 3000 x 2000 plane, measured).
 
     The first search takes only saddles about as strong as the contrast
-    around them (see `_saddles`), half of a cluttered scene's. A target in
+    around them (see `_proposals`), half of a cluttered scene's. A target in
     shade beside a bright window or sky is weaker than the contrast around
-    its outer marks, so when that finds nothing, every saddle is searched.
+    its outer marks, so when that finds nothing, the search is made again
+    with the others judged too (the pyramid and the strong ones are not
+    computed twice: a frame without a target costs about what it did before
+    this first pass).
     """
     levels: list[tuple[_Level, _Level | None, np.ndarray]] = []
     lv, finer = _Level.of(norm), None
@@ -287,26 +290,40 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
         coarser = cv2.pyrDown(lv.image)
         levels.append((lv, finer, coarser))
         finer, lv = lv, _Level.of(coarser)
-    return _search_levels(norm, levels, True) or _search_levels(norm, levels, False)
+    proposed: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # per level: peaks, and which are strong
+    strong: dict[int, tuple[np.ndarray, ...]] = {}  # per level: the strong peaks judged
+
+    def search(first: bool) -> list[np.ndarray]:
+        found: list[np.ndarray] = []
+        for level in reversed(range(len(levels))):
+            lv, finer, coarser = levels[level]
+            to_full = np.diag([2.0**level, 2.0**level, 1.0])  # pyrDown keeps pixel i at 2i
+            taken = [np.linalg.inv(to_full) @ g for g in found]  # targets found on coarser levels
+            if first:
+                peaks, local = proposed[level] = _proposals(lv, coarser)
+                judged = strong[level] = _judge(lv, finer, _off(peaks[local], taken))
+            else:  # the other peaks now, with the strong ones judged the first time
+                peaks, local = proposed[level]
+                more = _judge(lv, finer, _off(peaks[~local], taken))
+                judged = tuple(np.concatenate(pair) for pair in zip(strong[level], more))
+
+            def verify(h: np.ndarray, to_full=to_full) -> np.ndarray | None:
+                return _orient(norm, to_full @ h)
+
+            def known(h: np.ndarray, to_full=to_full) -> bool:
+                return any(_same_target(to_full @ h, g) for g in found)
+
+            for h in _find_at_level(_select(lv, judged, taken), verify, known):
+                if not known(h, np.eye(3)):  # grown from a seed that did not look like it
+                    found.append(h)
+        return found
+
+    return search(True) or search(False)
 
 
-def _search_levels(norm: np.ndarray, levels: list, local: bool) -> list[np.ndarray]:
-    """`_search` on pyramid ``levels``, with or without the candidates' local-contrast test."""
-    found: list[np.ndarray] = []
-    for level in reversed(range(len(levels))):
-        to_full = np.diag([2.0**level, 2.0**level, 1.0])  # pyrDown keeps pixel i at 2i
-
-        def verify(h: np.ndarray, to_full=to_full) -> np.ndarray | None:
-            return _orient(norm, to_full @ h)
-
-        def known(h: np.ndarray, to_full=to_full) -> bool:
-            return any(_same_target(to_full @ h, g) for g in found)
-
-        taken = [np.linalg.inv(to_full) @ g for g in found]
-        for h in _find_at_level(_saddles(*levels[level], taken, local), verify, known):
-            if not known(h, np.eye(3)):  # grown from a seed that did not look like it
-                found.append(h)
-    return found
+def _off(points: np.ndarray, targets: list[np.ndarray]) -> np.ndarray:
+    """The points that lie on none of the targets (homographies pattern cells -> the points' pixels)."""
+    return points[~_inside(points, targets)]
 
 
 def _inside(points: np.ndarray, targets: list[np.ndarray]) -> np.ndarray:
@@ -349,22 +366,12 @@ class _Saddles:
         self.tree = cKDTree(self.points)
 
 
-def _saddles(
-    lv: _Level, finer: _Level | None, coarser: np.ndarray, taken: list[np.ndarray] = (), local: bool = True
-) -> _Saddles:
-    """X-corner candidates of one pyramid level, chosen locally.
+def _proposals(lv: _Level, coarser: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Saddle points of one pyramid level (whole pixels) and which are strong against the contrast around them.
 
-    Saddle points of the smoothed image (sigma^2 sqrt(-det Hess), scale
-    normalised; smooth edges and blobs do not score, det Hess >= 0) are
-    centred to sub-pixel precision and then judged by their own surroundings
-    (`_x_shape`, on the finer level where there is one): an hourglass mark is
-    an X-corner out to half its block, two opposite dark sectors and two
-    opposite light ones, point-symmetric; foliage, letters and edges are not.
-    Of the candidates that pass, only the best few of every small tile are
-    kept: a busy region elsewhere in the frame never pushes a mark out.
-    ``coarser`` is the next level's image; none is taken on the ``taken``
-    targets (homographies pattern cells -> this level's pixels); ``local``
-    asks for the local-contrast test below.
+    Saddle points of the smoothed image: sigma^2 sqrt(-det Hess), scale
+    normalised, local maxima above a floor (smooth edges and blobs do not
+    score, det Hess >= 0). ``coarser`` is the next level's image.
     """
     ixx, iyy, ixy = lv.ixx, lv.iyy, lv.ixy
     # Two level-sized buffers for the whole peak search: on a 24-megapixel
@@ -391,16 +398,25 @@ def _saddles(
     # light range of the 3 x 3 tiles around (3 x 3 tiles of 8 px, which always
     # hold a mark's own black and white): marks 0.5-0.9 of the ideal (rendered
     # and cluttered frames, 0.2-2 px/cell, blur up to 3 cells), about half of a
-    # cluttered scene's saddles below 0.3. This halves the candidates, before
-    # the costlier tests below, whatever the target's own contrast, unless a
-    # much brighter area lies beside the target (`_search` then goes without).
+    # cluttered scene's saddles below 0.3. `_search` judges these strong ones
+    # first, and the others only if that finds nothing: a target in shade
+    # beside a much brighter area is weaker than the contrast around it.
     # (Read on the next coarser level, ``coarser``, whose pyrDown smoothing
     # is about _SIGMA here: a quarter of the pixels to reduce.)
-    if local:
-        around = _local_range(coarser, _TILE // 2)[ys // _TILE, xs // _TILE]
-        keep &= strength >= _LOCAL_STRENGTH * _IDEAL / _SIGMA**2 * around
-    points = np.column_stack([xs[keep], ys[keep]]).astype(np.float32)
-    points = points[~_inside(points, list(taken))]  # on a target found on a coarser level
+    around = _local_range(coarser, _TILE // 2)[ys // _TILE, xs // _TILE]
+    local = strength >= _LOCAL_STRENGTH * _IDEAL / _SIGMA**2 * around
+    return np.column_stack([xs[keep], ys[keep]]).astype(np.float32), local[keep]
+
+
+def _judge(lv: _Level, finer: _Level | None, points: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The saddle points (whole pixels of ``lv``) that look like X-corners: (points, contrast, level, axis, shape).
+
+    Each is centred to sub-pixel precision and then judged by its own
+    surroundings (`_x_shape`, on the finer level where there is one): an
+    hourglass mark is an X-corner out to half its block, two opposite dark
+    sectors and two opposite light ones, point-symmetric; foliage, letters
+    and edges are not.
+    """
     # Centre on the saddle (gradient zero) of the finer level, where the
     # smoothing is half as wide and the neighbouring blocks do not pull it;
     # where the finer level shows no saddle at the peak, start from this
@@ -415,8 +431,19 @@ def _saddles(
     outer = _x_shape(centring.image, points, (zoom * _RING_RADII[-1],))[0]
     points = _newton(centring, points[outer >= _OUTER_SHAPE])[0]
     shape, contrast, level, axis = _x_shape(centring.image, points, zoom * np.asarray(_RING_RADII))
-    points = points / zoom
-    keep = np.flatnonzero((shape >= _MIN_SHAPE) & (contrast >= _MIN_CONTRAST))
+    keep = (shape >= _MIN_SHAPE) & (contrast >= _MIN_CONTRAST)
+    return points[keep] / zoom, contrast[keep], level[keep], axis[keep], shape[keep]
+
+
+def _select(lv: _Level, judged: tuple[np.ndarray, ...], taken: list[np.ndarray]) -> _Saddles:
+    """X-corner candidates of one level, chosen locally, from those `_judge` passed.
+
+    Only the best few of every small tile are kept: a busy region elsewhere
+    in the frame never pushes a mark out. None is taken on the ``taken``
+    targets (homographies pattern cells -> this level's pixels).
+    """
+    points, contrast, level, axis, shape = judged
+    keep = np.flatnonzero(~_inside(points, taken))
     best = keep[_best_per_tile(points[keep], (shape * contrast)[keep], _TILE, _PER_TILE)]
     return _Saddles(points[best].astype(np.float64), contrast[best], level[best], axis[best], shape[best], lv.smooth)
 
