@@ -6,7 +6,8 @@ text) with the target at 0.4 px/cell, whose g1 plane (3000 x 2000) is what
 `find_target` sees for one channel of such a RAW; an 8-bit 1953 x 1301
 plane of the same kind; the real 328 x 292 example photo; and a 3000 x 2000
 indoor plane with the target shot close up at 5 px/cell (beyond the
-previous detector's pyramid).
+previous detector's pyramid); and a cluttered plane without a target (the
+time to refuse it).
 
 Reference: the previous detector (commit PREVIOUS: per-tile candidates
 judged by their ring, every candidate through the ring tests, four pyramid
@@ -90,12 +91,14 @@ def main() -> None:
         planes = {p.channel: p for p in raw.load_frames(dng)}
         plane = scenes.plane_scene(seed=5, scale=0.36, angle=75.0)
         close = scenes.plane_scene(seed=100, shape=(2000, 3000), scale=5.0, angle=268.0, fill=True)
+        empty = scenes.plane_scene(seed=7, targets=0)
         photo = cv2.imread(str(ROOT / "tests" / "data" / "img_example.pgm"), cv2.IMREAD_UNCHANGED).astype(np.float64)
         frames = {
             "3000x2000 g1 plane of a cluttered 24 MP RAW": (planes["g1"].data, planes["g1"].saturated),
             "1953x1301 cluttered 8-bit plane": (plane.image.astype(np.float64), plane.image >= 255),
             "328x292 real example photo": (photo, None),
             "3000x2000 plane, target close up at 5 px/cell": (close.image.astype(np.float64), close.image >= 255),
+            "1953x1301 cluttered plane without a target": (empty.image.astype(np.float64), empty.image >= 255),
         }
         found = detect.find_target(*frames["3000x2000 g1 plane of a cluttered 24 MP RAW"])
         others = [(planes[c].data, found, planes[c].saturated, detect.plane_shift(planes["g1"].offset, planes[c].offset))
