@@ -17,8 +17,8 @@ against the sky, fences, letters), often stronger ones, so nothing is ranked
 over the whole frame. Each saddle is judged by its own surroundings: against
 the contrast around it (a mark is an X-corner of its own black and white),
 then whether it is an X-corner at any contrast or not (`_x_shape`), and only
-the best few of every small tile are kept. Two candidates become a hypothesis when they could be
-neighbouring marks of a row of the ring: similar, their dark axes across the
+the best few of every small tile are kept. Two candidates become a
+hypothesis when they could be neighbouring marks of a row of the ring: similar, their dark axes across the
 row, and a flat black and a flat white square between them. Every such
 hypothesis (a similarity) is ranked by how many of the other ten marks it
 predicts where the layout puts them, grown into a homography, and accepted
@@ -281,8 +281,8 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
     shade beside a bright window or sky is weaker than the contrast around
     its outer marks, so when that finds nothing, the search is made again
     with the others judged too (the pyramid and the strong ones are not
-    computed twice: a frame without a target costs about what it did before
-    this first pass).
+    computed twice: a frame without a target costs about one search of
+    every saddle).
     """
     levels: list[tuple[_Level, _Level | None, np.ndarray]] = []
     lv, finer = _Level.of(norm), None
