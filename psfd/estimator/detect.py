@@ -18,8 +18,9 @@ over the whole frame. Each saddle is judged by its own surroundings: against
 the contrast around it (a mark is an X-corner of its own black and white),
 then whether it is an X-corner at any contrast or not (`_x_shape`), and only
 the best few of every small tile are kept. Two candidates become a
-hypothesis when they could be neighbouring marks of a row of the ring: similar, their dark axes across the
-row, and a flat black and a flat white square between them. Every such
+hypothesis when they could be neighbouring marks of a row of the ring:
+similar, their dark axes across the row, and a flat black and a flat white
+square between them. Every such
 hypothesis (a similarity) is ranked by how many of the other ten marks it
 predicts where the layout puts them, grown into a homography, and accepted
 only if the 24 flat squares read as the layout says, with the orientation
