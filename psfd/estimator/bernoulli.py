@@ -132,8 +132,8 @@ def _s_band_rows(shape, factor, s, jacobian):
 
     For a fixed row, both inequalities of `s_band` are |alpha f_x + beta| < s / 2
     with f_x increasing along the row: the kept columns are one interval.
-    Its ends are found by bisection on the very floating-point expression
-    `s_band` states (the rounded sum is monotone in f_x too), so the masks
+    Its ends are found by a binary search, checked against the very floating-point
+    expression `s_band` states (the rounded sum is monotone in f_x too), so the masks
     are exactly those of evaluating it on the whole box, at a few
     operations per row instead of per coefficient.
     """
@@ -151,8 +151,8 @@ def _s_band_rows(shape, factor, s, jacobian):
             if alpha < 0:  # |x + beta| = |-x - beta| exactly in floating point: make the sum increasing
                 alpha, beta = -alpha, -beta
             x = alpha * f_x
-            lo = np.maximum(lo, _first(x, beta, lambda v: v > -half))
-            hi = np.minimum(hi, _first(x, beta, lambda v: v >= half))
+            lo = np.maximum(lo, _first(x, beta, lambda v: v > -half, np.searchsorted(x, -half - beta, "right")))
+            hi = np.minimum(hi, _first(x, beta, lambda v: v >= half, np.searchsorted(x, half - beta, "left")))
         out.append((lo, np.maximum(hi, lo)))
     return out[0], out[1]
 
@@ -165,17 +165,20 @@ def _reach_box(shape: tuple[int, int], factor: int, s: int, jacobian: np.ndarray
     return min(rows, int(reach[1] * 2 * rows / factor) + 2), min(cols, int(reach[0] * 2 * cols / factor) + 2)
 
 
-def _first(x: np.ndarray, beta: np.ndarray, test: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
-    """Per row, the first index j with ``test(x[j] + beta[row])`` (false, then true, along j); len(x) if none."""
-    lo, hi = np.zeros(beta.size, dtype=np.intp), np.full(beta.size, x.size, dtype=np.intp)
+def _first(x: np.ndarray, beta: np.ndarray, test: Callable[[np.ndarray], np.ndarray], guess: np.ndarray) -> np.ndarray:
+    """Per row, the first index j with ``test(x[j] + beta[row])`` (false, then true, along j); len(x) if none.
+
+    ``guess`` is that index in exact arithmetic (a binary search of x): the
+    rounded sum can move the answer by a step, so it is corrected against
+    ``test`` itself until the test is false before it and true at it.
+    """
+    j = np.asarray(guess, dtype=np.intp).copy()
     while True:
-        open_ = lo < hi
-        if not open_.any():
-            return lo
-        mid = (lo + hi) // 2
-        ok = test(x[np.minimum(mid, x.size - 1)] + beta) & open_
-        hi = np.where(ok, mid, hi)
-        lo = np.where(open_ & ~ok, mid + 1, lo)
+        back = (j > 0) & test(x[np.maximum(j - 1, 0)] + beta)
+        ahead = ~back & (j < x.size) & ~test(x[np.minimum(j, x.size - 1)] + beta)
+        if not (back.any() or ahead.any()):
+            return j
+        j += ahead.astype(np.intp) - back.astype(np.intp)
 
 
 def u_tilde(
@@ -279,7 +282,7 @@ class PatternBand:
     few per cent across a target). The synthesis is linear in the band, so a
     window's u~ is the u~ of one reference band (synthesised once) plus the
     image of the coefficients where its band differs from the reference
-    (`difference`, from the bands' row intervals; `resample.dct_sparse_part`),
+    (`difference`, from the bands' row intervals; `resample.dct_runs_part`),
     evaluated only on the part of the raster that the window reads, or its
     own band synthesised whole when that costs less. The result equals
     `u_tilde`'s up to float rounding. Sharing one band between windows whose
@@ -330,10 +333,11 @@ class PatternBand:
         return WindowBand(self, jacobian)
 
     def difference(self, jacobian: np.ndarray) -> tuple[np.ndarray, ...]:
-        """The coefficients where the band of ``jacobian`` differs from the reference band, as
-        (i, j, cosine weight, sine weight) for `resample.dct_sparse_part`: built from the row
+        """The coefficients where the band of ``jacobian`` differs from the reference band, as runs
+        (row, start, stop, cosine weight, sine weight) for `resample.dct_runs_part`: built from the row
         intervals, never from masks of the whole band."""
         own, ref = self.rows(jacobian), self.reference
+        rows = np.arange(self.keep[0])
         parts = []
         # (a, b) = (same, cross) enter as cos (a + b) / 2 and sin (b - a) / 2 (`resample.dct_synthesise`)
         for k, (cos_w, sin_w) in ((0, (0.5, -0.5)), (2, (0.5, 0.5))):
@@ -341,17 +345,10 @@ class PatternBand:
             for sign, (a, b, c, d) in ((1.0, (lo, hi, lo_ref, hi_ref)), (-1.0, (lo_ref, hi_ref, lo, hi))):
                 # [a, b) minus [c, d): [a, min(b, c)) and [max(a, d), b)
                 for start, stop in ((a, np.minimum(b, c)), (np.maximum(a, d), b)):
-                    i, j = _runs(start, stop)
-                    parts.append((i, j, np.full(i.size, sign * cos_w), np.full(i.size, sign * sin_w)))
+                    run = stop > start
+                    n = int(np.count_nonzero(run))
+                    parts.append((rows[run], start[run], stop[run], np.full(n, sign * cos_w), np.full(n, sign * sin_w)))
         return tuple(np.concatenate(column) for column in zip(*parts))
-
-
-def _runs(start: np.ndarray, stop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(row, column) of every column in [start[row], stop[row]) of every row."""
-    length = np.maximum(stop - start, 0)
-    rows = np.repeat(np.arange(start.size), length)
-    first = np.cumsum(length) - length  # where each row's run begins in the output
-    return rows, np.arange(rows.size) - np.repeat(first - start, length)
 
 
 class WindowBand:
@@ -376,14 +373,14 @@ class WindowBand:
         c0 = int(np.clip(np.floor(x[finite].min()) - 1, 0, cols))
         c1 = int(np.clip(np.floor(x[finite].max()) + 3, c0, cols))
         crop = band.base[r0:r1, c0:c1]
-        i, j, cos_w, sin_w = band.difference(self.jacobian)
-        cost = resample.band_part_cost(i, j, r1 - r0, c1 - c0)
+        runs = band.difference(self.jacobian)
+        cost = resample.band_part_cost(runs, r1 - r0, c1 - c0, band.coeffs.shape)
         if cost:
             # the difference costs `band_part_cost` multiply-adds on the crop, the window's own band
             # a synthesis of the whole raster by FFTs, measured ~4x slower per rows x cols x log2(rows x cols)
             if cost < 4 * rows * cols * np.log2(rows * cols):
-                part = resample.dct_sparse_part(band.coeffs, i, j, cos_w, sin_w, band.shape,
-                                                slice(r0, r1), slice(c0, c1), band.bases)
+                part = resample.dct_runs_part(band.coeffs, runs, band.shape, slice(r0, r1), slice(c0, c1),
+                                              band.bases)
                 crop = (crop + part).astype(np.float32)
             else:
                 same, cross = s_band(band.shape, factor, band.s, self.jacobian)

@@ -13,7 +13,7 @@ import numpy as np
 from scipy import fft
 
 __all__ = [
-    "band_part_cost", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_sparse_part",
+    "band_part_cost", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_runs_part",
     "dct_synthesise", "erode", "keys_bicubic", "keys_grid", "keys_upsample", "keys_weights",
 ]
 
@@ -119,21 +119,27 @@ def dct_synthesise(
     return lowpassed
 
 
-def dct_sparse_part(
-    coeffs: np.ndarray, i: np.ndarray, j: np.ndarray, cos_w: np.ndarray, sin_w: np.ndarray,
-    size: tuple[int, int], rows: slice, cols: slice, bases: dict | None = None,
+def dct_runs_part(
+    coeffs: np.ndarray, runs: tuple[np.ndarray, ...], size: tuple[int, int], rows: slice, cols: slice,
+    bases: dict | None = None,
 ) -> np.ndarray:
-    """The image of a few DCT coefficients on ``rows`` x ``cols`` of the grid: `dct_synthesise` of a sparse band.
+    """The image of a few runs of DCT coefficients on ``rows`` x ``cols`` of the grid: `dct_synthesise` of a sparse band.
 
-    Coefficient (``i[n]``, ``j[n]``) of ``coeffs`` enters with weight ``cos_w[n]``
-    on its cosine part and ``sin_w[n]`` on its sine part (a band (a, b) of
-    `dct_synthesise` has cos_w = (a + b) / 2, sin_w = (b - a) / 2); repeated
-    coordinates add up. It is synthesised from the orthonormal DCT-III and
-    DST-III basis functions (sqrt(2 / N) cos(pi k (n + 1/2) / N), sqrt(1 / N)
-    for k = 0; sqrt(2 / N) sin(pi k (n + 1/2) / N)) tabulated on the rows and
-    columns asked for, at the frequencies present only: B_rows D B_cols^T
-    with D sparse, multiplied in the cheaper order (`band_part_cost`). float64.
-    ``bases`` (`dct_bases` of the grid) saves tabulating them on every call.
+    ``runs`` = (row, start, stop, cos_w, sin_w): coefficients (row[n], start[n] ..
+    stop[n] - 1) of ``coeffs`` enter with weight ``cos_w[n]`` on their cosine part
+    and ``sin_w[n]`` on their sine part (a band (a, b) of `dct_synthesise` has
+    cos_w = (a + b) / 2, sin_w = (b - a) / 2); overlapping runs add up.
+
+    Each part is synthesised from the orthonormal DCT-III and DST-III basis
+    functions (sqrt(2 / N) cos(pi k (n + 1/2) / N), sqrt(1 / N) for k = 0;
+    sqrt(2 / N) sin(pi k (n + 1/2) / N)) tabulated on the rows and columns
+    asked for: B_rows D B_cols^T with D sparse. A coefficient's term is
+    separable, so it can reach the image through its row of D
+    (B_rows[:, R] (D_R B_cols^T)) or through its column ((B_rows D_C)
+    B_cols[:, C]^T); the dense products cost rows x cols x (|R| + |C|),
+    so the runs are split between the two to keep R + C small (`_cover`). Products in float32 (the band is read in float32,
+    `u_tilde`), accumulated in float64. ``bases`` (`dct_bases` of the grid)
+    saves tabulating the basis functions on every call.
     """
     from scipy import sparse  # already loaded with scipy.linalg
 
@@ -141,34 +147,83 @@ def dct_sparse_part(
     n_r = np.arange(out_r)[rows] + 0.5
     n_c = np.arange(out_c)[cols] + 0.5
     out = np.zeros((n_r.size, n_c.size))
-    if i.size == 0:
+    row, start, stop, cos_w, sin_w = (np.asarray(x) for x in runs)
+    keep = stop > start
+    row, start, stop, cos_w, sin_w = row[keep], start[keep], stop[keep], cos_w[keep], sin_w[keep]
+    if row.size == 0:
         return out
-    value = coeffs[i, j].astype(np.float64)
-    used_r, at_r = _used(i, coeffs.shape[0])
-    used_c, at_c = _used(j, coeffs.shape[1])
-    by_rows = _part_costs(i.size, used_r.size, used_c.size, n_r.size, n_c.size)
-    by_rows = by_rows[0] <= by_rows[1]
+    length = stop - start
+    i = np.repeat(row, length)
+    j = np.arange(i.size) - np.repeat(np.cumsum(length) - length - start, length)
+    value = coeffs[i, j].astype(np.float32)
+    by_row = np.repeat(_cover(row, start, stop, coeffs.shape, (n_r.size, n_c.size))[0], length)
     # sin(0) = 0 on the first row and column
-    for weights, wave in ((value * cos_w, np.cos), (np.where((i == 0) | (j == 0), 0.0, value * sin_w), np.sin)):
+    sine = np.where((i == 0) | (j == 0), 0.0, np.repeat(sin_w, length)).astype(np.float32)
+    for weights, wave in ((value * np.repeat(cos_w, length).astype(np.float32), np.cos), (value * sine, np.sin)):
         if not np.any(weights):
             continue
         if bases is None:
-            table_r = _basis(wave, out_r, n_r, used_r)
-            table_c = _basis(wave, out_c, n_c, used_c)
+            table_r = _basis(wave, out_r, n_r, np.arange(coeffs.shape[0])).astype(np.float32)
+            table_c = _basis(wave, out_c, n_c, np.arange(coeffs.shape[1])).astype(np.float32)
         else:
-            table_r = bases[wave.__name__, 0][rows][:, used_r]
-            table_c = bases[wave.__name__, 1][cols][:, used_c]
-        d = sparse.csr_matrix((weights, (at_r, at_c)), shape=(used_r.size, used_c.size))
-        if by_rows:
-            out += table_r @ (d @ table_c.T)
-        else:
-            out += (d.T @ table_r.T).T @ table_c.T
+            table_r = bases[wave.__name__, 0][rows]
+            table_c = bases[wave.__name__, 1][cols]
+        for turned, (a, b, t_a, t_b) in ((False, (i, j, table_r, table_c)), (True, (j, i, table_c, table_r))):
+            part = by_row if turned else ~by_row
+            if not part.any():
+                continue
+            # through the columns of D: (B_a D) B_b^T over the used columns b; by rows: the same, transposed
+            used_a, at_a = _used(a[part], t_a.shape[1])
+            used_b, at_b = _used(b[part], t_b.shape[1])
+            d = sparse.csr_matrix((weights[part], (at_b, at_a)), shape=(used_b.size, used_a.size))
+            through = (d @ np.ascontiguousarray(t_a[:, used_a].T)).T @ t_b[:, used_b].T
+            out += through.T if turned else through
     return out
 
 
+def _cover(row: np.ndarray, start: np.ndarray, stop: np.ndarray, shape: tuple[int, int],
+           out: tuple[int, int]) -> tuple[np.ndarray, float]:
+    """Which runs `dct_runs_part` synthesises through their rows (True) rather than their columns, and the
+    multiply-adds of one part (cosine or sine).
+
+    A band difference is made of strips along the edges of two close bands,
+    one run per row along each edge (`bernoulli.PatternBand.difference`
+    lists them edge by edge, row after row). Along a near-vertical edge the
+    run of the next row covers nearly the same columns: one column serves
+    many rows. Along a near-horizontal one each row brings tens of new
+    columns: its row is the cheaper cover. A run goes by its row when it
+    holds more than one column its predecessor (the run of the row before,
+    listed before it) does not.
+    """
+    length = stop - start
+    # columns of each run that the run of the row before (after) in the list does not hold
+    neighbour = np.zeros(row.size + 1, dtype=bool)
+    neighbour[1:-1] = row[1:] == row[:-1] + 1
+    shared = np.zeros(row.size + 1, dtype=np.intp)
+    shared[1:-1] = np.maximum(np.minimum(stop[1:], stop[:-1]) - np.maximum(start[1:], start[:-1]), 0)
+    shared = np.where(neighbour, shared, 0)
+    by_row = np.maximum(length - shared[:-1], length - shared[1:]) > 1
+    used_rows = np.count_nonzero(np.bincount(row[by_row], minlength=shape[0]))
+    edges = np.bincount(start[~by_row], minlength=shape[1] + 1) - np.bincount(stop[~by_row], minlength=shape[1] + 1)
+    used_cols = np.count_nonzero(np.cumsum(edges)[: shape[1]])
+    cost = (float(out[0]) * out[1] * (used_rows + used_cols) + float(length[~by_row].sum()) * out[0]
+            + float(length[by_row].sum()) * out[1])
+    return by_row, cost
+
+
+def band_part_cost(runs: tuple[np.ndarray, ...], rows: int, cols: int, shape: tuple[int, int]) -> float:
+    """Multiply-adds of `dct_runs_part` of ``runs`` of a ``shape`` box of coefficients on ``rows`` x ``cols``
+    (both parts)."""
+    row, start, stop = (np.asarray(x) for x in runs[:3])
+    keep = stop > start
+    if not keep.any():
+        return 0.0
+    return 2.0 * _cover(row[keep], start[keep], stop[keep], shape, (rows, cols))[1]
+
+
 def dct_bases(size: tuple[int, int], keep: tuple[int, int]) -> dict:
-    """The basis functions `dct_sparse_part` reads, on every row and column of a ``size`` grid, for the
-    frequencies below ``keep``: {("cos" or "sin", axis): ndarray (size[axis], keep[axis])}."""
+    """The basis functions `dct_runs_part` reads, on every row and column of a ``size`` grid, for the
+    frequencies below ``keep``, in float32: {("cos" or "sin", axis): ndarray (size[axis], keep[axis])}."""
     out = {}
     for wave in (np.cos, np.sin):
         for axis in (0, 1):
@@ -176,7 +231,7 @@ def dct_bases(size: tuple[int, int], keep: tuple[int, int]) -> dict:
             if axis == 1 and (n, k) == (int(size[0]), int(keep[0])):  # a square grid: one table for both
                 out[wave.__name__, 1] = out[wave.__name__, 0]
             else:
-                out[wave.__name__, axis] = _basis(wave, n, np.arange(n) + 0.5, np.arange(k))
+                out[wave.__name__, axis] = _basis(wave, n, np.arange(n) + 0.5, np.arange(k)).astype(np.float32)
     return out
 
 
@@ -188,25 +243,11 @@ def _basis(wave, length: int, at: np.ndarray, frequencies: np.ndarray) -> np.nda
     return table
 
 
-def band_part_cost(i: np.ndarray, j: np.ndarray, rows: int, cols: int) -> float:
-    """Multiply-adds of `dct_sparse_part` of coefficients (``i``, ``j``) on ``rows`` x ``cols`` (both parts)."""
-    if i.size == 0:
-        return 0.0
-    used_r = int(np.count_nonzero(np.bincount(i)))
-    used_c = int(np.count_nonzero(np.bincount(j)))
-    return 2.0 * min(_part_costs(i.size, used_r, used_c, rows, cols))
-
-
 def _used(index: np.ndarray, length: int) -> tuple[np.ndarray, np.ndarray]:
     """The distinct values of ``index`` (sorted) and the position of each entry among them."""
     present = np.bincount(index, minlength=length) > 0
     position = np.cumsum(present) - 1
     return np.flatnonzero(present), position[index]
-
-
-def _part_costs(nonzero: int, used_r: int, used_c: int, rows: int, cols: int) -> tuple[float, float]:
-    # B_r (D B_c^T): D B_c^T then a dense product; (B_r D) B_c^T: the same the other way round
-    return (float(nonzero) * cols + float(rows) * used_r * cols, float(nonzero) * rows + float(rows) * used_c * cols)
 
 
 def keys_weights(t: np.ndarray, a: float = -0.5) -> np.ndarray:
