@@ -141,8 +141,6 @@ def dct_runs_part(
     `u_tilde`), accumulated in float64. ``bases`` (`dct_bases` of the grid)
     saves tabulating the basis functions on every call.
     """
-    from scipy import sparse  # already loaded with scipy.linalg
-
     out_r, out_c = int(size[0]), int(size[1])
     n_r = np.arange(out_r)[rows] + 0.5
     n_c = np.arange(out_c)[cols] + 0.5
@@ -156,29 +154,95 @@ def dct_runs_part(
     i = np.repeat(row, length)
     j = np.arange(i.size) - np.repeat(np.cumsum(length) - length - start, length)
     value = coeffs[i, j].astype(np.float32)
-    by_row = np.repeat(_cover(row, start, stop, coeffs.shape, (n_r.size, n_c.size))[0], length)
     # sin(0) = 0 on the first row and column
     sine = np.where((i == 0) | (j == 0), 0.0, np.repeat(sin_w, length)).astype(np.float32)
-    for weights, wave in ((value * np.repeat(cos_w, length).astype(np.float32), np.cos), (value * sine, np.sin)):
-        if not np.any(weights):
-            continue
+    waves = [(wave, weights) for wave, weights in (("cos", value * np.repeat(cos_w, length).astype(np.float32)),
+                                                   ("sin", value * sine)) if np.any(weights)]
+    tables = {}
+    for wave, _ in waves:
         if bases is None:
-            table_r = _basis(wave, out_r, n_r, np.arange(coeffs.shape[0])).astype(np.float32)
-            table_c = _basis(wave, out_c, n_c, np.arange(coeffs.shape[1])).astype(np.float32)
+            frequencies = (np.arange(coeffs.shape[0]), np.arange(coeffs.shape[1]))
+            function = np.cos if wave == "cos" else np.sin
+            tables[wave] = (_basis(function, out_r, n_r, frequencies[0]).astype(np.float32),
+                            _basis(function, out_c, n_c, frequencies[1]).astype(np.float32))
         else:
-            table_r = bases[wave.__name__, 0][rows]
-            table_c = bases[wave.__name__, 1][cols]
-        for turned, (a, b, t_a, t_b) in ((False, (i, j, table_r, table_c)), (True, (j, i, table_c, table_r))):
-            part = by_row if turned else ~by_row
-            if not part.any():
-                continue
-            # through the columns of D: (B_a D) B_b^T over the used columns b; by rows: the same, transposed
-            used_a, at_a = _used(a[part], t_a.shape[1])
-            used_b, at_b = _used(b[part], t_b.shape[1])
-            d = sparse.csr_matrix((weights[part], (at_b, at_a)), shape=(used_b.size, used_a.size))
-            through = (d @ np.ascontiguousarray(t_a[:, used_a].T)).T @ t_b[:, used_b].T
-            out += through.T if turned else through
+            tables[wave] = (bases[wave, 0][rows], bases[wave, 1][cols])
+    by_row = _cover(row, start, stop, coeffs.shape, (n_r.size, n_c.size))[0]
+    first = np.cumsum(length) - length  # where each run's coefficients begin in i, j
+    # through the columns: M = B_rows D, then M[:, C] B_cols[:, C]^T; through the rows: N = D B_cols^T, then
+    # B_rows[:, R] N[R]; D is filled and multiplied a dense tile at a time (`_tiles`)
+    tiles = []
+    for lo, hi in _tiles(row, start, stop, by_row, (n_r.size, n_c.size)):
+        tiles.append((bool(by_row[lo]), int(row[lo]), int(row[hi - 1]) + 1, int(start[lo:hi].min()),
+                      int(stop[lo:hi].max()), int(first[lo]), int(first[hi - 1] + length[hi - 1])))
+    # the accumulators span the rows (columns) of the tiles that reach the image through them
+    row_span = _span([(r0, r1) for turned, r0, r1, *_ in tiles if turned])
+    col_span = _span([(c0, c1) for turned, _, _, c0, c1, *_ in tiles if not turned])
+    through_rows = {wave: np.zeros((row_span[1] - row_span[0], n_c.size), dtype=np.float32) for wave, _ in waves}
+    through_cols = {wave: np.zeros((n_r.size, col_span[1] - col_span[0]), dtype=np.float32) for wave, _ in waves}
+    used_rows = np.zeros(row_span[1] - row_span[0], dtype=bool)
+    used_cols = np.zeros(col_span[1] - col_span[0], dtype=bool)
+    for turned, r0, r1, c0, c1, e0, e1 in tiles:
+        at = (i[e0:e1] - r0, j[e0:e1] - c0)
+        for wave, weights in waves:
+            tile = np.zeros((r1 - r0, c1 - c0), dtype=np.float32)
+            tile[at] = weights[e0:e1]
+            table_r, table_c = tables[wave]
+            if turned:
+                through_rows[wave][r0 - row_span[0]: r1 - row_span[0]] += tile @ table_c[:, c0:c1].T
+            else:
+                through_cols[wave][:, c0 - col_span[0]: c1 - col_span[0]] += table_r[:, r0:r1] @ tile
+        if turned:
+            used_rows[r0 - row_span[0]: r1 - row_span[0]] = True
+        else:
+            used_cols[c0 - col_span[0]: c1 - col_span[0]] = True
+    for wave, _ in waves:
+        table_r, table_c = tables[wave]
+        if used_cols.any():
+            out += through_cols[wave][:, used_cols] @ table_c[:, col_span[0]: col_span[1]][:, used_cols].T
+        if used_rows.any():
+            out += table_r[:, row_span[0]: row_span[1]][:, used_rows] @ through_rows[wave][used_rows]
     return out
+
+
+def _span(intervals: list[tuple[int, int]]) -> tuple[int, int]:
+    """The smallest [lo, hi) holding every interval ((0, 0) for none)."""
+    if not intervals:
+        return 0, 0
+    return min(lo for lo, _ in intervals), max(hi for _, hi in intervals)
+
+
+def _tiles(row: np.ndarray, start: np.ndarray, stop: np.ndarray, by_row: np.ndarray,
+           out: tuple[int, int]) -> list[tuple[int, int]]:
+    """Consecutive runs of `dct_runs_part` grouped into dense tiles: [lo, hi) ranges of the run list.
+
+    A tile holds the runs of consecutive rows of one edge (one run per row),
+    as many as keep the tile's box at most about twice the coefficients it
+    holds (many rows along a near-vertical edge, where the runs stay put),
+    or more where a product of a small tile costs less than its call
+    (~3e5 multiply-adds in numpy on one core): T rows whose runs move by
+    ``shift`` cost (T shift / 2) T ``out`` multiply-adds more than their
+    runs, least in all at T^2 = 2 x 3e5 / (shift ``out``). The runs of a
+    tile share their cover (``by_row``, `_cover`).
+    """
+    n = row.size
+    new_section = np.ones(n, dtype=bool)
+    new_section[1:] = (row[1:] != row[:-1] + 1) | (by_row[1:] != by_row[:-1])
+    section = np.cumsum(new_section) - 1
+    length = (stop - start).astype(np.float64)
+    shift = np.zeros(n)
+    shift[1:] = np.abs(start[1:] - start[:-1]) + np.abs(stop[1:] - stop[:-1])
+    shift[new_section] = 0.0
+    counts = np.bincount(section)
+    mean_length = np.bincount(section, weights=length) / counts
+    mean_shift = np.maximum(np.bincount(section, weights=shift) / np.maximum(counts - 1, 1), 1e-9)
+    other = np.where(by_row[new_section], out[1], out[0])  # the product's other dimension
+    rows_per_tile = np.maximum(2 * mean_length / mean_shift, np.sqrt(6e5 / (mean_shift * other)))
+    rows_per_tile = np.clip(np.floor(rows_per_tile), 1, 256).astype(np.intp)
+    position = np.arange(n) - np.flatnonzero(new_section)[section]
+    tile = position // rows_per_tile[section]
+    boundary = np.flatnonzero(new_section | np.r_[True, tile[1:] != tile[:-1]])
+    return list(zip(boundary.tolist(), np.r_[boundary[1:], n].tolist()))
 
 
 def _cover(row: np.ndarray, start: np.ndarray, stop: np.ndarray, shape: tuple[int, int],
@@ -223,16 +287,40 @@ def band_part_cost(runs: tuple[np.ndarray, ...], rows: int, cols: int, shape: tu
 
 def dct_bases(size: tuple[int, int], keep: tuple[int, int]) -> dict:
     """The basis functions `dct_runs_part` reads, on every row and column of a ``size`` grid, for the
-    frequencies below ``keep``, in float32: {("cos" or "sin", axis): ndarray (size[axis], keep[axis])}."""
+    frequencies below ``keep``, in float32: {("cos" or "sin", axis): ndarray (size[axis], keep[axis])}.
+
+    The phase pi k (2 n + 1) / 2N is reduced modulo 2 pi in integers before it
+    is rounded to float32 (error ~5e-7, the float32 rounding of the band
+    itself): a float64 cosine of the unreduced phase, up to thousands of
+    radians, costs 4x as much.
+    """
     out = {}
-    for wave in (np.cos, np.sin):
-        for axis in (0, 1):
-            n, k = int(size[axis]), int(keep[axis])
-            if axis == 1 and (n, k) == (int(size[0]), int(keep[0])):  # a square grid: one table for both
-                out[wave.__name__, 1] = out[wave.__name__, 0]
-            else:
-                out[wave.__name__, axis] = _basis(wave, n, np.arange(n) + 0.5, np.arange(k)).astype(np.float32)
+    for axis in (0, 1):
+        n, k = int(size[axis]), int(keep[axis])
+        if axis == 1 and n == int(size[0]):  # a square grid: one table for both axes
+            kept = max(k, int(keep[0]))
+            if kept > int(keep[0]):
+                out["cos", 0], out["sin", 0] = _bases(n, kept)
+            out["cos", 1], out["sin", 1] = out["cos", 0][:, :k], out["sin", 0][:, :k]
+            out["cos", 0], out["sin", 0] = out["cos", 0][:, : int(keep[0])], out["sin", 0][:, : int(keep[0])]
+            continue
+        out["cos", axis], out["sin", axis] = _bases(n, k)
     return out
+
+
+def _bases(n: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """`dct_bases`'s cosine and sine tables of one axis."""
+    phase = np.outer(2 * np.arange(n, dtype=np.int64) + 1, np.arange(k, dtype=np.int64))
+    phase %= 4 * n
+    angle = phase.astype(np.float32)
+    angle *= np.float32(np.pi / (2 * n))
+    scale = np.float32(np.sqrt(2.0 / n))
+    cos = np.cos(angle)
+    cos *= scale
+    cos[:, 0] *= np.float32(np.sqrt(0.5))
+    sin = np.sin(angle, out=angle)
+    sin *= scale
+    return cos, sin
 
 
 def _basis(wave, length: int, at: np.ndarray, frequencies: np.ndarray) -> np.ndarray:
