@@ -489,6 +489,29 @@ def test_dct_runs_part_equals_the_synthesis_of_the_difference():
             assert np.abs(tabulated - want[rows, cols]).max() < 1e-6 * scale, name
 
 
+def test_normal_equations_equal_the_float64_products():
+    """`normal_equations` (float32 rank updates on u~_D minus its mean) equals A^T A, A^T v, v^T v of the rows
+    of S_s U gathered one by one in float64, per part, to 1e-5 of the largest entry (its float32 rounding,
+    far below the noise floor: a relative perturbation e of A^T A moves h by ~e cond(A^T A) ~ 1e-4 of h)."""
+    rng = np.random.default_rng(4)
+    s, support, shape = 4, 9, (14, 12)
+    u = 0.5 + 0.3 * rng.normal(size=(s * (shape[0] - 1) + support, s * (shape[1] - 1) + support))
+    u[3, 5] = np.nan  # a sample outside the raster: the rows that read it are dropped
+    v = rng.normal(size=shape)
+    labels = rng.integers(-1, 3, shape)
+    ata, atv, vtv, count = bernoulli.normal_equations(u, v, labels, s, support, 3)
+    for p in range(3):
+        rows = [(u[s * m: s * m + support, s * n: s * n + support].ravel(), v[m, n])
+                for m, n in zip(*np.nonzero(labels == p))]
+        rows = [(a, b) for a, b in rows if np.all(np.isfinite(a))]
+        a = np.array([r[0] for r in rows])
+        b = np.array([r[1] for r in rows])
+        assert count[p] == len(b)
+        assert np.abs(ata[p] - a.T @ a).max() < 1e-5 * np.abs(a.T @ a).max()
+        assert np.abs(atv[p] - a.T @ b).max() < 1e-5 * np.abs(a.T @ b).max()
+        assert vtv[p] == pytest.approx(b @ b, rel=1e-12)
+
+
 def test_pattern_band_window_equals_u_tilde():
     """A window's u~ read from the shared band equals `u_tilde` for its own Jacobian, to float32 rounding."""
     noise = target.default_noise()

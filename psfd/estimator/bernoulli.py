@@ -414,9 +414,9 @@ def normal_equations(
     Row m of S_s U is the k x k patch of u~_D that the kernel meets at camera
     pixel m: u~_D(s m - k) for kernel offsets k (IJCV 2012, sec. 3.1). The
     patches are strided views of ``u`` (sliding_window_view, decimated by s);
-    only the used rows are gathered, and each part's A^T A is one BLAS
-    product (the parts cost one product of the whole between them; the
-    whole system is their sum).
+    only the used rows are gathered, and each part's A^T A is one
+    symmetric rank update (`_gram`; the parts cost one update of the whole
+    between them; the whole system is their sum).
 
     The product is taken in float32 on u~_D minus its mean c, and the mean is
     added back exactly: with A = A' + c 1 1^T,
@@ -469,7 +469,7 @@ def normal_equations(
         if not keep.all():
             a, b = a[keep], b[keep]
         col = a.sum(axis=0, dtype=np.float64)
-        ata[p] = a.T @ a
+        ata[p] = _gram(a)
         ata[p] += c * (col[:, None] + col[None, :]) + c * c * len(b)
         atv[p] = b @ a.astype(np.float64) + c * float(b.sum())
         vtv[p] = float(b @ b)
@@ -477,6 +477,12 @@ def normal_equations(
     if count.sum() <= n:
         raise EstimationError(f"noise region too small for a {support}x{support} kernel: {count.sum()} samples")
     return ata, atv, vtv, count
+
+
+def _gram(a: np.ndarray) -> np.ndarray:
+    """A^T A of a float32 matrix as one symmetric rank update (BLAS syrk: half the multiply-adds of A^T A)."""
+    upper = linalg.blas.ssyrk(1.0, a.T, trans=0, lower=0)  # a.T is Fortran-ordered: no copy
+    return upper + np.triu(upper, 1).T
 
 
 def solve(
@@ -564,9 +570,7 @@ def nnls_normal(q: np.ndarray, c: np.ndarray, passive: np.ndarray | None = None)
     def kkt(free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         h = np.zeros(n)
         if free.any():
-            idx = np.flatnonzero(free)
-            h[idx] = linalg.cho_solve(linalg.cho_factor(q[np.ix_(idx, idx)], check_finite=False), c[idx],
-                                      check_finite=False)
+            h[free] = _cholesky_solve(q, c, np.flatnonzero(free))
         y = q @ h - c
         y[free] = 0.0
         return h, y
@@ -593,6 +597,17 @@ def nnls_normal(q: np.ndarray, c: np.ndarray, passive: np.ndarray | None = None)
 
     lower = linalg.cholesky(q, lower=True, check_finite=False)
     return optimize.nnls(lower.T, linalg.solve_triangular(lower, c, lower=True), maxiter=50 * n)[0]
+
+
+def _cholesky_solve(q: np.ndarray, c: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Q_FF^-1 c_F for the rows and columns ``idx`` of a symmetric positive definite Q, by LAPACK's Cholesky
+    directly (potrf, potrs: the block gathered by two takes, a third of the time of np.ix_, and no
+    argument checks of scipy's wrappers on the many small solves of `nnls_normal`)."""
+    factor, info = linalg.lapack.dpotrf(q.take(idx, axis=0).take(idx, axis=1), lower=True, clean=False,
+                                        overwrite_a=True)
+    if info != 0:
+        raise linalg.LinAlgError("the free block of the normal equations is not positive definite")
+    return linalg.lapack.dpotrs(factor, c[idx], lower=True)[0]
 
 
 def estimate_window(
@@ -640,7 +655,7 @@ def estimate_window(
     observed = v[y0:y1, x0:x1][usable]
     _check_pattern_fits(sigma**2, float(np.var(observed)))
     # trace((A^T A)^-1) = ||L^-1||_F^2
-    inverse_factor = linalg.solve_triangular(lower, np.eye(ata.shape[0]), lower=True, check_finite=False)
+    inverse_factor = linalg.lapack.dtrtri(lower, lower=1)[0]  # L^-1 in place of a solve against I: a third less work
     mass = float(h.sum())
     if not np.isfinite(mass) or mass <= 0:
         raise EstimationError("the estimated kernel has no positive mass: check the target and exposure")

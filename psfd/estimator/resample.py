@@ -123,7 +123,7 @@ def dct_runs_part(
     coeffs: np.ndarray, runs: tuple[np.ndarray, ...], size: tuple[int, int], rows: slice, cols: slice,
     bases: dict | None = None,
 ) -> np.ndarray:
-    """The image of a few runs of DCT coefficients on ``rows`` x ``cols`` of the grid: `dct_synthesise` of a sparse band.
+    """The image of runs of DCT coefficients on ``rows`` x ``cols`` of the grid: `dct_synthesise` of a sparse band.
 
     ``runs`` = (row, start, stop, cos_w, sin_w): coefficients (row[n], start[n] ..
     stop[n] - 1) of ``coeffs`` enter with weight ``cos_w[n]`` on their cosine part
@@ -137,8 +137,9 @@ def dct_runs_part(
     separable, so it can reach the image through its row of D
     (B_rows[:, R] (D_R B_cols^T)) or through its column ((B_rows D_C)
     B_cols[:, C]^T); the dense products cost rows x cols x (|R| + |C|),
-    so the runs are split between the two to keep R + C small (`_cover`). Products in float32 (the band is read in float32,
-    `u_tilde`), accumulated in float64. ``bases`` (`dct_bases` of the grid)
+    so the runs are split between the two to keep R + C small (`_cover`).
+    Products in float32 (the band is read in float32, `u_tilde`), accumulated
+    in float64. ``bases`` (`dct_bases` of the grid)
     saves tabulating the basis functions on every call.
     """
     out_r, out_c = int(size[0]), int(size[1])
