@@ -165,7 +165,8 @@ def _reach_box(shape: tuple[int, int], factor: int, s: int, jacobian: np.ndarray
     return min(rows, int(reach[1] * 2 * rows / factor) + 2), min(cols, int(reach[0] * 2 * cols / factor) + 2)
 
 
-def _first(x: np.ndarray, beta: np.ndarray, test: Callable[[np.ndarray], np.ndarray], guess: np.ndarray) -> np.ndarray:
+def _first(x: np.ndarray, beta: np.ndarray, test: Callable[[np.ndarray], np.ndarray],
+           guess: np.ndarray) -> np.ndarray:
     """Per row, the first index j with ``test(x[j] + beta[row])`` (false, then true, along j); len(x) if none.
 
     ``guess`` is that index in exact arithmetic (a binary search of x): the
@@ -347,7 +348,8 @@ class PatternBand:
                 for start, stop in ((a, np.minimum(b, c)), (np.maximum(a, d), b)):
                     run = stop > start
                     n = int(np.count_nonzero(run))
-                    parts.append((rows[run], start[run], stop[run], np.full(n, sign * cos_w), np.full(n, sign * sin_w)))
+                    weights = (np.full(n, sign * cos_w), np.full(n, sign * sin_w))
+                    parts.append((rows[run], start[run], stop[run], *weights))
         return tuple(np.concatenate(column) for column in zip(*parts))
 
 
@@ -655,7 +657,7 @@ def estimate_window(
     observed = v[y0:y1, x0:x1][usable]
     _check_pattern_fits(sigma**2, float(np.var(observed)))
     # trace((A^T A)^-1) = ||L^-1||_F^2
-    inverse_factor = linalg.lapack.dtrtri(lower, lower=1)[0]  # L^-1 in place of a solve against I: a third less work
+    inverse_factor = linalg.lapack.dtrtri(lower, lower=1)[0]  # L^-1 directly: a third less work than a solve
     mass = float(h.sum())
     if not np.isfinite(mass) or mass <= 0:
         raise EstimationError("the estimated kernel has no positive mass: check the target and exposure")

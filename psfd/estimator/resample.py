@@ -138,9 +138,9 @@ def dct_runs_part(
     (B_rows[:, R] (D_R B_cols^T)) or through its column ((B_rows D_C)
     B_cols[:, C]^T); the dense products cost rows x cols x (|R| + |C|),
     so the runs are split between the two to keep R + C small (`_cover`).
-    Products in float32 (the band is read in float32, `u_tilde`), accumulated
-    in float64. ``bases`` (`dct_bases` of the grid)
-    saves tabulating the basis functions on every call.
+    Products and their sums in float32 (the band is read in float32,
+    `u_tilde`), the image returned in float64. ``bases`` (`dct_bases` of the
+    grid) saves tabulating the basis functions on every call.
     """
     out_r, out_c = int(size[0]), int(size[1])
     n_r = np.arange(out_r)[rows] + 0.5
@@ -257,8 +257,8 @@ def _cover(row: np.ndarray, start: np.ndarray, stop: np.ndarray, shape: tuple[in
     run of the next row covers nearly the same columns: one column serves
     many rows. Along a near-horizontal one each row brings tens of new
     columns: its row is the cheaper cover. A run goes by its row when it
-    holds more than one column its predecessor (the run of the row before,
-    listed before it) does not.
+    holds more than one column that the run of the row before or after it
+    (listed next to it) does not.
     """
     length = stop - start
     # columns of each run that the run of the row before (after) in the list does not hold
@@ -330,13 +330,6 @@ def _basis(wave, length: int, at: np.ndarray, frequencies: np.ndarray) -> np.nda
     if wave is np.cos:
         table[:, frequencies == 0] *= np.sqrt(0.5)
     return table
-
-
-def _used(index: np.ndarray, length: int) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct values of ``index`` (sorted) and the position of each entry among them."""
-    present = np.bincount(index, minlength=length) > 0
-    position = np.cumsum(present) - 1
-    return np.flatnonzero(present), position[index]
 
 
 def keys_weights(t: np.ndarray, a: float = -0.5) -> np.ndarray:
