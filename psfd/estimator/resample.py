@@ -159,15 +159,12 @@ def dct_runs_part(
     sine = np.where((i == 0) | (j == 0), 0.0, np.repeat(sin_w, length)).astype(np.float32)
     waves = [(wave, weights) for wave, weights in (("cos", value * np.repeat(cos_w, length).astype(np.float32)),
                                                    ("sin", value * sine)) if np.any(weights)]
-    tables = {}
-    for wave, _ in waves:
-        if bases is None:
-            frequencies = (np.arange(coeffs.shape[0]), np.arange(coeffs.shape[1]))
-            function = np.cos if wave == "cos" else np.sin
-            tables[wave] = (_basis(function, out_r, n_r, frequencies[0]).astype(np.float32),
-                            _basis(function, out_c, n_c, frequencies[1]).astype(np.float32))
-        else:
-            tables[wave] = (bases[wave, 0][rows], bases[wave, 1][cols])
+    if bases is None:
+        bases = {}
+        for axis, (n, at) in enumerate(((out_r, np.arange(out_r)[rows]), (out_c, np.arange(out_c)[cols]))):
+            bases["cos", axis], bases["sin", axis] = _bases(n, coeffs.shape[axis], at)
+        rows = cols = slice(None)
+    tables = {wave: (bases[wave, 0][rows], bases[wave, 1][cols]) for wave, _ in waves}
     by_row = _cover(row, start, stop, coeffs.shape, (n_r.size, n_c.size))[0]
     first = np.cumsum(length) - length  # where each run's coefficients begin in i, j
     # through the columns: M = B_rows D, then M[:, C] B_cols[:, C]^T; through the rows: N = D B_cols^T, then
@@ -309,9 +306,11 @@ def dct_bases(size: tuple[int, int], keep: tuple[int, int]) -> dict:
     return out
 
 
-def _bases(n: int, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """`dct_bases`'s cosine and sine tables of one axis."""
-    phase = np.outer(2 * np.arange(n, dtype=np.int64) + 1, np.arange(k, dtype=np.int64))
+def _bases(n: int, k: int, at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """`dct_bases`'s cosine and sine tables of one axis of length ``n``, on its samples ``at`` (all by
+    default)."""
+    at = np.arange(n) if at is None else np.asarray(at)
+    phase = np.outer(2 * at.astype(np.int64) + 1, np.arange(k, dtype=np.int64))
     phase %= 4 * n
     angle = phase.astype(np.float32)
     angle *= np.float32(np.pi / (2 * n))
@@ -322,14 +321,6 @@ def _bases(n: int, k: int) -> tuple[np.ndarray, np.ndarray]:
     sin = np.sin(angle, out=angle)
     sin *= scale
     return cos, sin
-
-
-def _basis(wave, length: int, at: np.ndarray, frequencies: np.ndarray) -> np.ndarray:
-    """Orthonormal DCT-III (``np.cos``) or DST-III (``np.sin``) basis functions ``frequencies`` at points ``at``."""
-    table = wave(np.pi / length * np.outer(at, frequencies)) * np.sqrt(2.0 / length)
-    if wave is np.cos:
-        table[:, frequencies == 0] *= np.sqrt(0.5)
-    return table
 
 
 def keys_weights(t: np.ndarray, a: float = -0.5) -> np.ndarray:
