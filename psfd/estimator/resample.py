@@ -180,7 +180,14 @@ def dct_runs_part(
     through_cols = {wave: np.zeros((n_r.size, col_span[1] - col_span[0]), dtype=np.float32) for wave, _ in waves}
     used_rows = np.zeros(row_span[1] - row_span[0], dtype=bool)
     used_cols = np.zeros(col_span[1] - col_span[0], dtype=bool)
+    # a tile of few coefficients, or mostly empty (scattered coefficients along an edge, as between
+    # two nearly equal bands), costs less gathered: its basis functions times their weights, summed
+    # per column (row) of D
+    scattered = {False: [], True: []}
     for turned, r0, r1, c0, c1, e0, e1 in tiles:
+        if e1 - e0 < 32 or (r1 - r0) * (c1 - c0) > 40 * (e1 - e0):
+            scattered[turned].append(np.arange(e0, e1))
+            continue
         at = (i[e0:e1] - r0, j[e0:e1] - c0)
         for wave, weights in waves:
             tile = np.zeros((r1 - r0, c1 - c0), dtype=np.float32)
@@ -194,6 +201,22 @@ def dct_runs_part(
             used_rows[r0 - row_span[0]: r1 - row_span[0]] = True
         else:
             used_cols[c0 - col_span[0]: c1 - col_span[0]] = True
+    for turned, parts in scattered.items():
+        if not parts:
+            continue
+        entries = np.concatenate(parts)
+        kept, summed = (i, j) if turned else (j, i)  # D's index kept (columns by columns), the one summed over
+        order = entries[np.argsort(kept[entries], kind="stable")]
+        index, first_of = np.unique(kept[order], return_index=True)
+        offset = row_span[0] if turned else col_span[0]
+        (used_rows if turned else used_cols)[index - offset] = True
+        for wave, weights in waves:
+            table = tables[wave][1 if turned else 0]
+            terms = np.add.reduceat(table[:, summed[order]] * weights[order], first_of, axis=1)
+            if turned:
+                through_rows[wave][index - offset] += terms.T
+            else:
+                through_cols[wave][:, index - offset] += terms
     for wave, _ in waves:
         table_r, table_c = tables[wave]
         if used_cols.any():
@@ -214,7 +237,7 @@ def _tiles(row: np.ndarray, start: np.ndarray, stop: np.ndarray, by_row: np.ndar
            out: tuple[int, int]) -> list[tuple[int, int]]:
     """Consecutive runs of `dct_runs_part` grouped into dense tiles: [lo, hi) ranges of the run list.
 
-    A tile holds the runs of consecutive rows of one edge (one run per row),
+    A tile holds runs of nearby rows of one edge (one run per row),
     as many as keep the tile's box at most about twice the coefficients it
     holds (many rows along a near-vertical edge, where the runs stay put),
     or more where a product of a small tile costs less than its call
@@ -225,7 +248,7 @@ def _tiles(row: np.ndarray, start: np.ndarray, stop: np.ndarray, by_row: np.ndar
     """
     n = row.size
     new_section = np.ones(n, dtype=bool)
-    new_section[1:] = (row[1:] != row[:-1] + 1) | (by_row[1:] != by_row[:-1])
+    new_section[1:] = (row[1:] <= row[:-1]) | (row[1:] > row[:-1] + 8) | (by_row[1:] != by_row[:-1])
     section = np.cumsum(new_section) - 1
     length = (stop - start).astype(np.float64)
     shift = np.zeros(n)
@@ -250,21 +273,20 @@ def _cover(row: np.ndarray, start: np.ndarray, stop: np.ndarray, shape: tuple[in
 
     A band difference is made of strips along the edges of two close bands,
     one run per row along each edge (`bernoulli.PatternBand.difference`
-    lists them edge by edge, row after row). Along a near-vertical edge the
-    run of the next row covers nearly the same columns: one column serves
-    many rows. Along a near-horizontal one each row brings tens of new
-    columns: its row is the cheaper cover. A run goes by its row when it
-    holds more than one column that the run of the row before or after it
-    (listed next to it) does not.
+    lists them edge by edge, rows increasing). A near-vertical edge spans
+    many rows and few columns: its columns are the cheaper cover; a
+    near-horizontal one the other way round. Each edge is cut into chunks
+    of 64 rows (an edge turns at the band's corners), and each chunk goes
+    by its rows when it has fewer rows than its runs span columns.
     """
     length = stop - start
-    # columns of each run that the run of the row before (after) in the list does not hold
-    neighbour = np.zeros(row.size + 1, dtype=bool)
-    neighbour[1:-1] = row[1:] == row[:-1] + 1
-    shared = np.zeros(row.size + 1, dtype=np.intp)
-    shared[1:-1] = np.maximum(np.minimum(stop[1:], stop[:-1]) - np.maximum(start[1:], start[:-1]), 0)
-    shared = np.where(neighbour, shared, 0)
-    by_row = np.maximum(length - shared[:-1], length - shared[1:]) > 1
+    edge = np.cumsum(np.r_[True, row[1:] <= row[:-1]]) - 1  # rows increase along an edge
+    chunk = edge * (shape[0] // 64 + 1) + row // 64
+    first = np.r_[True, chunk[1:] != chunk[:-1]]
+    at = np.flatnonzero(first)
+    runs = np.diff(np.r_[at, row.size])
+    span = np.maximum.reduceat(stop, at) - np.minimum.reduceat(start, at)
+    by_row = np.repeat(runs < span, runs)
     used_rows = np.count_nonzero(np.bincount(row[by_row], minlength=shape[0]))
     edges = np.bincount(start[~by_row], minlength=shape[1] + 1) - np.bincount(stop[~by_row], minlength=shape[1] + 1)
     used_cols = np.count_nonzero(np.cumsum(edges)[: shape[1]])
