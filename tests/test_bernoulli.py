@@ -460,8 +460,10 @@ def test_dct_runs_part_equals_the_synthesis_of_the_difference():
     rng = np.random.default_rng(2)
     size, keep = (96, 80), (40, 36)
     coeffs = rng.normal(size=keep)
-    # long runs in a few rows (a near-horizontal edge), short ones in every row (near-vertical), and both
-    shapes = {"rows": ([3, 17, 30], 20, 30), "columns": (np.arange(keep[0]), 1, 4), "both": (None, 0, 0)}
+    # long runs in a few rows (a near-horizontal edge: scattered and dense tiles), short ones in every row
+    # (near-vertical), and both
+    shapes = {"rows": ([3, 17, 30], 20, 30), "wide": (np.arange(20, 28), 25, 30), "columns": (np.arange(keep[0]), 1, 4),
+              "both": (None, 0, 0)}
     for name, (which, short, long) in shapes.items():
         if name == "both":
             row = np.concatenate([[3, 17, 30], np.arange(keep[0])])
