@@ -6,12 +6,14 @@ keeps psfd loaded and pays, per photograph, the steps below. For each frame
 this prints both:
 
 - ``whole s``: `psfd estimate target FRAME ...` started as a subprocess
-  (start-up, imports, decoding, estimation, teardown), median of --repeat;
+  (start-up, imports, decoding, estimation, teardown), median of --repeat,
+  and ``cpu s``, the CPU seconds of that process and its workers (on a
+  machine shared with other work, the steadier of the two);
 - in-process, warm (imports and BLAS loaded, one run before): ``load``
   (decoding the planes), ``detect`` (the target found once, refined per
   plane), ``prepare`` (map D, light, masks, windows), ``band`` (the pattern's
   band-limited raster, `PatternBand`), then per window the median and mean
-  milliseconds of one window solved on one core (`estimate_window`: the
+  milliseconds of one window solved on one core (wall and CPU; `estimate_window`: the
   window's band difference, u~_D, the normal equations, the solver and the
   cross-validated prediction error), and ``windows s``: all windows solved
   as `estimate_frames` does (forked workers on every core when worth it).
@@ -40,6 +42,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_frames  # noqa: E402
+import whole  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -86,12 +89,13 @@ def in_process(path: Path, channel: str, grid: tuple[int, int]) -> dict:
         out["band"] = time.perf_counter() - start
         # one core, window by window (the first plane's windows: the others cost the same)
         plane = planes[0]
-        ms = []
+        ms, cpu = [], []
         for k in range(len(plane.windows)):
-            start = time.perf_counter()
+            start, start_cpu = time.perf_counter(), time.process_time()
             bernoulli._window_result(plane, k, bands[plane.factor], "nnls")
             ms.append(1000 * (time.perf_counter() - start))
-        out["window_ms"] = (statistics.median(ms), statistics.fmean(ms))
+            cpu.append(1000 * (time.process_time() - start_cpu))
+        out["window_ms"] = (statistics.median(ms), statistics.fmean(ms), statistics.median(cpu))
         jobs = [(i, k) for i, p in enumerate(planes) for k in range(len(p.windows))]
         start = time.perf_counter()
         bernoulli._run_windows(planes, bands, jobs, "nnls", None)
@@ -125,17 +129,20 @@ def main() -> None:
             grid = tuple(int(x) for x in extra[extra.index("--grid") + 1].split("x")) if "--grid" in extra else (1, 1)
             cases.append((name, path, "all", grid, extra, (goal, "goal")))
         env = bench_frames.checkout_env(Path(__file__).resolve().parents[1])
-        print(f"{'frame':>8} {'whole s':>8} {'ref s':>6} {'ratio':>6} | {'load':>5} {'detect':>6} {'prepare':>7} "
-              f"{'band':>5} {'ms/window':>10} {'mean':>6} {'windows s':>9} {'n':>4}")
+        print(f"{'frame':>8} {'whole s':>8} {'cpu s':>6} {'ref s':>6} {'ratio':>6} | {'load':>5} {'detect':>6} "
+              f"{'prepare':>7} {'band':>5} {'ms/window':>10} {'mean':>6} {'cpu ms':>7} {'windows s':>9} {'n':>4}")
         for name, path, channel, grid, extra, (ref, label) in cases:
             in_process(path, channel, grid)  # warm-up: imports, BLAS, page cache
             steps = in_process(path, channel, grid)
             command = [sys.executable, "-m", "psfd", "estimate", "target", str(path), *extra]
-            whole = statistics.median(bench_frames.timed(command, env, folder) for _ in range(args.repeat))
-            median_ms, mean_ms = steps["window_ms"]
-            print(f"{name:>8} {whole:8.2f} {ref:6.2f} {whole / ref:6.2f} | {steps['load']:5.2f} {steps['detect']:6.2f} "
-                  f"{steps['prepare']:7.2f} {steps['band']:5.2f} {median_ms:10.1f} {mean_ms:6.1f} "
-                  f"{steps['windows']:9.2f} {steps['count']:4d}   ({label})")
+            runs = [whole.run(command, env, str(folder)) for _ in range(args.repeat)]
+            if any(r.code for r in runs):
+                sys.exit(f"{' '.join(command)} failed")
+            wall, cpu = statistics.median(r.wall for r in runs), statistics.median(r.cpu for r in runs)
+            median_ms, mean_ms, cpu_ms = steps["window_ms"]
+            print(f"{name:>8} {wall:8.2f} {cpu:6.2f} {ref:6.2f} {wall / ref:6.2f} | {steps['load']:5.2f} "
+                  f"{steps['detect']:6.2f} {steps['prepare']:7.2f} {steps['band']:5.2f} {median_ms:10.1f} "
+                  f"{mean_ms:6.1f} {cpu_ms:7.1f} {steps['windows']:9.2f} {steps['count']:4d}   ({label})")
 
 
 if __name__ == "__main__":
