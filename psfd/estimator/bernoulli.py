@@ -995,7 +995,7 @@ def _prepare(
         # the map D (IJCV 2012 sec. 4; Delbracio PhD thesis 2013, App. A.1; geometry.target_maps)
         to_image, to_pattern = geometry.target_maps(detection, "auto" if tps is None else float(tps))
         box = _target_box(to_image, image.shape, margin=(support - 1) // (2 * s) + 2)
-        v, alpha = _corrected(frame, image, box, to_image, to_pattern, noise)
+        v, alpha = _corrected(frame, image, box, to_image, to_pattern, noise, (support - 1) / (2 * s))
         x0, y0 = box[0], box[1]
 
         def local_to_pattern(x, y):
@@ -1123,9 +1123,11 @@ def _recentred(kernel: np.ndarray, solver: str) -> tuple[np.ndarray, tuple[float
 
 def _corrected(
     frame: Frame, image: np.ndarray, box: tuple[int, int, int, int], to_image: Map, to_pattern: Map,
-    noise: np.ndarray,
+    noise: np.ndarray, reach: float,
 ) -> tuple[np.ndarray, float]:
     """The target crop with illumination and response curve corrected, and the curve's alpha.
+
+    ``reach``: half the PSF support in pixels; the light model fits the PSF's tail beyond it.
 
     Raises SaturatedError when a clipped photosite falls on the target: the
     linear model (M) does not hold there (IJCV 2012 sec. 2).
@@ -1138,8 +1140,9 @@ def _corrected(
     if clipped:
         # estimate_target's message names the frame and the channel
         raise SaturatedError(f"{clipped} saturated pixels on the target; lower the exposure")
-    # illumination: v' = (v - B) / (W - B), quadratic B and W from the flat squares (IJCV 2012 sec. 4)
-    black, white = radiometry.illumination(image, to_image)
+    # illumination: v' = (v - B) / (W - B), quadratic B and W from the flat squares (IJCV 2012 sec. 4),
+    # with the light the PSF's far tail brings into them (radiometry.illumination)
+    black, white, _ = radiometry.illumination(image, to_image, to_pattern, reach, noise)
     v = radiometry.normalise(image[y0:y1, x0:x1], black, white, xx, yy)
     # response curve: phi(v') = alpha v'^2 + (1 - alpha) v' with the noise region averaging what its
     # printed cells average (IJCV 2012 sec. 4 takes 1/2; the published pattern averages 0.502)
