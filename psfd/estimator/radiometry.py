@@ -243,7 +243,8 @@ def _tail_raster(packed_noise: bytes) -> np.ndarray:
     kernel = np.zeros_like(distance)
     ring = (distance >= _TAIL_INNER) & (distance <= _TAIL_RADIUS)
     kernel[ring] = distance[ring] ** -3.0
-    return signal.fftconvolve(layout, kernel, mode="same") - layout * kernel.sum()
+    lost = kernel.sum() + 2 * np.pi / _TAIL_RADIUS  # the tail beyond the radius leaves too: int r^-3 2 pi r dr
+    return signal.fftconvolve(layout, kernel, mode="same") - layout * lost
 
 
 def _tail_response(raster: np.ndarray, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
