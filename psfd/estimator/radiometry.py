@@ -10,7 +10,7 @@ import functools
 from typing import Callable, NamedTuple
 
 import numpy as np
-from scipy import ndimage, signal
+from scipy import fft
 
 from psfd.errors import EstimationError
 from psfd.estimator import target
@@ -91,28 +91,24 @@ def illumination(image: np.ndarray, to_image: Callable, to_pattern: Callable, re
     """
     image = np.asarray(image, dtype=np.float64)
     noise = target.default_noise() if noise is None else np.asarray(noise, dtype=np.float64)
-    squares = [_square_pixels(image, to_image, to_pattern, b, reach) for b in target.BLACK_BLOCKS + target.WHITE_BLOCKS]
-    medians = [np.median(sq[3]) for sq in squares]
-    span = float(np.median(medians[len(target.BLACK_BLOCKS) :]) - np.median(medians[: len(target.BLACK_BLOCKS)]))
-    squares = [[part[~_outliers(sq[3], span)] if k else part for k, part in enumerate(sq[:6])] + [sq[6]]
-               for sq in squares]
-    xy = np.array([sq[0] for sq in squares])
-    centre, spread = xy.mean(axis=0), float(xy.std()) or 1.0
     raster = _tail_raster(np.packbits(noise > 0.5).tobytes())
-    x = np.concatenate([sq[1] for sq in squares])
-    y = np.concatenate([sq[2] for sq in squares])
-    values = np.concatenate([sq[3] for sq in squares])
-    response = np.concatenate([_tail_response(raster, sq[4], sq[5]) / sq[6] for sq in squares])
-    white = np.concatenate([np.full(sq[1].size, k >= len(target.BLACK_BLOCKS)) for k, sq in enumerate(squares)])
+    blacks = [_square(image, to_image, to_pattern, b, reach, raster) for b in target.BLACK_BLOCKS]
+    whites = [_square(image, to_image, to_pattern, b, reach, raster) for b in target.WHITE_BLOCKS]
+    span = float(np.median([np.median(sq.values) for sq in whites]) - np.median([np.median(sq.values) for sq in blacks]))
+    squares = [sq.without_outliers(span) for sq in blacks + whites]
+    xy = np.array([sq.centre for sq in squares])
+    centre, spread = xy.mean(axis=0), float(xy.std()) or 1.0
+    x, y, values, response = (np.concatenate([getattr(sq, name) for sq in squares])
+                              for name in ("x", "y", "values", "response"))
+    white = np.repeat(np.arange(len(squares)) >= len(blacks), [sq.values.size for sq in squares])
     design = _design((x - centre[0]) / spread, (y - centre[1]) / spread)
     levels = np.concatenate([design * ~white[:, None], design * white[:, None]], axis=1)
     coef, *_ = np.linalg.lstsq(levels, values, rcond=None)  # no tail: the first W - B
     tail = 0.0
-    for _ in range(3):
-        span = design @ (coef[6:] - coef[:6])
-        both = np.column_stack([levels, span * response])
+    for _ in range(3):  # W - B in the tail term from the previous pass: 1e-4 of the span after three
+        both = np.column_stack([levels, (design @ (coef[6:] - coef[:6])) * response])
         solution, *_ = np.linalg.lstsq(both, values, rcond=None)
-        if solution[12] <= 0:
+        if solution[12] <= 0:  # no tail, or light from elsewhere that is not a PSF's
             coef, *_ = np.linalg.lstsq(levels, values, rcond=None)
             tail = 0.0
             break
@@ -182,11 +178,32 @@ def apply_crf(values: np.ndarray, alpha: float) -> np.ndarray:
     return alpha * u * u + (1.0 - alpha) * u
 
 
-def _square_pixels(image: np.ndarray, to_image: Callable, to_pattern: Callable, block, reach: float):
-    """Pixels of a flat square far enough from its edges: (centre (x, y), x, y, values, X, Y, px per cell).
+class _Square(NamedTuple):
+    """The pixels of a flat square read by the light model, and the layout's tail response F there."""
 
-    Far enough: ``reach`` + `_EDGE_CLEARANCE` pixels, or, on a target too small
-    for that, the inner third of the square. At most `_MAX_SAMPLES`, taken evenly.
+    centre: tuple[float, float]
+    x: np.ndarray
+    y: np.ndarray
+    values: np.ndarray
+    response: np.ndarray
+
+    def without_outliers(self, span: float) -> "_Square":
+        """Without values further than max(6 MADs, 10 % of the black-to-white ``span``) from the median.
+
+        Dust and hot pixels are further; the span term keeps a noise-free
+        square's own tail gradient (up to 5 % of the span at f/22) in.
+        """
+        median = np.median(self.values)
+        keep = np.abs(self.values - median) <= max(6 * 1.4826 * np.median(np.abs(self.values - median)), 0.1 * span)
+        return _Square(self.centre, *(a[keep] for a in (self.x, self.y, self.values, self.response)))
+
+
+def _square(image: np.ndarray, to_image: Callable, to_pattern: Callable, block, reach: float,
+            raster: np.ndarray) -> _Square:
+    """The pixels of a flat square further than ``reach`` + `_EDGE_CLEARANCE` pixels from its edges.
+
+    On a target too small for that, the inner third of the square. At most
+    `_MAX_SAMPLES`, taken evenly.
     """
     X0, Y0 = target.block_centre(block)
     half = target.BLOCK / 2
@@ -195,31 +212,20 @@ def _square_pixels(image: np.ndarray, to_image: Callable, to_pattern: Callable, 
     scale = float(np.hypot(np.ravel(ex)[0] - cx, np.ravel(ey)[0] - cy))  # local px per cell
     corners = to_image(X0 + half * np.array([-1, 1, 1, -1]), Y0 + half * np.array([-1, -1, 1, 1]))
     rows, cols = image.shape
-    x0, x1 = int(np.floor(corners[0].min())), int(np.ceil(corners[0].max()))
-    y0, y1 = int(np.floor(corners[1].min())), int(np.ceil(corners[1].max()))
+    x0, x1 = int(np.floor(np.min(corners[0]))), int(np.ceil(np.max(corners[0])))
+    y0, y1 = int(np.floor(np.min(corners[1]))), int(np.ceil(np.max(corners[1])))
     if x0 < 0 or y0 < 0 or x1 >= cols or y1 >= rows:
         raise EstimationError("a flat square of the target falls outside the image")
-    yy, xx = np.mgrid[y0 : y1 + 1, x0 : x1 + 1].astype(np.float64)
-    X, Y = to_pattern(xx, yy)
+    yy, xx = np.mgrid[y0 : y1 + 1, x0 : x1 + 1]
+    X, Y = to_pattern(xx.astype(np.float64), yy.astype(np.float64))
     depth = half - np.maximum(np.abs(X - X0), np.abs(Y - Y0))  # cells to the nearest edge
-    clearance = min((reach + _EDGE_CLEARANCE) / scale, half * 2 / 3)
-    keep = depth >= clearance
-    if not keep.any():
+    keep = np.flatnonzero(depth >= min((reach + _EDGE_CLEARANCE) / scale, half * 2 / 3))
+    if keep.size == 0:
         raise EstimationError("a flat square of the target is too small in the image to read its level")
-    x, y, X, Y = xx[keep], yy[keep], X[keep], Y[keep]
-    pick = slice(None, None, max(1, x.size // _MAX_SAMPLES))
-    x, y, X, Y = x[pick], y[pick], X[pick], Y[pick]
-    return (cx, cy), x, y, image[y.astype(int), x.astype(int)], X, Y, scale
-
-
-def _outliers(values: np.ndarray, span: float) -> np.ndarray:
-    """Values further than max(6 MADs, 10 % of the black-to-white span) from the square's median.
-
-    The span term keeps a noise-free square's own flare gradient (up to 5 % of
-    the span at f/22) from counting as outliers; dust and hot pixels are further.
-    """
-    median = np.median(values)
-    return np.abs(values - median) > max(6 * 1.4826 * np.median(np.abs(values - median)), 0.1 * span)
+    keep = keep[:: max(1, keep.size // _MAX_SAMPLES)]
+    x, y, X, Y = xx.ravel()[keep], yy.ravel()[keep], X.ravel()[keep], Y.ravel()[keep]
+    return _Square((cx, cy), x.astype(np.float64), y.astype(np.float64), image[y, x],
+                   _tail_response(raster, X, Y) / scale)
 
 
 @functools.lru_cache(maxsize=4)
@@ -228,30 +234,43 @@ def _tail_raster(packed_noise: bytes) -> np.ndarray:
 
     T is the printed reflectance (0 black, 1 white; `target.cells`) with
     `_TAIL_MARGIN` cells of white paper around it; the sum runs over
-    `_TAIL_INNER` <= |X - Y| <= `_TAIL_RADIUS` cells. At a point further than
+    `_TAIL_INNER` <= |X - Y| <= `_TAIL_RADIUS` cells, and the light the tail
+    takes beyond that radius (2 pi / radius) leaves every cell too: what comes
+    back from that far is a level common to black and white, varying too
+    slowly over the target to tell from the fields. At a point further than
     `_TAIL_INNER` from any other colour the light of a tail h(r) = a r^-3
-    (pixels) there is (a / p) G, p the pixels per cell: the kernel's pixels
-    are p cells^-1 long and its area element p^2. Cells are a fine enough
-    raster: each is one colour (up to the X-corners' diagonals), and r^-3
-    changes by under 2 % across a cell 5 or more cells away.
+    (pixels) is (a / p) G, p the pixels per cell: the kernel's lengths are p
+    pixels per cell and its area element p^2. Cells are a fine enough raster:
+    each is one colour (up to the X-corners' diagonals), and r^-3 changes by
+    under 2 % across a cell 5 or more cells away. Single precision (G to 1e-6
+    of its range) halves the 0.1 s of the transforms; computed once per noise pattern.
     """
     noise = np.unpackbits(np.frombuffer(packed_noise, dtype=np.uint8))[: target.NOISE**2]
     layout = np.pad(target.cells(noise.reshape(target.NOISE, target.NOISE).astype(np.float64), 1), _TAIL_MARGIN,
-                    constant_values=1.0)
+                    constant_values=1.0).astype(np.float32)
     r = np.arange(-_TAIL_RADIUS, _TAIL_RADIUS + 1, dtype=np.float64)
     distance = np.hypot(r[None, :], r[:, None])
     kernel = np.zeros_like(distance)
     ring = (distance >= _TAIL_INNER) & (distance <= _TAIL_RADIUS)
     kernel[ring] = distance[ring] ** -3.0
-    lost = kernel.sum() + 2 * np.pi / _TAIL_RADIUS  # the tail beyond the radius leaves too: int r^-3 2 pi r dr
-    return signal.fftconvolve(layout, kernel, mode="same") - layout * lost
+    shape = [fft.next_fast_len(n + 2 * _TAIL_RADIUS, real=True) for n in layout.shape]
+    product = fft.rfft2(layout, shape) * fft.rfft2(kernel.astype(np.float32), shape)
+    full = fft.irfft2(product, shape)  # the linear convolution, the kernel's centre at (radius, radius)
+    rows, cols = layout.shape
+    around = full[_TAIL_RADIUS : _TAIL_RADIUS + rows, _TAIL_RADIUS : _TAIL_RADIUS + cols]
+    lost = kernel.sum() + 2 * np.pi / _TAIL_RADIUS  # beyond the radius: int r^-3 2 pi r dr
+    return around.astype(np.float64) - layout * lost
 
 
 def _tail_response(raster: np.ndarray, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     """`_tail_raster` at pattern points (X, Y), bilinear between cell centres."""
-    rows = np.asarray(Y) + _TAIL_MARGIN - 0.5
-    cols = np.asarray(X) + _TAIL_MARGIN - 0.5
-    return ndimage.map_coordinates(raster, [rows, cols], order=1, mode="nearest")
+    rows = np.clip(np.asarray(Y, dtype=np.float64) + _TAIL_MARGIN - 0.5, 0, raster.shape[0] - 1.001)
+    cols = np.clip(np.asarray(X, dtype=np.float64) + _TAIL_MARGIN - 0.5, 0, raster.shape[1] - 1.001)
+    r0, c0 = rows.astype(int), cols.astype(int)
+    fr, fc = rows - r0, cols - c0
+    top = raster[r0, c0] * (1 - fc) + raster[r0, c0 + 1] * fc
+    bottom = raster[r0 + 1, c0] * (1 - fc) + raster[r0 + 1, c0 + 1] * fc
+    return top * (1 - fr) + bottom * fr
 
 
 def _field(coef: np.ndarray, centre: np.ndarray, spread: float) -> Field:
