@@ -160,6 +160,7 @@ def test_whole_pipeline_is_unbiased_under_a_diffraction_tail(diffraction):
     (est,) = bernoulli.estimate_target(shot.frame, support=support)
     _check(render.compare(est.psf, shot.kernel, S), est.noise_floor, shot.kernel, support)
     assert est.warnings == []
+    assert est.params["light_tail"] > 0.03  # recorded with the PSF (docs/formats.md)
 
 
 def test_light_fields_are_the_levels_without_the_tail(diffraction):

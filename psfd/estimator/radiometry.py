@@ -105,7 +105,7 @@ def illumination(image: np.ndarray, to_image: Callable, to_pattern: Callable, re
     levels = np.concatenate([design * ~white[:, None], design * white[:, None]], axis=1)
     coef, *_ = np.linalg.lstsq(levels, values, rcond=None)  # no tail: the first W - B
     tail = 0.0
-    for _ in range(3):  # W - B in the tail term from the previous pass: 1e-4 of the span after three
+    for _ in range(3):  # W - B in the tail term from the previous pass: the fields move 2e-4, 1e-5, 1e-6 of it
         both = np.column_stack([levels, (design @ (coef[6:] - coef[:6])) * response])
         solution, *_ = np.linalg.lstsq(both, values, rcond=None)
         if solution[12] <= 0:  # no tail, or light from elsewhere that is not a PSF's
