@@ -155,7 +155,7 @@ def diffraction():
 
 def test_whole_pipeline_is_unbiased_under_a_diffraction_tail(diffraction):
     """Through the whole pipeline, f/22 is as accurate as with the true light (the old light model:
-    max 0.045, signed +0.019, width 0.94; now 0.016, +0.003, 1.00; true light 0.017, +0.000, 1.01)."""
+    max 0.045, signed +0.019, width 0.94; now 0.016, +0.002, 1.00; true light 0.017, +0.000, 1.01)."""
     shot, support = diffraction
     (est,) = bernoulli.estimate_target(shot.frame, support=support)
     _check(render.compare(est.psf, shot.kernel, S), est.noise_floor, shot.kernel, support)
