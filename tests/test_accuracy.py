@@ -158,7 +158,12 @@ def test_whole_pipeline_is_unbiased_under_a_diffraction_tail(diffraction):
     max 0.045, signed +0.019, width 0.94; now 0.016, +0.002, 1.00; true light 0.017, +0.000, 1.01)."""
     shot, support = diffraction
     (est,) = bernoulli.estimate_target(shot.frame, support=support)
-    _check(render.compare(est.psf, shot.kernel, S), est.noise_floor, shot.kernel, support)
+    errors = render.compare(est.psf, shot.kernel, S)
+    _check(errors, est.noise_floor, shot.kernel, support)
+    # _check allows half the mass beyond the support (6 % here) on top of MAX_MTF for the support's own
+    # model error; on this render that error and the noise leave 0.017 with the true light, so the
+    # light model must not add to it: MAX_MTF itself holds
+    assert errors.max_mtf <= MAX_MTF, errors
     assert est.warnings == []
     assert est.params["light_tail"] > 0.03  # recorded with the PSF (docs/formats.md)
 
@@ -171,7 +176,8 @@ def test_light_fields_are_the_levels_without_the_tail(diffraction):
     black, white, tail = radiometry.illumination(shot.frame.data, to_image, to_pattern, (support - 1) / (2 * S))
     fnumber, wavelength, pitch = 22.0, 0.55, 8.6  # render.KINDS["airy-f22"]
     assert tail == pytest.approx(wavelength * fnumber / pitch / math.pi**3, rel=0.15)
-    # the true fields at the noise region, in units of the true span (the old model: black +0.03, white -0.03)
+    # the true fields over the noise region, in units of the true span (the old model read the squares'
+    # centres: black +0.035, white -0.027, `Render.flare`)
     X, Y = np.meshgrid(np.linspace(40, 280, 9), np.linspace(40, 280, 9))
     x, y = shot.to_image(X, Y)
     level = shot.exposure.electrons * shot.exposure.dn_per_electron * shot.light(x, y)
