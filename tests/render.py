@@ -575,7 +575,8 @@ class Render:
 
     def flare(self) -> tuple[float, float]:
         """Light of the kernel's tails at the centres of the flat squares: (black level above 0,
-        white level below 1), normalised; the light model takes these centres as pure black and white."""
+        white level below 1), normalised: what a light model that takes these centres as pure black and white
+        is off by (radiometry.illumination fits it)."""
         levels = []
         for blocks in (BLACKS, WHITES):
             centres = np.array([(BLOCK * bx + BLOCK / 2, BLOCK * by + BLOCK / 2) for bx, by in blocks])
