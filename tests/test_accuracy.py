@@ -22,9 +22,12 @@ Tolerances, from the reported noise floor F = sigma_n sqrt(trace((A^T A)^-1))
   3 F / sqrt(2) with 99 % probability. The non-negative solution is the
   projection of h_ls onto h >= 0 in the metric of A^T A, a convex set that
   holds the truth, so it can only come closer. For F <= MAX_FLOOR = 0.0075
-  (asserted on each render) the noise takes at most 0.016, which leaves 0.004
-  for the model: noise-free renders with the true light field measure
-  0.001-0.003 for the kernels with no mass beyond the support. Diffraction
+  the noise takes at most 0.016, which leaves 0.004 for the model (above it
+  the tolerance is 3 F / sqrt(2) + 0.004, up to F = 0.016: the whole
+  pipeline's floor counts the misregistration of the detected map in
+  sigma_n, 0.0086 on a render whose floor with the true map is 0.0033).
+  Noise-free renders with the true light field measure 0.001-0.003 for the
+  kernels with no mass beyond the support. Diffraction
   has 3-8 % there, and the pedestal describes only its mean: noise-free,
   0.008 at f/5.6 (3 %) and 0.016 at f/22 (8 %), about a quarter of that
   mass; half of it is added to the tolerance.
@@ -35,7 +38,8 @@ Tolerances, from the reported noise floor F = sigma_n sqrt(trace((A^T A)^-1))
   noise-free model bias is below 0.003. The old default (negative values
   clipped, the rest renormalised) misses it by -0.027 at that noise: its
   clipped tail noise becomes mass.
-- The whole pipeline is held to the same tolerances. Its light model once
+- The whole pipeline is held to the same tolerances (before, the flare below
+  was added to all three, the floor's bound included). Its light model once
   added a bias: it took the centres of the flat squares as pure black and
   white, but a diffraction PSF's far tail (intensity ~ r^-3, edge spread
   ~ 1/r) brings light into them, c_b above black and c_w below white
@@ -59,6 +63,8 @@ S = 4
 MAX_MTF = 0.02
 MAX_BIAS = 0.01
 MAX_FLOOR = 0.0075  # the noise floor that justifies MAX_MTF (module docstring)
+MODEL = MAX_MTF - 3 * MAX_FLOOR / math.sqrt(2)  # what MAX_MTF leaves for the model: 0.004
+PHOTO_FLOOR = 0.016  # the floor up to which MAX_BIAS holds (module docstring)
 LAB = render.Exposure(electrons=30000.0)  # a base-ISO RAW: mid-grey noise 0.5 % of the black-to-white range
 PHOTO = render.Exposure(electrons=5000.0)  # the noise of the published photograph: 1.2 %
 
@@ -75,9 +81,10 @@ def _true_light(shot, support, **kwargs) -> dict:
 
 
 def _check(errors: render.Errors, floor: float, kernel: render.Kernel, support: int) -> None:
-    assert floor <= MAX_FLOOR, f"noise floor {floor:.4f}: the tolerances are not justified"
+    assert floor <= PHOTO_FLOOR, f"noise floor {floor:.4f}: the bias tolerance is not justified"
+    noise = MAX_MTF if floor <= MAX_FLOOR else 3 * floor / math.sqrt(2) + MODEL  # module docstring
     tail = kernel.outside(S, support) / 2  # what the pedestal leaves out of the mass beyond the support
-    assert errors.max_mtf <= MAX_MTF + tail, errors
+    assert errors.max_mtf <= noise + tail, errors
     assert abs(errors.mean_signed) <= MAX_BIAS, errors
 
 
@@ -195,7 +202,7 @@ SLOW = {
     "airy-f5.6-17": ("airy-f5.6", 17, 0.37, 100.0),
     "airy-f11-17": ("airy-f11", 17, 0.33, 45.0),
     "airy-f11-25": ("airy-f11", 25, 0.35, 160.0),
-    "airy-f22-17": ("airy-f22", 17, 0.45, 120.0),
+    "airy-f22-17": ("airy-f22", 17, 0.35, 120.0),
     "airy-f22-25": ("airy-f22", 25, 0.40, 75.0),
     "defocus-25-upright": ("defocus", 25, 0.45, 180.0),
 }
