@@ -118,8 +118,8 @@ def illumination(image: np.ndarray, to_image: Callable, to_pattern: Callable, re
     image = np.asarray(image, dtype=np.float64)
     noise = target.default_noise() if noise is None else np.asarray(noise, dtype=np.float64)
     raster = _tail_raster(np.packbits(noise > 0.5).tobytes())
-    blacks = [_square(image, to_image, to_pattern, b, reach, raster) for b in target.BLACK_BLOCKS]
-    whites = [_square(image, to_image, to_pattern, b, reach, raster) for b in target.WHITE_BLOCKS]
+    blacks = _squares(image, to_image, to_pattern, target.BLACK_BLOCKS, reach, raster)
+    whites = _squares(image, to_image, to_pattern, target.WHITE_BLOCKS, reach, raster)
     span = float(np.median([np.median(sq.values) for sq in whites]) - np.median([np.median(sq.values) for sq in blacks]))
     squares = [sq.without_outliers(span) for sq in blacks + whites]
     xy = np.array([sq.centre for sq in squares])
@@ -231,34 +231,43 @@ class _Square(NamedTuple):
         return _Square(self.centre, *(a[keep] for a in (self.x, self.y, self.values, self.response)))
 
 
-def _square(image: np.ndarray, to_image: Callable, to_pattern: Callable, block, reach: float,
-            raster: np.ndarray) -> _Square:
-    """The pixels of a flat square further than ``reach`` + `_EDGE_CLEARANCE` pixels from its edges.
+def _squares(image: np.ndarray, to_image: Callable, to_pattern: Callable, blocks, reach: float,
+             raster: np.ndarray) -> list[_Square]:
+    """The pixels of each flat square further than ``reach`` + `_EDGE_CLEARANCE` pixels from its edges.
 
     On a target too small for that, the inner third of the square. At most
-    `_MAX_SAMPLES`, taken evenly.
+    `_MAX_SAMPLES` per square, taken evenly. All squares go through the maps at once.
     """
-    X0, Y0 = target.block_centre(block)
+    centres = np.array([target.block_centre(b) for b in blocks])
     half = target.BLOCK / 2
-    cx, cy = (float(np.ravel(c)[0]) for c in to_image(np.array([X0]), np.array([Y0])))
-    ex, ey = to_image(np.array([X0 + 1.0]), np.array([Y0]))
-    scale = float(np.hypot(np.ravel(ex)[0] - cx, np.ravel(ey)[0] - cy))  # local px per cell
-    corners = to_image(X0 + half * np.array([-1, 1, 1, -1]), Y0 + half * np.array([-1, -1, 1, 1]))
+    # each square's centre, one cell to its right (the local scale) and its four corners
+    offsets = np.array([[0.0, 0.0], [1.0, 0.0], [-half, -half], [half, -half], [half, half], [-half, half]])
+    points = centres[:, None, :] + offsets[None, :, :]
+    px, py = (np.reshape(c, points.shape[:2]) for c in to_image(points[..., 0].ravel(), points[..., 1].ravel()))
+    scale = np.hypot(px[:, 1] - px[:, 0], py[:, 1] - py[:, 0])  # pixels per cell
+    x0, x1 = np.floor(px[:, 2:].min(axis=1)).astype(int), np.ceil(px[:, 2:].max(axis=1)).astype(int)
+    y0, y1 = np.floor(py[:, 2:].min(axis=1)).astype(int), np.ceil(py[:, 2:].max(axis=1)).astype(int)
     rows, cols = image.shape
-    x0, x1 = int(np.floor(np.min(corners[0]))), int(np.ceil(np.max(corners[0])))
-    y0, y1 = int(np.floor(np.min(corners[1]))), int(np.ceil(np.max(corners[1])))
-    if x0 < 0 or y0 < 0 or x1 >= cols or y1 >= rows:
+    if (x0 < 0).any() or (y0 < 0).any() or (x1 >= cols).any() or (y1 >= rows).any():
         raise EstimationError("a flat square of the target falls outside the image")
-    yy, xx = np.mgrid[y0 : y1 + 1, x0 : x1 + 1]
-    X, Y = to_pattern(xx.astype(np.float64), yy.astype(np.float64))
-    depth = half - np.maximum(np.abs(X - X0), np.abs(Y - Y0))  # cells to the nearest edge
-    keep = np.flatnonzero(depth >= min((reach + _EDGE_CLEARANCE) / scale, half * 2 / 3))
-    if keep.size == 0:
-        raise EstimationError("a flat square of the target is too small in the image to read its level")
-    keep = keep[:: max(1, keep.size // _MAX_SAMPLES)]
-    x, y, X, Y = xx.ravel()[keep], yy.ravel()[keep], X.ravel()[keep], Y.ravel()[keep]
-    return _Square((cx, cy), x.astype(np.float64), y.astype(np.float64), image[y, x],
-                   _tail_response(raster, X, Y) / scale)
+    grids = [np.mgrid[y0[k] : y1[k] + 1, x0[k] : x1[k] + 1].reshape(2, -1) for k in range(len(blocks))]
+    owner = np.repeat(np.arange(len(blocks)), [g.shape[1] for g in grids])
+    y, x = np.concatenate(grids, axis=1)
+    X, Y = to_pattern(x.astype(np.float64), y.astype(np.float64))
+    depth = half - np.maximum(np.abs(X - centres[owner, 0]), np.abs(Y - centres[owner, 1]))  # cells to an edge
+    keep = depth >= np.minimum((reach + _EDGE_CLEARANCE) / scale, half * 2 / 3)[owner]
+    x, y, X, Y, owner = x[keep], y[keep], X[keep], Y[keep], owner[keep]
+    response = _tail_response(raster, X, Y) / scale[owner]
+    values = image[y, x]
+    squares = []
+    for k in range(len(blocks)):
+        mine = np.flatnonzero(owner == k)
+        if mine.size == 0:
+            raise EstimationError("a flat square of the target is too small in the image to read its level")
+        mine = mine[:: max(1, mine.size // _MAX_SAMPLES)]
+        squares.append(_Square((float(px[k, 0]), float(py[k, 0])), x[mine].astype(np.float64),
+                               y[mine].astype(np.float64), values[mine], response[mine]))
+    return squares
 
 
 @functools.lru_cache(maxsize=4)
