@@ -55,14 +55,21 @@ _TAIL_MARGIN = 64  # cells of white paper modelled around the target (the render
 _TAIL_RADIUS = 192  # cells: light from further away varies too slowly to tell from the quadratic fields
 _TAIL_INNER = 2.0  # cells: the tail kernel starts here; every sample is further than this from another colour
 # Samples keep this far (pixels) beyond the support's reach from the edge of their square: the PSF's core
-# stays inside the support, and the X-corners place the edges to ~0.1 px.
+# stays inside the support, and the X-corners place the edges to ~0.1 px ...
 _EDGE_CLEARANCE = 0.5
+# ... but no further than this (pixels): a 25-sample support at s = 4 reaches 3 px, and at 0.33 px/cell
+# starting at 3.5 px leaves 1.8 px to the square's centre (350 pixels in all) and a to +-0.014 at the
+# published photograph's noise (a defocus disc through f/5.6, a = 0.012; one seed in two fitted 0.042
+# and widened the kernel by -0.017 mean signed MTF). From 2.5 px: +-0.005, and the anisotropic Gaussian
+# (sigma 0.7 px) still shows no tail (a = 0.0001 +- 0.0012; 0.0011 from 2.0 px), f/22 the same a (0.043).
+_SAMPLE_START = 2.5
 _MAX_SAMPLES = 4000  # per square, taken evenly: the fit's 13 unknowns need far fewer
 # The tail is fitted only where the flat squares show it, above this many standard errors. The squares'
-# pixels measure a to 0.005 at 0.33 px per cell and support 25 (344 pixels clear of the support; 0.0013
-# at 0.37 and 17), where diffraction has 0.012 at f/5.6, 0.045 at f/22. Kept at any positive value, the
-# noise of a tail-less PSF (Gaussian renders) would leave a = 0.4 standard errors on average and widen
-# the kernel (-0.0013 mean signed MTF on the anisotropic Gaussian at 0.33 and 25); a negative a is no PSF.
+# pixels measure a to 0.0017 at 0.33 px per cell and support 25 (760 pixels from 2.5 px; 0.005 at the
+# published photograph's noise), where diffraction has 0.012 at f/5.6, 0.045 at f/22. Kept at any
+# positive value, the noise of a tail-less PSF would leave a = 0.4 standard errors on average and widen
+# the kernel (-0.0013 mean signed MTF on the anisotropic Gaussian when a was measured to 0.005); a
+# negative a is no PSF.
 _SIGNIFICANT = 2.0
 
 
@@ -93,7 +100,7 @@ def illumination(image: np.ndarray, to_image: Callable, to_pattern: Callable, re
     r^-3 response (`_tail_response`: positive in black squares, negative in
     white ones), t the tail amplitude. The two fields and t are fitted by least
     squares to every pixel of the flat squares further than ``reach`` + 0.5 px
-    from their edges (outliers - dust, a hot pixel - removed per square), with
+    (at most 2.5 px) from their edges (outliers - dust, a hot pixel - removed per square), with
     W - B in the tail term from the previous pass (three passes). A t below
     two standard errors (`_SIGNIFICANT`) is not shown by the squares, and a
     negative one is no PSF: the fit is then repeated with t = 0.
@@ -233,7 +240,8 @@ class _Square(NamedTuple):
 
 def _squares(image: np.ndarray, to_image: Callable, to_pattern: Callable, blocks, reach: float,
              raster: np.ndarray) -> list[_Square]:
-    """The pixels of each flat square further than ``reach`` + `_EDGE_CLEARANCE` pixels from its edges.
+    """The pixels of each flat square further than ``reach`` + `_EDGE_CLEARANCE` pixels from its edges
+    (at most `_SAMPLE_START`).
 
     On a target too small for that, the inner third of the square. At most
     `_MAX_SAMPLES` per square, taken evenly. All squares go through the maps at once.
@@ -255,7 +263,8 @@ def _squares(image: np.ndarray, to_image: Callable, to_pattern: Callable, blocks
     y, x = np.concatenate(grids, axis=1)
     X, Y = to_pattern(x.astype(np.float64), y.astype(np.float64))
     depth = half - np.maximum(np.abs(X - centres[owner, 0]), np.abs(Y - centres[owner, 1]))  # cells to an edge
-    keep = depth >= np.minimum((reach + _EDGE_CLEARANCE) / scale, half * 2 / 3)[owner]
+    start = min(reach + _EDGE_CLEARANCE, _SAMPLE_START)
+    keep = depth >= np.minimum(start / scale, half * 2 / 3)[owner]
     x, y, X, Y, owner = x[keep], y[keep], X[keep], Y[keep], owner[keep]
     response = _tail_response(raster, X, Y) / scale[owner]
     values = image[y, x]
