@@ -728,7 +728,8 @@ class Errors:
 
     def __str__(self) -> str:
         return (f"max {self.max_mtf:.4f} (2-D {self.max_mtf_2d:.4f})  signed {self.mean_signed:+.4f}  "
-                f"width {self.width_ratio:.3f} (core {self.core_width_ratio:.3f})  continuous {self.max_continuous:.4f}")
+                f"width {self.width_ratio:.3f} (core {self.core_width_ratio:.3f})  "
+                f"continuous {self.max_continuous:.4f}")
 
 
 def compare(psf: np.ndarray, kernel: Kernel, s: int) -> Errors:

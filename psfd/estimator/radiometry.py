@@ -100,10 +100,10 @@ def illumination(image: np.ndarray, to_image: Callable, to_pattern: Callable, re
     r^-3 response (`_tail_response`: positive in black squares, negative in
     white ones), t the tail amplitude. The two fields and t are fitted by least
     squares to every pixel of the flat squares further than ``reach`` + 0.5 px
-    (at most 2.5 px) from their edges (outliers - dust, a hot pixel - removed per square), with
-    W - B in the tail term from the previous pass (three passes). A t below
-    two standard errors (`_SIGNIFICANT`) is not shown by the squares, and a
-    negative one is no PSF: the fit is then repeated with t = 0.
+    (at most 2.5 px) from their edges (outliers - dust, a hot pixel - removed
+    per square), with W - B in the tail term from the previous pass (three
+    passes). A t below two standard errors (`_SIGNIFICANT`) is not shown by
+    the squares, and a negative one is no PSF: the fit is then repeated with t = 0.
 
     Parameters
     ----------
@@ -127,7 +127,8 @@ def illumination(image: np.ndarray, to_image: Callable, to_pattern: Callable, re
     raster = _tail_raster(np.packbits(noise > 0.5).tobytes())
     blacks = _squares(image, to_image, to_pattern, target.BLACK_BLOCKS, reach, raster)
     whites = _squares(image, to_image, to_pattern, target.WHITE_BLOCKS, reach, raster)
-    span = float(np.median([np.median(sq.values) for sq in whites]) - np.median([np.median(sq.values) for sq in blacks]))
+    level = [float(np.median([np.median(sq.values) for sq in group])) for group in (blacks, whites)]
+    span = level[1] - level[0]
     squares = [sq.without_outliers(span) for sq in blacks + whites]
     xy = np.array([sq.centre for sq in squares])
     centre, spread = xy.mean(axis=0), float(xy.std()) or 1.0
