@@ -22,9 +22,12 @@ Tolerances, from the reported noise floor F = sigma_n sqrt(trace((A^T A)^-1))
   3 F / sqrt(2) with 99 % probability. The non-negative solution is the
   projection of h_ls onto h >= 0 in the metric of A^T A, a convex set that
   holds the truth, so it can only come closer. For F <= MAX_FLOOR = 0.0075
-  (asserted on each render) the noise takes at most 0.016, which leaves 0.004
-  for the model: noise-free renders with the true light field measure
-  0.001-0.003 for the kernels with no mass beyond the support. Diffraction
+  the noise takes at most 0.016, which leaves 0.004 for the model (above it
+  the tolerance is 3 F / sqrt(2) + 0.004, up to F = 0.016: the whole
+  pipeline's floor counts the misregistration of the detected map in
+  sigma_n, 0.0086 on a render whose floor with the true map is 0.0033).
+  Noise-free renders with the true light field measure 0.001-0.003 for the
+  kernels with no mass beyond the support. Diffraction
   has 3-8 % there, and the pedestal describes only its mean: noise-free,
   0.008 at f/5.6 (3 %) and 0.016 at f/22 (8 %), about a quarter of that
   mass; half of it is added to the tolerance.
@@ -35,13 +38,15 @@ Tolerances, from the reported noise floor F = sigma_n sqrt(trace((A^T A)^-1))
   noise-free model bias is below 0.003. The old default (negative values
   clipped, the rest renormalised) misses it by -0.027 at that noise: its
   clipped tail noise becomes mass.
-- Through the whole pipeline the light model adds a known bias: it takes the
-  centres of the flat squares as pure black and white, but the kernel's tails
-  (diffraction: mass ~ 1/r) bring light into them, c_b above black and c_w
-  below white (`Render.flare`, from the truth); the normalised plane is
-  stretched by 1 / (1 - c_b - c_w) and the kernel with it. Both tolerances
-  grow by that flare, 0 for a Gaussian, 0.014 for the defocus disc, 0.045 for
-  diffraction at f/22 at 0.4 pixel per cell.
+- The whole pipeline is held to the same tolerances (before, the flare below
+  was added to all three, the floor's bound included). Its light model once
+  added a bias: it took the centres of the flat squares as pure black and
+  white, but a diffraction PSF's far tail (intensity ~ r^-3, edge spread
+  ~ 1/r) brings light into them, c_b above black and c_w below white
+  (`Render.flare`, from the truth: 0.045 together for f/22 at 0.4 pixel per
+  cell), the normalised plane was stretched by 1 / (1 - c_b - c_w) and the
+  kernel with it: +0.014 to +0.019 mean signed MTF error at f/22, +0.009 at
+  f/11. radiometry.illumination now fits that tail with the fields.
 """
 
 from __future__ import annotations
@@ -52,12 +57,14 @@ import numpy as np
 import pytest
 import render
 
-from psfd.estimator import bernoulli
+from psfd.estimator import bernoulli, detect, geometry, radiometry
 
 S = 4
 MAX_MTF = 0.02
 MAX_BIAS = 0.01
 MAX_FLOOR = 0.0075  # the noise floor that justifies MAX_MTF (module docstring)
+MODEL = MAX_MTF - 3 * MAX_FLOOR / math.sqrt(2)  # what MAX_MTF leaves for the model: 0.004
+PHOTO_FLOOR = 0.016  # the floor up to which MAX_BIAS holds (module docstring)
 LAB = render.Exposure(electrons=30000.0)  # a base-ISO RAW: mid-grey noise 0.5 % of the black-to-white range
 PHOTO = render.Exposure(electrons=5000.0)  # the noise of the published photograph: 1.2 %
 
@@ -73,11 +80,12 @@ def _true_light(shot, support, **kwargs) -> dict:
     return result
 
 
-def _check(errors: render.Errors, floor: float, kernel: render.Kernel, support: int, flare: float = 0.0) -> None:
-    assert floor <= MAX_FLOOR + flare, f"noise floor {floor:.4f}: the tolerances are not justified"
+def _check(errors: render.Errors, floor: float, kernel: render.Kernel, support: int) -> None:
+    assert floor <= PHOTO_FLOOR, f"noise floor {floor:.4f}: the bias tolerance is not justified"
+    noise = MAX_MTF if floor <= MAX_FLOOR else 3 * floor / math.sqrt(2) + MODEL  # module docstring
     tail = kernel.outside(S, support) / 2  # what the pedestal leaves out of the mass beyond the support
-    assert errors.max_mtf <= MAX_MTF + tail + flare, errors
-    assert abs(errors.mean_signed) <= MAX_BIAS + flare / 2, errors
+    assert errors.max_mtf <= noise + tail, errors
+    assert abs(errors.mean_signed) <= MAX_BIAS, errors
 
 
 # --------------------------------------------------------------------------- default suite: two small renders
@@ -101,9 +109,7 @@ def test_solver_is_accurate_and_unbiased(fast):
 
 def test_whole_pipeline_is_accurate_and_unbiased(fast):
     shot, support, _, est = fast
-    flare = sum(shot.flare())
-    assert flare < 0.015  # these kernels' tails are short: the light model's bias stays small
-    _check(render.compare(est.psf, shot.kernel, S), est.noise_floor, shot.kernel, support, flare)
+    _check(render.compare(est.psf, shot.kernel, S), est.noise_floor, shot.kernel, support)
     assert est.warnings == []
 
 
@@ -142,13 +148,61 @@ def test_prediction_error_is_near_one_and_flags_a_kernel_that_does_not_hold(fast
     assert wrong["prediction_error"] > 1.3 > right["prediction_error"]
 
 
+# --------------------------------------------------------------------------- default suite: a diffraction tail
+
+
+@pytest.fixture(scope="module")
+def diffraction():
+    """f/22 on a 2 x 4.3 um plane (lambda N = 1.41 px) at 0.30 pixel per cell: the far tail brings 0.06 of the
+    span into the centres of the flat squares (`Render.flare`), which the old light model read as black and white."""
+    shot, support = _render("airy-f22", 17, 0.30, 30.0)
+    assert sum(shot.flare()) > 0.05
+    return shot, support
+
+
+def test_whole_pipeline_is_unbiased_under_a_diffraction_tail(diffraction):
+    """Through the whole pipeline, f/22 is as accurate as with the true light (the old light model:
+    max 0.045, signed +0.019, width 0.94; now 0.016, +0.002, 1.00; true light 0.017, +0.000, 1.01)."""
+    shot, support = diffraction
+    (est,) = bernoulli.estimate_target(shot.frame, support=support)
+    errors = render.compare(est.psf, shot.kernel, S)
+    _check(errors, est.noise_floor, shot.kernel, support)
+    # _check allows half the mass beyond the support (6 % here) on top of MAX_MTF for the support's own
+    # model error; on this render that error and the noise leave 0.017 with the true light, so the
+    # light model must not add to it: MAX_MTF itself holds
+    assert errors.max_mtf <= MAX_MTF, errors
+    assert est.warnings == []
+    assert est.params["light_tail"] > 0.03  # recorded with the PSF (docs/formats.md)
+
+
+def test_light_fields_are_the_levels_without_the_tail(diffraction):
+    """The fitted fields are the true black and white levels, not the flat squares' centres, and the
+    fitted tail amplitude is the diffraction asymptote's, lambda N / pi^3 (radiometry.illumination)."""
+    shot, support = diffraction
+    to_image, to_pattern = geometry.target_maps(detect.find_target(shot.frame.data))
+    black, white, tail = radiometry.illumination(shot.frame.data, to_image, to_pattern, (support - 1) / (2 * S))
+    fnumber, wavelength, pitch = 22.0, 0.55, 8.6  # render.KINDS["airy-f22"]
+    assert tail == pytest.approx(wavelength * fnumber / pitch / math.pi**3, rel=0.15)
+    # the true fields over the noise region, in units of the true span (the old model read the squares'
+    # centres: black +0.035, white -0.027, `Render.flare`)
+    X, Y = np.meshgrid(np.linspace(40, 280, 9), np.linspace(40, 280, 9))
+    x, y = shot.to_image(X, Y)
+    level = shot.exposure.electrons * shot.exposure.dn_per_electron * shot.light(x, y)
+    true_black, true_white = level * shot.paper.black, level * shot.paper.white
+    span = true_white - true_black
+    assert np.abs((black(x, y) - true_black) / span).max() < 0.005
+    assert np.abs((white(x, y) - true_white) / span).max() < 0.005
+
+
 # --------------------------------------------------------------------------- slow: every kind
 
 SLOW = {
     "gaussian-25": ("gaussian", 25, 0.35, 60.0),
     "anisotropic-17": ("anisotropic", 17, 0.50, 35.0),
     "airy-f5.6-17": ("airy-f5.6", 17, 0.37, 100.0),
+    "airy-f11-17": ("airy-f11", 17, 0.33, 45.0),
     "airy-f11-25": ("airy-f11", 25, 0.35, 160.0),
+    "airy-f22-17": ("airy-f22", 17, 0.35, 120.0),
     "airy-f22-25": ("airy-f22", 25, 0.40, 75.0),
     "defocus-25-upright": ("defocus", 25, 0.45, 180.0),
 }
@@ -161,4 +215,4 @@ def test_every_kind(case):
     result = _true_light(shot, support)
     _check(render.compare(result["psf"], shot.kernel, S), result["noise_floor"], shot.kernel, support)
     (est,) = bernoulli.estimate_target(shot.frame, support=support)
-    _check(render.compare(est.psf, shot.kernel, S), est.noise_floor, shot.kernel, support, sum(shot.flare()))
+    _check(render.compare(est.psf, shot.kernel, S), est.noise_floor, shot.kernel, support)

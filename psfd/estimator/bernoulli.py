@@ -995,6 +995,7 @@ class _TargetPlane(_Plane):
     frame: Frame
     offset: tuple[int, int]
     alpha: float
+    tail: float
     scale: float
     geometry: str
 
@@ -1009,7 +1010,7 @@ def _prepare(
         # the map D (IJCV 2012 sec. 4; Delbracio PhD thesis 2013, App. A.1; geometry.target_maps)
         to_image, to_pattern = geometry.target_maps(detection, "auto" if tps is None else float(tps))
         box = _target_box(to_image, image.shape, margin=(support - 1) // (2 * s) + 2)
-        v, alpha = _corrected(frame, image, box, to_image, to_pattern, noise)
+        v, alpha, tail = _corrected(frame, image, box, to_image, to_pattern, noise, (support - 1) / (2 * s))
         x0, y0 = box[0], box[1]
 
         def local_to_pattern(x, y):
@@ -1018,7 +1019,7 @@ def _prepare(
         plane = _TargetPlane(v, local_to_pattern, s, support, grid)
     except EstimationError as exc:
         raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
-    plane.frame, plane.offset, plane.alpha = frame, (x0, y0), alpha
+    plane.frame, plane.offset, plane.alpha, plane.tail = frame, (x0, y0), alpha, tail
     plane.scale = s * float(detection.scale)  # s / t, with 1/t = image pixels per cell
     plane.geometry = "homography+radial" if tps is None else f"homography+tps({float(tps):g})"
     return plane
@@ -1085,6 +1086,7 @@ def _psf(plane: _TargetPlane, r: dict, s: int, support: int, solver: str, grid: 
     frame = plane.frame
     x0, y0 = plane.offset
     params = {"solver": solver, "support": support, "grid": [int(grid[0]), int(grid[1])], "crf_alpha": plane.alpha,
+              "light_tail": plane.tail,
               "scale": plane.scale, "geometry": plane.geometry}
     kernel, shift = _recentred(r["psf"], solver) if recentre else (r["psf"], (0.0, 0.0))
     wx0, wy0, wx1, wy1 = r["window"]
@@ -1137,9 +1139,12 @@ def _recentred(kernel: np.ndarray, solver: str) -> tuple[np.ndarray, tuple[float
 
 def _corrected(
     frame: Frame, image: np.ndarray, box: tuple[int, int, int, int], to_image: Map, to_pattern: Map,
-    noise: np.ndarray,
-) -> tuple[np.ndarray, float]:
-    """The target crop with illumination and response curve corrected, and the curve's alpha.
+    noise: np.ndarray, reach: float,
+) -> tuple[np.ndarray, float, float]:
+    """The target crop with illumination and response curve corrected, the curve's alpha and the light
+    model's tail amplitude (`radiometry.Light`).
+
+    ``reach``: half the PSF support in pixels; the light model fits the PSF's tail beyond it.
 
     Raises SaturatedError when a clipped photosite falls on the target: the
     linear model (M) does not hold there (IJCV 2012 sec. 2).
@@ -1152,15 +1157,16 @@ def _corrected(
     if clipped:
         # estimate_target's message names the frame and the channel
         raise SaturatedError(f"{clipped} saturated pixels on the target; lower the exposure")
-    # illumination: v' = (v - B) / (W - B), quadratic B and W from the flat squares (IJCV 2012 sec. 4)
-    black, white = radiometry.illumination(image, to_image)
+    # illumination: v' = (v - B) / (W - B), quadratic B and W from the flat squares (IJCV 2012 sec. 4),
+    # with the light the PSF's far tail brings into them (radiometry.illumination)
+    black, white, tail = radiometry.illumination(image, to_image, to_pattern, reach, noise)
     v = radiometry.normalise(image[y0:y1, x0:x1], black, white, xx, yy)
     # response curve: phi(v') = alpha v'^2 + (1 - alpha) v' with the noise region averaging what its
     # printed cells average (IJCV 2012 sec. 4 takes 1/2; the published pattern averages 0.502)
     lo, hi = target.NOISE_START, target.NOISE_STOP
     core = (X >= lo) & (X < hi) & (Y >= lo) & (Y < hi)
     alpha = float(radiometry.crf_alpha(v[core], _visible_mean(noise, to_image, box)))
-    return radiometry.apply_crf(v, alpha), alpha
+    return radiometry.apply_crf(v, alpha), alpha, tail
 
 
 def _visible_mean(noise: np.ndarray, to_image: Map, box: tuple[int, int, int, int]) -> float:
