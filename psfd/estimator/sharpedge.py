@@ -572,17 +572,12 @@ def locate_target(image: np.ndarray, squares: tuple[int, int] = SQUARES) -> Targ
     ------
     TargetNotFoundError
     """
-    lo, hi = np.percentile(image, [1, 99])
+    lo, hi = np.percentile(image[:: _stride(image.shape), :: _stride(image.shape)], [1, 99])
     grey = np.clip((image - lo) / max(hi - lo, 1e-12) * 255, 0, 255).astype(np.uint8)
     inner = (squares[0] - 1, squares[1] - 1)
-    # the sector-based detector is not deterministic (it missed a clean board about once in 25 runs): retry
-    for _ in range(3):
-        found, corners = cv2.findChessboardCornersSB(grey, inner, flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
-        if found:
-            break
-    if not found:
+    det = _board_corners(grey, inner, squares)
+    if det is None:
         raise TargetNotFoundError("no edge target found (its checkerboard corners were not detected)")
-    det = corners.reshape(-1, 2).astype(np.float64)
     gy, gx = np.mgrid[1 : inner[1] + 1, 1 : inner[0] + 1]
     pattern = np.column_stack([gx.ravel(), gy.ravel()]).astype(np.float64)
     rows, cols = image.shape
@@ -605,6 +600,59 @@ def locate_target(image: np.ndarray, squares: tuple[int, int] = SQUARES) -> Targ
     if values[:2].mean() > values[2:].mean():
         view.homography = view.homography @ np.array([[-1.0, 0, squares[0]], [0, 1, 0], [0, 0, 1]])
     return view
+
+
+BOARD_SEARCH_PIXELS = 500_000  # larger frames are searched shrunk first (`_board_corners`)
+
+
+def _stride(shape: tuple[int, ...]) -> int:
+    """Subsampling step that leaves about a million pixels: percentiles of a large plane at a fraction of the cost."""
+    return max(1, int(np.sqrt(shape[0] * shape[1] / 1_000_000)))
+
+
+def _find_board(grey: np.ndarray, inner: tuple[int, int], flags: int, tries: int) -> np.ndarray | None:
+    # the sector-based detector is not deterministic (it missed a clean board about once in 25 runs): retry
+    for _ in range(tries):
+        found, corners = cv2.findChessboardCornersSB(grey, inner, flags=flags)
+        if found:
+            return corners.reshape(-1, 2).astype(np.float64)
+    return None
+
+
+def _board_corners(grey: np.ndarray, inner: tuple[int, int], squares: tuple[int, int]) -> np.ndarray | None:
+    """The inner corners (x, y) of the checkerboard in an 8-bit image, or None.
+
+    OpenCV's exhaustive sector-based search costs seconds on a frame of a few
+    megapixels, most of it spent where there is no board (3 tries took 8 s on
+    the 2.5-megapixel wall photo, which has none). A frame above
+    BOARD_SEARCH_PIXELS is first searched shrunk to that size (the board's
+    squares must stay some 10 pixels wide there), and the board found is then
+    searched again at full resolution in its box only, with the same flags as
+    a small frame gets: same corners, at the cost of the board's area.
+    """
+    flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+    rows, cols = grey.shape
+    factor = float(np.sqrt(rows * cols / BOARD_SEARCH_PIXELS))
+    if factor <= 1.0:
+        return _find_board(grey, inner, flags, 3)
+    small = cv2.resize(grey, (max(8, round(cols / factor)), max(8, round(rows / factor))), interpolation=cv2.INTER_AREA)
+    # the sub-pixel refinement (CALIB_CB_ACCURACY) is left to the full-resolution pass; a second,
+    # plain search covers a miss of the exhaustive one
+    coarse = _find_board(small, inner, cv2.CALIB_CB_EXHAUSTIVE, 1)
+    if coarse is None:
+        coarse = _find_board(small, inner, 0, 1)
+    if coarse is None:
+        return None
+    coarse = (coarse + 0.5) * np.array([cols / small.shape[1], rows / small.shape[0]]) - 0.5
+    # the outer squares and the white border around the inner corners, plus a square of slack
+    step = float(np.max(np.hypot(*np.diff(coarse.reshape(inner[1], inner[0], 2), axis=1).reshape(-1, 2).T)))
+    margin = (BORDER + 2.0) * step
+    x0, y0 = np.maximum(np.floor(coarse.min(axis=0) - margin).astype(int), 0)
+    x1, y1 = np.minimum(np.ceil(coarse.max(axis=0) + margin).astype(int) + 1, (cols, rows))
+    fine = _find_board(np.ascontiguousarray(grey[y0:y1, x0:x1]), inner, flags, 3)
+    if fine is None:
+        return _find_board(grey, inner, flags, 1)  # as for a small frame, on the whole of it
+    return fine + np.array([x0, y0], dtype=np.float64)
 
 
 @dataclass
