@@ -331,7 +331,8 @@ def resample_near(
     keep = (math.ceil(crop.shape[0] * s / lam[1]), math.ceil(crop.shape[1] * s / lam[0]))
     band, zoom = band_limited(crop, keep)
     bx, by = (X - nx0 + 0.5) * zoom[1] - 0.5, (Y - ny0 + 0.5) * zoom[0] - 0.5
-    upsampled = keys_bicubic(band, bx, by, a=-0.5, fill=np.nan)
+    # in single precision like the band (half the memory traffic), the samples then in double for the sums
+    upsampled = keys_bicubic(band, bx, by, a=-0.5, fill=np.nan).astype(np.float64)
     valid = np.isfinite(upsampled)
     if saturated.any():
         # two lobes of the low-pass kernel (width lambda/s near pixels) and the cubic footprint
@@ -355,7 +356,7 @@ def band_limited(image: np.ndarray, keep: tuple[int, int]) -> tuple[np.ndarray, 
 
     Returns
     -------
-    band : ndarray
+    band : ndarray of float32
         The band-limited image on the new grid.
     zoom : (float, float)
         New samples per original pixel along rows and cols: original
@@ -371,7 +372,7 @@ def band_limited(image: np.ndarray, keep: tuple[int, int]) -> tuple[np.ndarray, 
     band = _idct(_idct(coeffs, out_r).T, out_c)
     # orthonormal DCTs of different lengths: sqrt(new / old) keeps the amplitude
     band *= np.float32(np.sqrt(out_r * out_c / (rows * cols)))
-    return band.astype(np.float64), (out_r / rows, out_c / cols)
+    return band, (out_r / rows, out_c / cols)
 
 
 def observation_mask(valid_fine: np.ndarray, far_saturated: np.ndarray, s: int, p: int) -> np.ndarray:
