@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     truth_s = sizes[BERNOULLI]["s"]
     truth = load_truth(args.truth, truth_s) if args.truth else None
     frames = [raw.load_frame(path, args.channel) for path in args.frames]
-    estimates = run_methods(frames, sizes, weights)
+    estimates = run_methods(frames, sizes, weights, quiet=args.quiet)
     done = [e for e in estimates if e.psf is not None]
     if not done:
         reasons = "; ".join(f"{e.label}: {e.reason}" for e in estimates)
@@ -139,11 +139,13 @@ def _has_edge_target(frame) -> bool:
     return True
 
 
-def run_methods(frames: list, sizes: dict[str, dict], weights: list[float]) -> list[Estimate]:
+def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quiet: int = 1) -> list[Estimate]:
     """Every method that applies to the frames (see the module docstring), in a stable order.
 
-    ``sizes`` holds each method's ``s`` and ``support`` (`psfd.cli.options.sizes`).
+    ``sizes`` holds each method's ``s`` and ``support`` (`psfd.cli.options.sizes`). The sharp-edge
+    estimates, the long ones, show a progress bar on a terminal unless ``quiet``.
     """
+    from psfd.cli.output import progress_bar
     from psfd.estimator import sharpedge
 
     def size(method: str) -> dict:
@@ -151,14 +153,13 @@ def run_methods(frames: list, sizes: dict[str, dict], weights: list[float]) -> l
 
     def edges(frame, target_form: bool) -> list[Estimate]:
         kind = "sharp-edge target" if target_form else "sharp-edge"
-        return [
-            e
-            for w in weights
-            for e in _attempt(
-                f"{kind} w={w:g} {Path(frame.source).name}",
-                lambda w=w: sharpedge.estimate_edges(frame, weight=w, target_form=target_form, **size(SHARP_EDGE)),
-            )
-        ]
+        out = []
+        for w in weights:
+            label = f"{kind} w={w:g} {Path(frame.source).name}"
+            with progress_bar(label, quiet) as progress:
+                out += _attempt(label, lambda: sharpedge.estimate_edges(frame, weight=w, target_form=target_form,
+                                                                        progress=progress, **size(SHARP_EDGE)))
+        return out
 
     out: list[Estimate] = []
     plain: list = []
