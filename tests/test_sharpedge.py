@@ -276,3 +276,14 @@ def test_tiled_prediction_gives_the_dense_normal_equations(smooth_frame, form):
     np.testing.assert_allclose(ata, d_ata, rtol=0, atol=tol * np.abs(d_ata).max())
     np.testing.assert_allclose(atb, d_atb, rtol=0, atol=tol * np.abs(d_atb).max())
     assert btb == pytest.approx(d_btb, rel=tol)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_threshold_percentile_is_numpys_without_holding_every_value(seed):
+    """detect_edges' 99.5th percentile of the gradient magnitude, from the tiles' values keeping only
+    the largest (memory bounded on a 24-megapixel frame), equals np.percentile bit for bit."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 400_000))
+    values = rng.standard_normal(n) if seed % 2 else rng.integers(0, 40, n).astype(np.float64)  # ties too
+    parts = np.array_split(values, int(rng.integers(1, 60)))
+    assert sharpedge._percentile(iter(parts), n, 99.5) == float(np.percentile(values, 99.5))

@@ -173,19 +173,44 @@ def _gauss_radius(sd: float) -> int:
     return int(4.0 * sd + 0.5)
 
 
-def _edge_maps(image: np.ndarray, tile: tuple[int, int, int, int], sigma: float, halo: int):
+def _edge_maps(image: np.ndarray, tile: tuple[int, int, int, int], sigma: float, halo: int, dog: bool = True):
     """DoG, smoothed gradient and its magnitude on a tile and ``halo`` pixels around it (within the image).
 
     Returns the region's first (row, col) and the four maps; inside the tile they are the
-    whole image's values, as the filters reach less than ``halo`` pixels.
+    whole image's values, as the filters reach less than ``halo`` pixels. Without ``dog``
+    the DoG map is None (its wider Gaussian is not computed).
     """
     y0, y1, x0, x1 = tile
     oy, ox = max(0, y0 - halo), max(0, x0 - halo)
     region = image[oy : min(image.shape[0], y1 + halo), ox : min(image.shape[1], x1 + halo)]
     g1 = ndimage.gaussian_filter(region, sigma)
-    dog = g1 - ndimage.gaussian_filter(region, DOG_RATIO * sigma)
+    difference = g1 - ndimage.gaussian_filter(region, DOG_RATIO * sigma) if dog else None
     gy, gx = np.gradient(g1)
-    return (oy, ox), dog, gx, gy, np.hypot(gx, gy)
+    return (oy, ox), difference, gx, gy, np.hypot(gx, gy)
+
+
+def _percentile(parts, total: int, q: float) -> float:
+    """``np.percentile`` (linear) of ``total`` values given in parts, keeping only the largest.
+
+    The share above the percentile (here 0.5 %) is all that is kept, so the
+    magnitudes of a whole frame are never held at once; the two order
+    statistics and their interpolation are numpy's (`numpy.percentile`,
+    method "linear": index q (n - 1), weight on the upper neighbour).
+    """
+    virtual = (total - 1) * np.true_divide(q, 100)  # numpy's virtual index of the method "linear"
+    lower = int(np.floor(virtual))
+    gamma = virtual - lower
+    keep = total - lower  # ranks lower .. total - 1, ascending
+    top = np.empty(0)
+    for values in parts:
+        top = np.concatenate([top, np.ravel(values)])
+        if top.size > 4 * keep + 65536:
+            top = np.partition(top, top.size - keep)[top.size - keep :]
+    top = np.sort(np.partition(top, top.size - keep)[top.size - keep :] if top.size > keep else top)
+    a, b = top[0], top[min(1, top.size - 1)]
+    difference = b - a
+    # numpy's _lerp: from the nearer neighbour
+    return float(b - difference * (1 - gamma) if gamma >= 0.5 else a + difference * gamma)
 
 
 def detect_edges(image: np.ndarray, sigma: float = 1.0, threshold: float | None = None,
@@ -223,14 +248,15 @@ def detect_edges(image: np.ndarray, sigma: float = 1.0, threshold: float | None 
     tiles = list(_tiles((0, rows), (0, cols)))
     if threshold is None:
         noise = noise_sigma(image) if noise is None else noise
-        mag = np.empty((rows, cols))
-        for y0, y1, x0, x1 in tiles:
-            (oy, ox), _, _, _, m = _edge_maps(image, (y0, y1, x0, x1), sigma, halo)
-            mag[y0:y1, x0:x1] = m[y0 - oy : y1 - oy, x0 - ox : x1 - ox]
+
+        def magnitudes():
+            for y0, y1, x0, x1 in tiles:
+                (oy, ox), _, _, _, m = _edge_maps(image, (y0, y1, x0, x1), sigma, halo, dog=False)
+                yield m[y0 - oy : y1 - oy, x0 - ox : x1 - ox]
+
         # std of a derivative of Gaussian-smoothed white noise: sigma_n / sqrt(8 pi) / sigma^2
         threshold = max(10.0 * noise / np.sqrt(8 * np.pi) / sigma**2,
-                        0.25 * float(np.percentile(mag, 99.5, overwrite_input=True)))
-        del mag
+                        0.25 * _percentile(magnitudes(), rows * cols, 99.5))
     border = int(np.ceil(3 * DOG_RATIO * sigma)) + 1
     parts = []
     for y0, y1, x0, x1 in tiles:
