@@ -291,3 +291,15 @@ def test_the_real_pair_needs_no_scipy():
             "'-s', '3']); print(sorted(m for m in sys.modules if m.split('.')[0] == 'scipy'))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip().splitlines()[-1] == "[]"
+
+
+def test_registration_does_not_depend_on_what_opencv_drew_before(data_dir):
+    """FLANN's randomised trees draw from OpenCV's generator: psfd compare searches a checkerboard
+    (which draws too) before the pair, the daemon registers pair after pair; the homography must not change."""
+    a = raw.load_frame(data_dir / "IMG_0602_v1_CUT.pgm", "mono")
+    b = raw.load_frame(data_dir / "IMG_0608_v1.pgm", "mono")
+    first = pair_register.register(a.data, b.data)
+    cv2.randu(np.zeros((64, 64)), 0.0, 1.0)  # draws from the same generator
+    again = pair_register.register(a.data, b.data)
+    np.testing.assert_array_equal(first.to_near, again.to_near)
+    assert first.inliers == again.inliers
