@@ -155,13 +155,13 @@ def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quie
 
     def edges(frame, target_form: bool) -> list[Estimate]:
         kind = "sharp-edge target" if target_form else "sharp-edge"
-        out = []
+        found = []
         for w in weights:
             label = f"{kind} w={w:g} {Path(frame.source).name}"
             with progress_bar(label, quiet) as progress:
-                out += _attempt(label, lambda: sharpedge.estimate_edges(frame, weight=w, target_form=target_form,
-                                                                        progress=progress, **size(SHARP_EDGE)))
-        return out
+                found += _attempt(label, lambda: sharpedge.estimate_edges(frame, weight=w, target_form=target_form,
+                                                                          progress=progress, **size(SHARP_EDGE)))
+        return found
 
     out: list[Estimate] = []
     plain: list = []
