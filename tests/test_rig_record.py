@@ -7,25 +7,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from plans import one_channel_plan
 from psfd.catalogue import Catalogue
-import psfd.daemon.runner  # noqa: F401 - imported at collection: the Runner's progress stream is bound at import
 from psfd.cli import main
 from psfd.drivers.recording import open_replay
 from psfd.drivers.sim import SimRig
 
 X = SimRig().distance_for_scale()
-
-PLAN = """[rig]
-{rig}
-
-[target]
-kind = "bernoulli"
-
-[capture]
-apertures = [{apertures}]
-x = [{x}]
-channels = ["g1"]
-"""
 
 
 def run(capfd, *argv: str) -> tuple[int, str, str]:
@@ -35,7 +23,7 @@ def run(capfd, *argv: str) -> tuple[int, str, str]:
 
 
 def write_plan(path: Path, rig: str, apertures: str = "4, 8") -> Path:
-    path.write_text(PLAN.format(rig=rig, apertures=apertures, x=X))
+    path.write_text(one_channel_plan(rig, apertures))
     return path
 
 

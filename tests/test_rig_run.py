@@ -23,29 +23,15 @@ import pytest
 import sqlite_utils
 
 from fake_grbl import FakeGrbl
+from plans import one_channel_plan
 from psfd import catalogue as catalogue_module
 from psfd.catalogue import Catalogue
 from psfd.daemon.plan import parse_plan
 from psfd.daemon.runner import Runner
 from psfd.drivers.sim import SimRig
 
-PLAN = """
-[rig]
-simulate = true
-{rig}
-
-[target]
-kind = "bernoulli"
-
-[capture]
-apertures = [{apertures}]
-x = [{x}]
-channels = ["g1"]
-"""
-
-
 def plan_text(rig: str = "", apertures: str = "8") -> str:
-    return PLAN.format(rig=rig, apertures=apertures, x=SimRig().distance_for_scale())
+    return one_channel_plan(f"simulate = true\n{rig}", apertures)
 
 
 def run(tmp_path: Path, text: str, rig: SimRig | None = None, camera=None, rail=None):

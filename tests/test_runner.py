@@ -281,3 +281,11 @@ def test_store_busy_only_while_a_run_holds_the_store(tmp_path):
         assert store_busy(frames) and shown_state("running", frames) == "running"
     assert not store_busy(frames) and shown_state("running", frames) == "interrupted"
     assert shown_state("paused", frames) == "paused"
+
+
+def test_progress_goes_to_the_stderr_of_the_moment(tmp_path, capsys):
+    # the bar goes to sys.stderr as it is when the runner is made (pytest's capture here), not to the
+    # stream that was sys.stderr when psfd.daemon.runner was first imported
+    with Catalogue(tmp_path / "c.sqlite") as cat:
+        assert Runner(cat, tmp_path / "frames").progress_stream is sys.stderr
+        assert Runner(cat, tmp_path / "frames", progress=None).progress_stream is None

@@ -198,6 +198,9 @@ def default_workers() -> int:
     return max(1, min(4, (os.cpu_count() or 2) - 1))
 
 
+_STDERR = object()  # the default progress stream: sys.stderr when the Runner is made
+
+
 class Runner:
     """Runs plans against one catalogue and one frame store.
 
@@ -231,7 +234,7 @@ class Runner:
         *,
         workers: int | None = None,
         control: Control | None = None,
-        progress: IO[str] | None = sys.stderr,
+        progress: IO[str] | None | object = _STDERR,
         on_step: Callable[[str, str, str | None], None] | None = None,
         estimate: Callable[..., list] = work.estimate_step,
         backlog: int | None = None,
@@ -240,7 +243,9 @@ class Runner:
         self.frames_dir = Path(frames_dir)
         self.workers = default_workers() if workers is None else check_count(workers, "workers", WORKERS_MAX)
         self.control = control or Control()
-        self.progress_stream = progress
+        # sys.stderr as it is when the runner is made, not when this module was imported: a caller
+        # that redirected it (a test, a service writing to a log) gets the bar where it expects
+        self.progress_stream = sys.stderr if progress is _STDERR else progress
         self.on_step = on_step or (lambda key, state, reason: None)
         self.estimate = estimate
         self.backlog = 4 * self.workers if backlog is None else check_count(backlog, "backlog", BACKLOG_MAX)
