@@ -137,11 +137,14 @@ def target_homography(
 # --------------------------------------------------------------------------- clutter
 
 
-def clutter(shape: tuple[int, int], rng: np.random.Generator, unit: float = 1.0) -> tuple[np.ndarray, int]:
-    """A busy outdoor scene (radiance, 1 = white level of green) and the row where the sky band ends.
+def clutter(
+    shape: tuple[int, int], rng: np.random.Generator, unit: float = 1.0, outdoor: bool = True
+) -> tuple[np.ndarray, int]:
+    """A busy scene (radiance, 1 = white level of green) and the row where the sky band ends.
 
     ``unit`` is the size of a channel pixel in canvas pixels (2 on a sensor
     mosaic), so that the clutter has the same size in every channel plane.
+    Indoors (``outdoor`` False) there is no sky band and no foliage against it (row 0).
     """
     rows, cols = shape
     canvas = np.full(shape, 0.3, dtype=np.float32)
@@ -151,6 +154,8 @@ def clutter(shape: tuple[int, int], rng: np.random.Generator, unit: float = 1.0)
         _checkerboard(canvas, rng, unit)
     _fence(canvas, rng, unit)
     _text(canvas, rng, unit)
+    if not outdoor:
+        return canvas, 0
     horizon = int(rows * rng.uniform(0.15, 0.3))
     canvas[:horizon] = SKY
     _foliage(canvas, rng, unit, horizon)
@@ -323,25 +328,54 @@ def _place(
     raise ValueError("frame too small for the targets")
 
 
+def _fill_place(rng: np.random.Generator, shape: tuple[int, int], homography: np.ndarray, margin: float) -> tuple[float, float]:
+    """A centre, anywhere, where the whole target (``homography``, centred at 0) fits in the frame."""
+    rim = np.array([[-margin, -margin], [SIZE + margin, -margin], [SIZE + margin, SIZE + margin], [-margin, SIZE + margin]])
+    outline = _apply(homography, rim)
+    lo, hi = -outline.min(axis=0) + 4, np.array([shape[1], shape[0]]) - outline.max(axis=0) - 4
+    if np.any(hi < lo):
+        raise ValueError("frame too small for the target")
+    return float(rng.uniform(lo[0], hi[0])), float(rng.uniform(lo[1], hi[1]))
+
+
 def _layout_scene(
-    shape: tuple[int, int], unit: float, seed: int, targets: int, scale: float | None, angle: float | None
+    shape: tuple[int, int], unit: float, seed: int, targets: int, scale: float | None, angle: float | None,
+    fill: bool = False,
 ) -> tuple[np.ndarray, Scene]:
-    """The radiance canvas with ``targets`` targets drawn in, before blur and exposure."""
+    """The radiance canvas with ``targets`` targets drawn in, before blur and exposure.
+
+    ``fill``: one target placed anywhere its outline fits, with no paper
+    margin, as a target shot close up at the bench that fills much of the
+    frame (an indoor scene: no sky); otherwise targets sit below the sky
+    band with room to spare.
+    """
     rng = np.random.default_rng(seed)
-    canvas, horizon = clutter(shape, rng, unit)
+    canvas, horizon = clutter(shape, rng, unit, outdoor=not fill)
     scale = float(rng.uniform(0.3, 0.5)) if scale is None else float(scale)
     angle = float(rng.uniform(0, 360)) if angle is None else float(angle)
     margin = float(rng.choice([0.0, 8.0, 40.0]))
+    if fill:
+        if targets != 1:
+            raise ValueError("a frame-filling scene holds one target")
+        margin = 0.0
+    # Samples per pixel side: 8 up to a canvas pixel per cell; beyond, at
+    # least 8 per cell side (a target of several pixels per cell fills
+    # millions of pixels, and the refinement then averages many edge pixels).
+    supersample = int(np.clip(np.ceil(8.0 / (scale * unit)), 2, 8))
     homographies, centres = [], []
     for k in range(targets):
         tilt = tuple(rng.uniform(-0.08, 0.08, 2))
-        extent = (SIZE + 2 * margin) * scale * unit * 1.5
-        centre = _place(rng, shape, horizon, extent, centres)
+        if fill:  # one target, turned by ``angle``
+            centre = _fill_place(rng, shape, target_homography((0.0, 0.0), scale * unit, angle, tilt), margin)
+        else:
+            extent = (SIZE + 2 * margin) * scale * unit * 1.5
+            centre = _place(rng, shape, horizon, extent, centres)
         centres.append(np.array(centre))
         turn = angle if k == 0 else float(rng.uniform(0, 360))
         h = target_homography(centre, scale * unit, turn, tilt)
         black, white = float(rng.uniform(0.02, 0.06)), float(rng.uniform(0.55, 0.85))  # ink and paper
-        draw_target(canvas, h, black=black, white=white, gradient=float(rng.uniform(-0.15, 0.15)), margin=margin)
+        draw_target(canvas, h, black=black, white=white, gradient=float(rng.uniform(-0.15, 0.15)), margin=margin,
+                    supersample=supersample)
         homographies.append(h)
     scene = Scene(homographies=homographies, scale=scale, angle=angle,
                   params={"seed": seed, "margin": margin, "horizon": horizon})
@@ -355,14 +389,17 @@ def plane_scene(
     angle: float | None = None,
     targets: int = 1,
     blur: float | None = None,
+    fill: bool = False,
 ) -> Scene:
     """An 8-bit single-channel plane (like one Bayer plane of a DSLR saved as PGM).
 
     ``scale`` (px per cell, 0.3-0.5 by default), ``angle`` (degrees, any by
     default) and the PSF core ``blur`` (sigma in px, 0.45-0.8 by default)
     are drawn from ``seed`` when not given; ``targets`` may be 0, 1 or 2.
+    ``fill`` places one target wherever it fits, as a close-up at the bench
+    that fills much of an indoor frame (see `_layout_scene`).
     """
-    canvas, scene = _layout_scene(shape, 1.0, seed, targets, scale, angle)
+    canvas, scene = _layout_scene(shape, 1.0, seed, targets, scale, angle, fill)
     rng = np.random.default_rng(seed + 1_000_003)
     blur = float(rng.uniform(0.45, 0.8)) if blur is None else blur
     light = _lens_blur(canvas, blur)

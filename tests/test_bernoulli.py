@@ -435,7 +435,7 @@ def test_fast_path_equals_the_per_window_band_limiting(tmp_path):
 
 
 def test_s_band_equals_the_inequalities_on_every_coefficient():
-    """`s_band` finds each row's interval by bisection: the masks are those of testing |J^T f| < s/2 (IJCV
+    """`s_band` finds each row's interval by a checked binary search: the masks are those of testing |J^T f| < s/2 (IJCV
     2012 sec. 3.1) on every coefficient of the box, for turned, sheared, mirrored and upright Jacobians."""
     rng = np.random.default_rng(5)
     jacobians = [np.diag([3.0, 3.0]), np.array([[3.0, 0.0], [0.0, 2.5]])]
@@ -454,28 +454,64 @@ def test_s_band_equals_the_inequalities_on_every_coefficient():
             assert np.array_equal(got, want[: same.shape[0], : same.shape[1]])
 
 
-def test_dct_sparse_part_equals_the_synthesis_of_the_difference():
-    """`resample.dct_sparse_part` (sparse difference, either order of the products, with and without the
-    tabulated bases) equals `dct_synthesise` of the coefficients where the bands differ, on any crop of the grid."""
+def test_dct_runs_part_equals_the_synthesis_of_the_difference():
+    """`resample.dct_runs_part` (runs through their rows, their columns or both, with and without the tabulated
+    bases) equals `dct_synthesise` of the coefficients where the bands differ, on any crop of the grid."""
     rng = np.random.default_rng(2)
     size, keep = (96, 80), (40, 36)
     coeffs = rng.normal(size=keep)
-    for few_rows in (True, False):  # few differing rows: products by rows; few columns: by columns
-        same = np.zeros(keep, dtype=np.int8)
-        cross = np.zeros(keep, dtype=np.int8)
-        spread = rng.integers(0, keep[1], 30)
-        at = (rng.choice(3, 30), spread) if few_rows else (spread, rng.choice(3, 30))
-        same[at] = rng.choice([-1, 1], 30)
-        cross[at[0][::2], at[1][::2]] = 1
-        want = resample.dct_synthesise(coeffs, size, same.astype(float), cross.astype(float))
+    # long runs in a few rows (a near-horizontal edge: scattered and dense tiles), short ones in every row
+    # (near-vertical), and both
+    shapes = {"rows": ([3, 17, 30], 20, 30), "wide": (np.arange(20, 28), 25, 30), "columns": (np.arange(keep[0]), 1, 4),
+              "both": (None, 0, 0)}
+    for name, (which, short, long) in shapes.items():
+        if name == "both":
+            row = np.concatenate([[3, 17, 30], np.arange(keep[0])])
+            start = np.concatenate([rng.integers(0, 6, 3), 20 + rng.integers(0, 6, keep[0])])
+            stop = start + np.concatenate([rng.integers(20, 30, 3), rng.integers(1, 4, keep[0])])
+        else:
+            row = np.asarray(which)
+            start = rng.integers(0, keep[1] - long, row.size)
+            stop = start + rng.integers(short, long + 1, row.size)
+        a, b = np.zeros(row.size), np.zeros(row.size)
+        sign = rng.choice([-1.0, 1.0], row.size)
+        on_same = rng.random(row.size) < 0.5
+        a[on_same], b[~on_same] = sign[on_same], sign[~on_same]
+        same, cross = np.zeros(keep), np.zeros(keep)
+        for r, c0, c1, x, y in zip(row, start, stop, a, b):
+            same[r, c0:c1] += x
+            cross[r, c0:c1] += y
+        want = resample.dct_synthesise(coeffs, size, same, cross)
+        runs = (row, start, stop, (a + b) / 2, (b - a) / 2)
         for rows, cols in ((slice(0, 96), slice(0, 80)), (slice(10, 30), slice(50, 79))):
-            i, j = np.nonzero(same | cross)
-            a, b = same[i, j].astype(float), cross[i, j].astype(float)
-            got = resample.dct_sparse_part(coeffs, i, j, (a + b) / 2, (b - a) / 2, size, rows, cols)
-            assert np.allclose(got, want[rows, cols], atol=1e-12)
-            tabulated = resample.dct_sparse_part(coeffs, i, j, (a + b) / 2, (b - a) / 2, size, rows, cols,
-                                                 resample.dct_bases(size, keep))
-            assert np.allclose(tabulated, want[rows, cols], atol=1e-12)
+            got = resample.dct_runs_part(coeffs, runs, size, rows, cols)
+            scale = np.abs(want).max()
+            assert np.abs(got - want[rows, cols]).max() < 1e-6 * scale, name  # float32 products
+            tabulated = resample.dct_runs_part(coeffs, runs, size, rows, cols, resample.dct_bases(size, keep))
+            assert np.abs(tabulated - want[rows, cols]).max() < 1e-6 * scale, name
+
+
+def test_normal_equations_equal_the_float64_products():
+    """`normal_equations` (float32 rank updates on u~_D minus its mean) equals A^T A, A^T v, v^T v of the rows
+    of S_s U gathered one by one in float64, per part, to 1e-5 of the largest entry (its float32 rounding,
+    far below the noise floor: a relative perturbation e of A^T A moves h by ~e cond(A^T A) ~ 1e-4 of h)."""
+    rng = np.random.default_rng(4)
+    s, support, shape = 4, 9, (14, 12)
+    u = 0.5 + 0.3 * rng.normal(size=(s * (shape[0] - 1) + support, s * (shape[1] - 1) + support))
+    u[3, 5] = np.nan  # a sample outside the raster: the rows that read it are dropped
+    v = rng.normal(size=shape)
+    labels = rng.integers(-1, 3, shape)
+    ata, atv, vtv, count = bernoulli.normal_equations(u, v, labels, s, support, 3)
+    for p in range(3):
+        rows = [(u[s * m: s * m + support, s * n: s * n + support].ravel(), v[m, n])
+                for m, n in zip(*np.nonzero(labels == p))]
+        rows = [(a, b) for a, b in rows if np.all(np.isfinite(a))]
+        a = np.array([r[0] for r in rows])
+        b = np.array([r[1] for r in rows])
+        assert count[p] == len(b)
+        assert np.abs(ata[p] - a.T @ a).max() < 1e-5 * np.abs(a.T @ a).max()
+        assert np.abs(atv[p] - a.T @ b).max() < 1e-5 * np.abs(a.T @ b).max()
+        assert vtv[p] == pytest.approx(b @ b, rel=1e-12)
 
 
 def test_pattern_band_window_equals_u_tilde():

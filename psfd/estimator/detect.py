@@ -9,15 +9,18 @@ thesis App. A.1, "Sub-pixel corner refinement").
 The coarse search differs from the thesis, which groups LSD line segments into
 the shape of the marks: here the X-corners are found directly as saddle
 points of the smoothed image, which needs no segment model of the marks and
-works at any rotation and at 0.2 to 2 px/cell alike. At a smoothing of
-several cells the Bernoulli noise averages out while each hourglass mark stays
-a perfect saddle. A real scene has many more saddles than the target (foliage
+works at any rotation and at any scale, from 0.2 px/cell to a target
+filling the frame (a pyramid level per octave). At a smoothing of several
+cells the Bernoulli noise averages out while each hourglass mark stays a
+perfect saddle. A real scene has many more saddles than the target (foliage
 against the sky, fences, letters), often stronger ones, so nothing is ranked
-over the whole frame. Each saddle is judged by its own surroundings, an
-X-corner at any contrast or not (`_x_shape`), and only the best few of every
-small tile are kept. Two candidates become a hypothesis when they could be
-neighbouring marks of a row of the ring: similar, their dark axes across the
-row, and a flat black and a flat white square between them. Every such
+over the whole frame. Each saddle is judged by its own surroundings: against
+the contrast around it (a mark is an X-corner of its own black and white),
+then whether it is an X-corner at any contrast or not (`_x_shape`), and only
+the best few of every small tile are kept. Two candidates become a
+hypothesis when they could be neighbouring marks of a row of the ring:
+similar, their dark axes across the row, and a flat black and a flat white
+square between them. Every such
 hypothesis (a similarity) is ranked by how many of the other ten marks it
 predicts where the layout puts them, grown into a homography, and accepted
 only if the 24 flat squares read as the layout says, with the orientation
@@ -28,6 +31,7 @@ planes can share one search.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -39,15 +43,17 @@ from psfd.estimator import target
 
 # Smoothing of the saddle detector, in pixels of each pyramid level. With levels
 # a factor 2 apart, level L smooths by 3 to 8 cells for targets imaged at
-# 2**L / 8 to 2**L / 3 pixels per cell (levels 0-3 cover 0.125 to 2.7 px/cell):
-# the hourglass is an exact saddle out to 16 cells while the noise averages out.
+# 2**L / 8 to 2**L / 3 pixels per cell (the hourglass is an exact saddle out
+# to 16 cells while the noise averages out); neighbouring levels overlap, and
+# level 0 finds targets from 0.2 px/cell (measured). Levels go on while a
+# target fits (5-6 px/cell fill a 3000 x 2000 plane, level 4 or 5).
 _SIGMA = 1.0
-_MAX_LEVEL = 3
+_SMALLEST = 40  # px: the smallest target a level sees, 320 cells at 1/8 px/cell
 _MIN_SEED_HITS = 7  # marks a seed similarity must already explain to be grown
 _STRENGTH_RATIO = 0.4  # weakest mark / strongest mark accepted in one target
 _REFINE_CELLS = 8.0  # half-size of the sub-pixel refinement window, in cells
 _AXIS_TOL = np.deg2rad(20.0)  # dark axis of a mark vs the pattern's y axis (perspective, noise)
-# Saddle strength (see _saddles) below which a point is not a candidate, as a
+# Saddle strength (see _proposals) below which a point is not a candidate, as a
 # fraction of the strength of an ideal contrast-1 X-corner: low, so that a
 # dim target is not lost; the shape test below does the selection.
 _MIN_STRENGTH = 0.03
@@ -62,10 +68,11 @@ _RING_SAMPLES = 12
 # about half of a cluttered scene's X-like saddles are below 0.8.
 _MIN_SHAPE = 0.8
 _OUTER_SHAPE = 0.6  # the same on the outer circle alone, a cheaper first pass
+_LOCAL_STRENGTH = 0.3  # saddle strength / that of an ideal X-corner of the contrast around it (_proposals)
 _MIN_CONTRAST = 0.02  # of the image's range: the marks' black on white is 10 times more
 # Local choice: the best two candidates (contrast times shape) of every 8 x 8
 # tile, under the spacing of adjacent marks (12-32 level px).
-_TILE = 8.0
+_TILE = 8
 _PER_TILE = 2
 # Seed pairs: the two flat squares between neighbouring marks must lie
 # beyond this fraction of the marks' contrast from their mean level, one
@@ -130,6 +137,9 @@ def find_target(image: np.ndarray, saturated: np.ndarray | None = None) -> Detec
     about 3 cells (sigma; e.g. 0.8 px at 0.25 px/cell, f/32 on a small
     target) the blurred neighbouring squares reach the refinement window and
     the error grows to 0.15-0.5 px: place the target closer for such apertures.
+    Any scale from 0.2 px/cell to a target filling the frame is found; in
+    cluttered 3000 x 2000 planes at 0.8-6 px/cell the corners came within
+    0.03-0.19 px (8-bit planes).
 
     Nothing is ranked over the whole frame, so a busy scene around the
     target (foliage against a clipped sky, fences, signs) does not hide it;
@@ -226,52 +236,104 @@ def _normalise(image: np.ndarray, saturated: np.ndarray | None) -> np.ndarray:
     The extremes are taken on a 4x reduced copy, which averages the pixel noise
     and hot pixels away, at the 0.05 and 99.95 percentiles: a target can cover
     well under 1 % of a large frame and its whites must not be clipped.
+    The image is read in its own type and converted and scaled in one pass
+    (a 24-megapixel plane is 100-200 MB; each pass over it counts).
     """
     data = np.asarray(image)
     if data.ndim != 2 or min(data.shape) < 16:
         raise BadInputError(f"expected a 2-D image of at least 16x16 pixels, got shape {data.shape}")
-    floating = data.dtype.kind == "f"
-    data = data.astype(np.float32)  # a copy, changed in place below
-    if floating:
-        bad = ~np.isfinite(data)
-        if bad.any():
-            data[bad] = 0.0
-    if saturated is not None:
-        np.copyto(data, data.max(), where=np.asarray(saturated, dtype=bool))
-    small = cv2.resize(data, (max(1, data.shape[1] // 4), max(1, data.shape[0] // 4)), interpolation=cv2.INTER_AREA)
+    if data.dtype not in (np.float32, np.float64, np.uint8, np.uint16) or data.strides[1] != data.itemsize:
+        data = np.ascontiguousarray(data, dtype=np.float32 if data.dtype != np.float64 else np.float64)
+    size = (max(1, data.shape[1] // 4), max(1, data.shape[0] // 4))
+    small = cv2.resize(data, size, interpolation=cv2.INTER_AREA).astype(np.float64)
+    if not np.isfinite(small).all():  # every pixel weighs in the area average: NaN and inf show here
+        data = np.nan_to_num(data, nan=0.0, posinf=0.0, neginf=0.0)
+        small = cv2.resize(data, size, interpolation=cv2.INTER_AREA).astype(np.float64)
+    clipped = None if saturated is None else np.asarray(saturated, dtype=bool)
+    if clipped is not None and clipped.any():
+        top = float(data.max())
+        share = cv2.resize(clipped.view(np.uint8) * np.uint8(255), size, interpolation=cv2.INTER_AREA) / 255.0
+        small += (top - small) * share  # the reduced copy of the clipped pixels set to the top
+    else:
+        clipped = None
     lo, hi = np.percentile(small, (0.05, 99.95))
     if hi - lo <= 0:
-        return np.zeros_like(data)
+        return np.zeros(data.shape, np.float32)
     # No clipping: the saddle positions need the linear data.
-    data -= lo
-    data *= 1.0 / (hi - lo)
-    return data
+    gain = 1.0 / (hi - lo)
+    norm = cv2.addWeighted(data, gain, data, 0.0, -lo * gain, dtype=cv2.CV_32F)
+    if clipped is not None:
+        np.copyto(norm, np.float32((top - lo) * gain), where=clipped)
+    return norm
 
 
 def _search(norm: np.ndarray) -> list[np.ndarray]:
     """Homographies (pattern cells -> image px, correct orientation) of every target found.
 
-    The pyramid levels are searched from the finest; a target already found
-    on a finer level is not grown again on a coarser one.
+    The pyramid levels are searched from the coarsest. Inside a target found
+    on a coarser level nothing is searched again on the finer ones: that
+    target's own marks would be found again, and its noise, which a finer
+    level sees as a field of X-corners in step with its cells (a target
+    close up at a few px/cell), would seed hundreds of hypotheses to grow
+    and refuse (seconds on a 3000 x 2000 plane, measured).
+
+    The first search takes only saddles about as strong as the contrast
+    around them (see `_proposals`), half of a cluttered scene's. A target in
+    shade beside a bright window or sky is weaker than the contrast around
+    its outer marks, so when that finds nothing, the search is made again
+    with the others judged too (the pyramid and the strong ones are not
+    computed twice: a frame without a target costs about one search of
+    every saddle).
     """
-    found: list[np.ndarray] = []
+    levels: list[tuple[_Level, _Level | None, np.ndarray]] = []
     lv, finer = _Level.of(norm), None
-    for level in range(_MAX_LEVEL + 1):
-        if min(lv.image.shape) < 24:
-            break
-        to_full = np.diag([2.0**level, 2.0**level, 1.0])  # pyrDown keeps pixel i at 2i
+    while min(lv.image.shape) >= _SMALLEST:
+        coarser = cv2.pyrDown(lv.image)
+        levels.append((lv, finer, coarser))
+        finer, lv = lv, _Level.of(coarser)
+    proposed: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # per level: peaks, and which are strong
+    strong: dict[int, tuple[np.ndarray, ...]] = {}  # per level: the strong peaks judged
 
-        def verify(h: np.ndarray, to_full=to_full) -> np.ndarray | None:
-            return _orient(norm, to_full @ h)
+    def search(first: bool) -> list[np.ndarray]:
+        found: list[np.ndarray] = []
+        for level in reversed(range(len(levels))):
+            lv, finer, coarser = levels[level]
+            to_full = np.diag([2.0**level, 2.0**level, 1.0])  # pyrDown keeps pixel i at 2i
+            taken = [np.linalg.inv(to_full) @ g for g in found]  # targets found on coarser levels
+            if first:
+                peaks, local = proposed[level] = _proposals(lv, coarser)
+                judged = strong[level] = _judge(lv, finer, _off(peaks[local], taken))
+            else:  # the other peaks now, with the strong ones judged the first time
+                peaks, local = proposed[level]
+                more = _judge(lv, finer, _off(peaks[~local], taken))
+                judged = tuple(np.concatenate(pair) for pair in zip(strong[level], more))
 
-        def known(h: np.ndarray, to_full=to_full) -> bool:
-            return any(_same_target(to_full @ h, g) for g in found)
+            def verify(h: np.ndarray, to_full=to_full) -> np.ndarray | None:
+                return _orient(norm, to_full @ h)
 
-        for h in _find_at_level(lv, finer, verify, known):
-            if not known(h, np.eye(3)):  # grown from a seed that did not look like it
-                found.append(h)
-        finer, lv = lv, _Level.of(cv2.pyrDown(lv.image))
-    return found
+            def known(h: np.ndarray, to_full=to_full) -> bool:
+                return any(_same_target(to_full @ h, g) for g in found)
+
+            for h in _find_at_level(_select(lv, judged, taken), verify, known):
+                if not known(h, np.eye(3)):  # grown from a seed that did not look like it
+                    found.append(h)
+        return found
+
+    return search(True) or search(False)
+
+
+def _off(points: np.ndarray, targets: list[np.ndarray]) -> np.ndarray:
+    """The points that lie on none of the targets (homographies pattern cells -> the points' pixels)."""
+    return points[~_inside(points, targets)]
+
+
+def _inside(points: np.ndarray, targets: list[np.ndarray]) -> np.ndarray:
+    """Whether each point lies on one of the targets (homographies pattern cells -> the points' pixels)."""
+    inside = np.zeros(len(points), dtype=bool)
+    for h in targets:
+        cells = _apply(np.linalg.inv(h), points)
+        inside |= np.all((cells >= 0) & (cells <= target.SIZE), axis=1)
+    return inside
 
 
 @dataclass
@@ -305,33 +367,57 @@ class _Saddles:
         self.tree = cKDTree(self.points)
 
 
-def _saddles(lv: _Level, finer: _Level | None) -> _Saddles:
-    """X-corner candidates of one pyramid level, chosen locally.
+def _proposals(lv: _Level, coarser: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Saddle points of one pyramid level (whole pixels) and which are strong against the contrast around them.
 
-    Saddle points of the smoothed image (sigma^2 sqrt(-det Hess), scale
-    normalised; smooth edges and blobs do not score, det Hess >= 0) are
-    centred to sub-pixel precision and then judged by their own surroundings
-    (`_x_shape`, on the finer level where there is one): an hourglass mark is
-    an X-corner out to half its block, two opposite dark sectors and two
-    opposite light ones, point-symmetric; foliage, letters and edges are not.
-    Of the candidates that pass, only the best few of every small tile are
-    kept: a busy region elsewhere in the frame never pushes a mark out.
+    Saddle points of the smoothed image: sigma^2 sqrt(-det Hess), scale
+    normalised, local maxima above a floor (smooth edges and blobs do not
+    score, det Hess >= 0). ``coarser`` is the next level's image.
     """
     ixx, iyy, ixy = lv.ixx, lv.iyy, lv.ixy
-    neg_det = cv2.subtract(cv2.multiply(ixy, ixy), cv2.multiply(ixx, iyy))
+    # Two level-sized buffers for the whole peak search: on a 24-megapixel
+    # plane each fresh array costs as much again in page faults as the
+    # arithmetic that fills it.
+    neg_det, spare = np.multiply(ixy, ixy), np.multiply(ixx, iyy)
+    np.subtract(neg_det, spare, out=neg_det)
     border = int(np.ceil(max(3 * _SIGMA, _RING_RADII[-1] + 2)))
     neg_det[:border] = neg_det[-border:] = 0.0
     neg_det[:, :border] = neg_det[:, -border:] = 0.0
     floor = (_MIN_STRENGTH * _IDEAL / _SIGMA**2) ** 2
-    peaks = cv2.compare(neg_det, cv2.dilate(neg_det, np.ones((3, 3), np.uint8)), cv2.CMP_GE)
-    peaks &= cv2.compare(neg_det, floor, cv2.CMP_GT)
+    peaks = cv2.compare(neg_det, cv2.dilate(neg_det, np.ones((3, 3), np.uint8), dst=spare), cv2.CMP_GE)
+    peaks &= cv2.compare(neg_det, floor, cv2.CMP_GT, dst=spare.view(np.uint8)[:, : neg_det.shape[1]])
     nonzero = cv2.findNonZero(peaks)  # a few times faster than np.nonzero
     xs, ys = np.reshape(nonzero, (-1, 2)).T if nonzero is not None else (np.zeros(0, np.intp),) * 2
-    xx, yy, xy = ixx[ys, xs], iyy[ys, xs], ixy[ys, xs]
+    at = ys * neg_det.shape[1] + xs
+    xx, yy, strength = ixx.reshape(-1).take(at), iyy.reshape(-1).take(at), np.sqrt(neg_det.reshape(-1).take(at))
     # A saddle of an X-corner has opposite curvatures of similar size; an edge
     # crossing texture does not. Perspective skews the sectors, hence the slack.
-    keep = np.abs(xx + yy) <= 2.0 * np.sqrt(neg_det[ys, xs])
-    points = np.column_stack([xs[keep], ys[keep]]).astype(np.float32)
+    keep = np.abs(xx + yy) <= 2.0 * strength
+    # A mark is an X-corner of its own black and white, so its saddle is about
+    # as strong as an ideal one of the contrast around it; a texture's saddles
+    # are mostly much weaker than the contrast around them. Strength over the
+    # light range of the 3 x 3 tiles around (3 x 3 tiles of 8 px, which always
+    # hold a mark's own black and white): marks 0.5-0.9 of the ideal (rendered
+    # and cluttered frames, 0.2-2 px/cell, blur up to 3 cells), about half of a
+    # cluttered scene's saddles below 0.3. `_search` judges these strong ones
+    # first, and the others only if that finds nothing: a target in shade
+    # beside a much brighter area is weaker than the contrast around it.
+    # (Read on the next coarser level, ``coarser``, whose pyrDown smoothing
+    # is about _SIGMA here: a quarter of the pixels to reduce.)
+    around = _local_range(coarser, _TILE // 2)[ys // _TILE, xs // _TILE]
+    local = strength >= _LOCAL_STRENGTH * _IDEAL / _SIGMA**2 * around
+    return np.column_stack([xs[keep], ys[keep]]).astype(np.float32), local[keep]
+
+
+def _judge(lv: _Level, finer: _Level | None, points: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The saddle points (whole pixels of ``lv``) that look like X-corners: (points, contrast, level, axis, shape).
+
+    Each is centred to sub-pixel precision and then judged by its own
+    surroundings (`_x_shape`, on the finer level where there is one): an
+    hourglass mark is an X-corner out to half its block, two opposite dark
+    sectors and two opposite light ones, point-symmetric; foliage, letters
+    and edges are not.
+    """
     # Centre on the saddle (gradient zero) of the finer level, where the
     # smoothing is half as wide and the neighbouring blocks do not pull it;
     # where the finer level shows no saddle at the peak, start from this
@@ -346,8 +432,19 @@ def _saddles(lv: _Level, finer: _Level | None) -> _Saddles:
     outer = _x_shape(centring.image, points, (zoom * _RING_RADII[-1],))[0]
     points = _newton(centring, points[outer >= _OUTER_SHAPE])[0]
     shape, contrast, level, axis = _x_shape(centring.image, points, zoom * np.asarray(_RING_RADII))
-    points = points / zoom
-    keep = np.flatnonzero((shape >= _MIN_SHAPE) & (contrast >= _MIN_CONTRAST))
+    keep = (shape >= _MIN_SHAPE) & (contrast >= _MIN_CONTRAST)
+    return points[keep] / zoom, contrast[keep], level[keep], axis[keep], shape[keep]
+
+
+def _select(lv: _Level, judged: tuple[np.ndarray, ...], taken: list[np.ndarray]) -> _Saddles:
+    """X-corner candidates of one level, chosen locally, from those `_judge` passed.
+
+    Only the best few of every small tile are kept: a busy region elsewhere
+    in the frame never pushes a mark out. None is taken on the ``taken``
+    targets (homographies pattern cells -> this level's pixels).
+    """
+    points, contrast, level, axis, shape = judged
+    keep = np.flatnonzero(~_inside(points, taken))
     best = keep[_best_per_tile(points[keep], (shape * contrast)[keep], _TILE, _PER_TILE)]
     return _Saddles(points[best].astype(np.float64), contrast[best], level[best], axis[best], shape[best], lv.smooth)
 
@@ -358,11 +455,15 @@ def _newton(lv: _Level, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Returns the points and whether there was a saddle (det Hess < 0) to move to.
     """
     if np.all(points == np.rint(points)):  # on the pixel grid: no interpolation
-        xs, ys = points[:, 0].astype(np.intp), points[:, 1].astype(np.intp)
-        gx = 0.5 * (lv.smooth[ys, xs + 1] - lv.smooth[ys, xs - 1])
-        gy = 0.5 * (lv.smooth[ys + 1, xs] - lv.smooth[ys - 1, xs])
-        xx, yy, xy = lv.ixx[ys, xs], lv.iyy[ys, xs], lv.ixy[ys, xs]
+        cols = lv.smooth.shape[1]
+        at = points[:, 1].astype(np.intp) * cols + points[:, 0].astype(np.intp)  # flat: faster than (row, column)
+        smooth = lv.smooth.reshape(-1)
+        gx = 0.5 * (smooth.take(at + 1) - smooth.take(at - 1))
+        gy = 0.5 * (smooth.take(at + cols) - smooth.take(at - cols))
+        xx, yy, xy = (d.reshape(-1).take(at) for d in (lv.ixx, lv.iyy, lv.ixy))
     else:
+        # Interpolated: a step from the nearest pixel instead can overshoot
+        # by a third of a pixel when the point is most of a pixel from it.
         xs, ys = points[:, 0], points[:, 1]
         gx = 0.5 * (_remap(lv.smooth, xs + 1, ys) - _remap(lv.smooth, xs - 1, ys))
         gy = 0.5 * (_remap(lv.smooth, xs, ys + 1) - _remap(lv.smooth, xs, ys - 1))
@@ -419,7 +520,7 @@ def _remap(img: np.ndarray, xs: np.ndarray, ys: np.ndarray, dx: np.ndarray | Non
     """
     xs, ys = np.asarray(xs, dtype=np.float32), np.asarray(ys, dtype=np.float32)
     shape = xs.shape if dx is None else (xs.size, len(dx))
-    count = int(np.prod(shape))
+    count = math.prod(shape)
     # cv2.remap takes maps of under 32767 rows and columns: lay them out in
     # rows of 4096 (padded), which also keeps each point's samples together.
     width = 4096
@@ -433,6 +534,15 @@ def _remap(img: np.ndarray, xs: np.ndarray, ys: np.ndarray, dx: np.ndarray | Non
     out = cv2.remap(img, maps[0].reshape(rows, width), maps[1].reshape(rows, width), cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(-1)[:count].reshape(shape)
+
+
+def _local_range(img: np.ndarray, tile: int) -> np.ndarray:
+    """Max minus min of ``img`` over each ``tile`` x ``tile`` tile and its 8 neighbours, one value per tile."""
+    # One rectangular max (min) filter over the 3 x 3 tiles, read at each tile's first pixel.
+    window = np.ones((3 * tile, 3 * tile), np.uint8)
+    corner = (tile, tile)  # the window of the tile at p starts a tile up and left of p
+    top = cv2.dilate(img, window, anchor=corner)[::tile, ::tile]
+    return top - cv2.erode(img, window, anchor=corner)[::tile, ::tile]
 
 
 def _best_per_tile(points: np.ndarray, score: np.ndarray, tile: float, count: int) -> np.ndarray:
@@ -476,7 +586,7 @@ def _angle_gap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.minimum(d, np.pi - d)
 
 
-def _find_at_level(lv: _Level, finer: _Level | None, verify, known) -> list[np.ndarray]:
+def _find_at_level(sad: _Saddles, verify, known) -> list[np.ndarray]:
     """Homographies (pattern -> full image) of the targets found on one level.
 
     Every pair of candidates that could be two neighbouring marks of a row of
@@ -486,7 +596,6 @@ def _find_at_level(lv: _Level, finer: _Level | None, verify, known) -> list[np.n
     level px) returns the full-image homography of a genuine target, or None;
     ``known(h)`` tells a target already found, which is not grown again.
     """
-    sad = _saddles(lv, finer)
     if len(sad.points) < len(target.XCORNER_BLOCKS):
         return []
     pairs = _seed_pairs(sad)

@@ -25,7 +25,7 @@ class _LazySciPyFFT:
 fft = _LazySciPyFFT()
 
 __all__ = [
-    "band_part_cost", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_sparse_part",
+    "band_part_cost", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_runs_part",
     "dct_synthesise", "erode", "keys_bicubic", "keys_grid", "keys_upsample", "keys_weights",
 ]
 
@@ -131,94 +131,230 @@ def dct_synthesise(
     return lowpassed
 
 
-def dct_sparse_part(
-    coeffs: np.ndarray, i: np.ndarray, j: np.ndarray, cos_w: np.ndarray, sin_w: np.ndarray,
-    size: tuple[int, int], rows: slice, cols: slice, bases: dict | None = None,
+def dct_runs_part(
+    coeffs: np.ndarray, runs: tuple[np.ndarray, ...], size: tuple[int, int], rows: slice, cols: slice,
+    bases: dict | None = None,
 ) -> np.ndarray:
-    """The image of a few DCT coefficients on ``rows`` x ``cols`` of the grid: `dct_synthesise` of a sparse band.
+    """The image of runs of DCT coefficients on ``rows`` x ``cols`` of the grid: `dct_synthesise` of a sparse band.
 
-    Coefficient (``i[n]``, ``j[n]``) of ``coeffs`` enters with weight ``cos_w[n]``
-    on its cosine part and ``sin_w[n]`` on its sine part (a band (a, b) of
-    `dct_synthesise` has cos_w = (a + b) / 2, sin_w = (b - a) / 2); repeated
-    coordinates add up. It is synthesised from the orthonormal DCT-III and
-    DST-III basis functions (sqrt(2 / N) cos(pi k (n + 1/2) / N), sqrt(1 / N)
-    for k = 0; sqrt(2 / N) sin(pi k (n + 1/2) / N)) tabulated on the rows and
-    columns asked for, at the frequencies present only: B_rows D B_cols^T
-    with D sparse, multiplied in the cheaper order (`band_part_cost`). float64.
-    ``bases`` (`dct_bases` of the grid) saves tabulating them on every call.
+    ``runs`` = (row, start, stop, cos_w, sin_w): coefficients (row[n], start[n] ..
+    stop[n] - 1) of ``coeffs`` enter with weight ``cos_w[n]`` on their cosine part
+    and ``sin_w[n]`` on their sine part (a band (a, b) of `dct_synthesise` has
+    cos_w = (a + b) / 2, sin_w = (b - a) / 2); overlapping runs add up.
+
+    Each part is synthesised from the orthonormal DCT-III and DST-III basis
+    functions (sqrt(2 / N) cos(pi k (n + 1/2) / N), sqrt(1 / N) for k = 0;
+    sqrt(2 / N) sin(pi k (n + 1/2) / N)) tabulated on the rows and columns
+    asked for: B_rows D B_cols^T with D sparse. A coefficient's term is
+    separable, so it can reach the image through its row of D
+    (B_rows[:, R] (D_R B_cols^T)) or through its column ((B_rows D_C)
+    B_cols[:, C]^T); the dense products cost rows x cols x (|R| + |C|),
+    so the runs are split between the two to keep R + C small (`_cover`).
+    Products and their sums in float32 (the band is read in float32,
+    `u_tilde`), the image returned in float64. ``bases`` (`dct_bases` of the
+    grid) saves tabulating the basis functions on every call.
     """
-    from scipy import sparse  # already loaded with scipy.linalg
-
     out_r, out_c = int(size[0]), int(size[1])
     n_r = np.arange(out_r)[rows] + 0.5
     n_c = np.arange(out_c)[cols] + 0.5
     out = np.zeros((n_r.size, n_c.size))
-    if i.size == 0:
+    row, start, stop, cos_w, sin_w = (np.asarray(x) for x in runs)
+    keep = stop > start
+    row, start, stop, cos_w, sin_w = row[keep], start[keep], stop[keep], cos_w[keep], sin_w[keep]
+    if row.size == 0:
         return out
-    value = coeffs[i, j].astype(np.float64)
-    used_r, at_r = _used(i, coeffs.shape[0])
-    used_c, at_c = _used(j, coeffs.shape[1])
-    by_rows = _part_costs(i.size, used_r.size, used_c.size, n_r.size, n_c.size)
-    by_rows = by_rows[0] <= by_rows[1]
+    length = stop - start
+    i = np.repeat(row, length)
+    j = np.arange(i.size) - np.repeat(np.cumsum(length) - length - start, length)
+    value = coeffs[i, j].astype(np.float32)
     # sin(0) = 0 on the first row and column
-    for weights, wave in ((value * cos_w, np.cos), (np.where((i == 0) | (j == 0), 0.0, value * sin_w), np.sin)):
-        if not np.any(weights):
+    sine = np.where((i == 0) | (j == 0), 0.0, np.repeat(sin_w, length)).astype(np.float32)
+    waves = [(wave, weights) for wave, weights in (("cos", value * np.repeat(cos_w, length).astype(np.float32)),
+                                                   ("sin", value * sine)) if np.any(weights)]
+    if bases is None:
+        bases = {}
+        for axis, (n, at) in enumerate(((out_r, np.arange(out_r)[rows]), (out_c, np.arange(out_c)[cols]))):
+            bases["cos", axis], bases["sin", axis] = _bases(n, coeffs.shape[axis], at)
+        rows = cols = slice(None)
+    tables = {wave: (bases[wave, 0][rows], bases[wave, 1][cols]) for wave, _ in waves}
+    by_row = _cover(row, start, stop, coeffs.shape, (n_r.size, n_c.size))[0]
+    first = np.cumsum(length) - length  # where each run's coefficients begin in i, j
+    # through the columns: M = B_rows D, then M[:, C] B_cols[:, C]^T; through the rows: N = D B_cols^T, then
+    # B_rows[:, R] N[R]; D is filled and multiplied a dense tile at a time (`_tiles`)
+    tiles = []
+    for lo, hi in _tiles(row, start, stop, by_row, (n_r.size, n_c.size)):
+        tiles.append((bool(by_row[lo]), int(row[lo]), int(row[hi - 1]) + 1, int(start[lo:hi].min()),
+                      int(stop[lo:hi].max()), int(first[lo]), int(first[hi - 1] + length[hi - 1])))
+    # the accumulators span the rows (columns) of the tiles that reach the image through them
+    row_span = _span([(r0, r1) for turned, r0, r1, *_ in tiles if turned])
+    col_span = _span([(c0, c1) for turned, _, _, c0, c1, *_ in tiles if not turned])
+    through_rows = {wave: np.zeros((row_span[1] - row_span[0], n_c.size), dtype=np.float32) for wave, _ in waves}
+    through_cols = {wave: np.zeros((n_r.size, col_span[1] - col_span[0]), dtype=np.float32) for wave, _ in waves}
+    used_rows = np.zeros(row_span[1] - row_span[0], dtype=bool)
+    used_cols = np.zeros(col_span[1] - col_span[0], dtype=bool)
+    # a tile of few coefficients, or mostly empty (scattered coefficients along an edge, as between
+    # two nearly equal bands), costs less gathered: its basis functions times their weights, summed
+    # per column (row) of D
+    scattered = {False: [], True: []}
+    for turned, r0, r1, c0, c1, e0, e1 in tiles:
+        if e1 - e0 < 32 or (r1 - r0) * (c1 - c0) > 40 * (e1 - e0):
+            scattered[turned].append(np.arange(e0, e1))
             continue
-        if bases is None:
-            table_r = _basis(wave, out_r, n_r, used_r)
-            table_c = _basis(wave, out_c, n_c, used_c)
+        at = (i[e0:e1] - r0, j[e0:e1] - c0)
+        for wave, weights in waves:
+            tile = np.zeros((r1 - r0, c1 - c0), dtype=np.float32)
+            tile[at] = weights[e0:e1]
+            table_r, table_c = tables[wave]
+            if turned:
+                through_rows[wave][r0 - row_span[0]: r1 - row_span[0]] += tile @ table_c[:, c0:c1].T
+            else:
+                through_cols[wave][:, c0 - col_span[0]: c1 - col_span[0]] += table_r[:, r0:r1] @ tile
+        if turned:
+            used_rows[r0 - row_span[0]: r1 - row_span[0]] = True
         else:
-            table_r = bases[wave.__name__, 0][rows][:, used_r]
-            table_c = bases[wave.__name__, 1][cols][:, used_c]
-        d = sparse.csr_matrix((weights, (at_r, at_c)), shape=(used_r.size, used_c.size))
-        if by_rows:
-            out += table_r @ (d @ table_c.T)
-        else:
-            out += (d.T @ table_r.T).T @ table_c.T
+            used_cols[c0 - col_span[0]: c1 - col_span[0]] = True
+    for turned, parts in scattered.items():
+        if not parts:
+            continue
+        entries = np.concatenate(parts)
+        kept, summed = (i, j) if turned else (j, i)  # D's index kept (columns by columns), the one summed over
+        order = entries[np.argsort(kept[entries], kind="stable")]
+        index, first_of = np.unique(kept[order], return_index=True)
+        offset = row_span[0] if turned else col_span[0]
+        (used_rows if turned else used_cols)[index - offset] = True
+        for wave, weights in waves:
+            table = tables[wave][1 if turned else 0]
+            terms = np.add.reduceat(table[:, summed[order]] * weights[order], first_of, axis=1)
+            if turned:
+                through_rows[wave][index - offset] += terms.T
+            else:
+                through_cols[wave][:, index - offset] += terms
+    for wave, _ in waves:
+        table_r, table_c = tables[wave]
+        if used_cols.any():
+            out += through_cols[wave][:, used_cols] @ table_c[:, col_span[0]: col_span[1]][:, used_cols].T
+        if used_rows.any():
+            out += table_r[:, row_span[0]: row_span[1]][:, used_rows] @ through_rows[wave][used_rows]
     return out
+
+
+def _span(intervals: list[tuple[int, int]]) -> tuple[int, int]:
+    """The smallest [lo, hi) holding every interval ((0, 0) for none)."""
+    if not intervals:
+        return 0, 0
+    return min(lo for lo, _ in intervals), max(hi for _, hi in intervals)
+
+
+def _tiles(row: np.ndarray, start: np.ndarray, stop: np.ndarray, by_row: np.ndarray,
+           out: tuple[int, int]) -> list[tuple[int, int]]:
+    """Consecutive runs of `dct_runs_part` grouped into dense tiles: [lo, hi) ranges of the run list.
+
+    A tile holds runs of nearby rows of one edge (one run per row),
+    as many as keep the tile's box at most about twice the coefficients it
+    holds (many rows along a near-vertical edge, where the runs stay put),
+    or more where a product of a small tile costs less than its call
+    (~3e5 multiply-adds in numpy on one core): T rows whose runs move by
+    ``shift`` cost (T shift / 2) T ``out`` multiply-adds more than their
+    runs, least in all at T^2 = 2 x 3e5 / (shift ``out``). The runs of a
+    tile share their cover (``by_row``, `_cover`).
+    """
+    n = row.size
+    new_section = np.ones(n, dtype=bool)
+    new_section[1:] = (row[1:] <= row[:-1]) | (row[1:] > row[:-1] + 8) | (by_row[1:] != by_row[:-1])
+    section = np.cumsum(new_section) - 1
+    length = (stop - start).astype(np.float64)
+    shift = np.zeros(n)
+    shift[1:] = np.abs(start[1:] - start[:-1]) + np.abs(stop[1:] - stop[:-1])
+    shift[new_section] = 0.0
+    counts = np.bincount(section)
+    mean_length = np.bincount(section, weights=length) / counts
+    mean_shift = np.maximum(np.bincount(section, weights=shift) / np.maximum(counts - 1, 1), 1e-9)
+    other = np.where(by_row[new_section], out[1], out[0])  # the product's other dimension
+    rows_per_tile = np.maximum(2 * mean_length / mean_shift, np.sqrt(6e5 / (mean_shift * other)))
+    rows_per_tile = np.clip(np.floor(rows_per_tile), 1, 256).astype(np.intp)
+    position = np.arange(n) - np.flatnonzero(new_section)[section]
+    tile = position // rows_per_tile[section]
+    boundary = np.flatnonzero(new_section | np.r_[True, tile[1:] != tile[:-1]])
+    return list(zip(boundary.tolist(), np.r_[boundary[1:], n].tolist()))
+
+
+def _cover(row: np.ndarray, start: np.ndarray, stop: np.ndarray, shape: tuple[int, int],
+           out: tuple[int, int]) -> tuple[np.ndarray, float]:
+    """Which runs `dct_runs_part` synthesises through their rows (True) rather than their columns, and the
+    multiply-adds of one part (cosine or sine).
+
+    A band difference is made of strips along the edges of two close bands,
+    one run per row along each edge (`bernoulli.PatternBand.difference`
+    lists them edge by edge, rows increasing). A near-vertical edge spans
+    many rows and few columns: its columns are the cheaper cover; a
+    near-horizontal one the other way round. Each edge is cut into chunks
+    of 64 rows (an edge turns at the band's corners), and each chunk goes
+    by its rows when it has fewer rows than its runs span columns.
+    """
+    length = stop - start
+    edge = np.cumsum(np.r_[True, row[1:] <= row[:-1]]) - 1  # rows increase along an edge
+    chunk = edge * (shape[0] // 64 + 1) + row // 64
+    first = np.r_[True, chunk[1:] != chunk[:-1]]
+    at = np.flatnonzero(first)
+    runs = np.diff(np.r_[at, row.size])
+    span = np.maximum.reduceat(stop, at) - np.minimum.reduceat(start, at)
+    by_row = np.repeat(runs < span, runs)
+    used_rows = np.count_nonzero(np.bincount(row[by_row], minlength=shape[0]))
+    edges = np.bincount(start[~by_row], minlength=shape[1] + 1) - np.bincount(stop[~by_row], minlength=shape[1] + 1)
+    used_cols = np.count_nonzero(np.cumsum(edges)[: shape[1]])
+    cost = (float(out[0]) * out[1] * (used_rows + used_cols) + float(length[~by_row].sum()) * out[0]
+            + float(length[by_row].sum()) * out[1])
+    return by_row, cost
+
+
+def band_part_cost(runs: tuple[np.ndarray, ...], rows: int, cols: int, shape: tuple[int, int]) -> float:
+    """Multiply-adds of `dct_runs_part` of ``runs`` of a ``shape`` box of coefficients on ``rows`` x ``cols``
+    (both parts)."""
+    row, start, stop = (np.asarray(x) for x in runs[:3])
+    keep = stop > start
+    if not keep.any():
+        return 0.0
+    return 2.0 * _cover(row[keep], start[keep], stop[keep], shape, (rows, cols))[1]
 
 
 def dct_bases(size: tuple[int, int], keep: tuple[int, int]) -> dict:
-    """The basis functions `dct_sparse_part` reads, on every row and column of a ``size`` grid, for the
-    frequencies below ``keep``: {("cos" or "sin", axis): ndarray (size[axis], keep[axis])}."""
+    """The basis functions `dct_runs_part` reads, on every row and column of a ``size`` grid, for the
+    frequencies below ``keep``, in float32: {("cos" or "sin", axis): ndarray (size[axis], keep[axis])}.
+
+    The phase pi k (2 n + 1) / 2N is reduced modulo 2 pi in integers before it
+    is rounded to float32 (error ~5e-7, the float32 rounding of the band
+    itself): a float64 cosine of the unreduced phase, up to thousands of
+    radians, costs 4x as much.
+    """
     out = {}
-    for wave in (np.cos, np.sin):
-        for axis in (0, 1):
-            n, k = int(size[axis]), int(keep[axis])
-            if axis == 1 and (n, k) == (int(size[0]), int(keep[0])):  # a square grid: one table for both
-                out[wave.__name__, 1] = out[wave.__name__, 0]
-            else:
-                out[wave.__name__, axis] = _basis(wave, n, np.arange(n) + 0.5, np.arange(k))
+    for axis in (0, 1):
+        n, k = int(size[axis]), int(keep[axis])
+        if axis == 1 and n == int(size[0]):  # a square grid: one table for both axes
+            kept = max(k, int(keep[0]))
+            if kept > int(keep[0]):
+                out["cos", 0], out["sin", 0] = _bases(n, kept)
+            out["cos", 1], out["sin", 1] = out["cos", 0][:, :k], out["sin", 0][:, :k]
+            out["cos", 0], out["sin", 0] = out["cos", 0][:, : int(keep[0])], out["sin", 0][:, : int(keep[0])]
+            continue
+        out["cos", axis], out["sin", axis] = _bases(n, k)
     return out
 
 
-def _basis(wave, length: int, at: np.ndarray, frequencies: np.ndarray) -> np.ndarray:
-    """Orthonormal DCT-III (``np.cos``) or DST-III (``np.sin``) basis functions ``frequencies`` at points ``at``."""
-    table = wave(np.pi / length * np.outer(at, frequencies)) * np.sqrt(2.0 / length)
-    if wave is np.cos:
-        table[:, frequencies == 0] *= np.sqrt(0.5)
-    return table
-
-
-def band_part_cost(i: np.ndarray, j: np.ndarray, rows: int, cols: int) -> float:
-    """Multiply-adds of `dct_sparse_part` of coefficients (``i``, ``j``) on ``rows`` x ``cols`` (both parts)."""
-    if i.size == 0:
-        return 0.0
-    used_r = int(np.count_nonzero(np.bincount(i)))
-    used_c = int(np.count_nonzero(np.bincount(j)))
-    return 2.0 * min(_part_costs(i.size, used_r, used_c, rows, cols))
-
-
-def _used(index: np.ndarray, length: int) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct values of ``index`` (sorted) and the position of each entry among them."""
-    present = np.bincount(index, minlength=length) > 0
-    position = np.cumsum(present) - 1
-    return np.flatnonzero(present), position[index]
-
-
-def _part_costs(nonzero: int, used_r: int, used_c: int, rows: int, cols: int) -> tuple[float, float]:
-    # B_r (D B_c^T): D B_c^T then a dense product; (B_r D) B_c^T: the same the other way round
-    return (float(nonzero) * cols + float(rows) * used_r * cols, float(nonzero) * rows + float(rows) * used_c * cols)
+def _bases(n: int, k: int, at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """`dct_bases`'s cosine and sine tables of one axis of length ``n``, on its samples ``at`` (all by
+    default)."""
+    at = np.arange(n) if at is None else np.asarray(at)
+    phase = np.outer(2 * at.astype(np.int64) + 1, np.arange(k, dtype=np.int64))
+    phase %= 4 * n
+    angle = phase.astype(np.float32)
+    angle *= np.float32(np.pi / (2 * n))
+    scale = np.float32(np.sqrt(2.0 / n))
+    cos = np.cos(angle)
+    cos *= scale
+    cos[:, 0] *= np.float32(np.sqrt(0.5))
+    sin = np.sin(angle, out=angle)
+    sin *= scale
+    return cos, sin
 
 
 def keys_weights(t: np.ndarray, a: float = -0.5) -> np.ndarray:
