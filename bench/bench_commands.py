@@ -24,7 +24,8 @@ Those were not measured in this run: the measured ratio is the one to quote.
 Frames: the real example photo (328 x 292) and the real wall pair
 (tests/data), the 701 x 401 and 1953 x 1301 target planes simulated with a
 known PSF and written as 16-bit PGMs like `dcraw -4 -D` output, and with
---raw24 a simulated 24-megapixel RGGB DNG of the target (`--channel all`).
+--raw24 a simulated 24-megapixel RGGB DNG of the target (`--channel all`) and one of
+the real wall photo in every Bayer plane (sharp edges and compare: time and peak memory).
 
 Compile the trees timed first (`python -m compileall psfd`): an installed
 package has its bytecode, and without it every run would compile the
@@ -47,7 +48,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import whole  # noqa: E402
 
-DATA = Path(__file__).resolve().parent.parent / "tests" / "data"
+TREE = Path(__file__).resolve().parent.parent
+DATA = TREE / "tests" / "data"
 EXAMPLE = DATA / "img_example.pgm"
 NEAR, FAR = DATA / "IMG_0608_v1.pgm", DATA / "IMG_0602_v1_CUT.pgm"
 PSFD = [sys.executable, "-m", "psfd"]
@@ -91,6 +93,28 @@ def simulated_raw24(folder: Path) -> Path:
     return dng
 
 
+def wall_raw24(folder: Path) -> Path:
+    """A 6000 x 4000 RGGB DNG whose four planes are the real wall photo, mirrored into 3000 x 2000 (14 bits).
+
+    The sharp-edge cases' 24-megapixel frame: real edges, at the real photo's density.
+    """
+    import cv2
+    import numpy as np
+
+    from psfd.estimator import raw
+
+    wall = cv2.imread(str(NEAR), cv2.IMREAD_UNCHANGED).astype(np.uint16) * 64
+    row = np.hstack([wall, wall[:, ::-1]])[:, :3000]
+    plane = np.vstack([row, row[::-1]])[:2000]
+    mosaic = np.empty((4000, 6000), np.uint16)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            mosaic[dy::2, dx::2] = plane
+    dng = folder / "wall_24mp.dng"
+    raw.write_dng(dng, mosaic, white=16383)
+    return dng
+
+
 def make(function: str, folder: Path, *args: int) -> Path:
     """Run one of the frame makers above in a child process and return the file it wrote.
 
@@ -124,6 +148,13 @@ def cases(folder: Path, raw24: bool) -> list[tuple[str, str, list[str], dict[str
         dng = make("simulated_raw24", folder)
         out.append(("target 24 MP RAW, all", "raw", ["estimate", "target", str(dng), "--channel", "all"],
                     {"frame": str(dng)}, None))
+        wall = make("wall_raw24", folder)
+        out += [
+            ("edges 24 MP RAW, g1", "raw", ["estimate", "edges", str(wall), "--channel", "g1"], {"frame": str(wall)},
+             None),
+            ("edges 24 MP RAW, all", "raw", ["estimate", "edges", str(wall)], {"frame": str(wall)}, None),
+            ("compare 24 MP RAW", "raw", ["compare", str(wall)], {"frame": str(wall)}, None),
+        ]
     return out
 
 
@@ -165,7 +196,10 @@ def main() -> None:
                 continue
             ref, env, label = reference(kind, args, fields, options, folder)
             out_dir = folder / "ref"
-            result = whole.paired(PSFD + args, ref, runs=options.runs, warmup=options.warmup, env_b=env,
+            # run outside any source tree, each side's psfd named by PYTHONPATH: `python -m psfd` looks in
+            # the working folder first, and an editable install would otherwise win over --before
+            result = whole.paired(PSFD + args, ref, runs=options.runs, warmup=options.warmup,
+                                  env_a=dict(os.environ, PYTHONPATH=str(TREE)), env_b=env, cwd=str(folder),
                                   prepare=lambda: shutil.rmtree(out_dir, ignore_errors=True))
             pub = f"{published:8.2f} {result.median('a', 'wall') / published:5.2f}" if published else ""
             note = f"  exit codes {result.failed()}" if result.failed() else ""

@@ -65,8 +65,8 @@ class Paired:
 
 
 def paired(a: list[str], b: list[str], runs: int = 5, warmup: int = 1, env_a: dict[str, str] | None = None,
-           env_b: dict[str, str] | None = None, prepare=None) -> Paired:
-    """Run ``a`` and ``b`` in turn ``runs`` times after ``warmup`` uncounted rounds.
+           env_b: dict[str, str] | None = None, prepare=None, cwd: str | None = None) -> Paired:
+    """Run ``a`` and ``b`` in turn ``runs`` times after ``warmup`` uncounted rounds, both in ``cwd``.
 
     ``prepare`` is called before every run (e.g. to empty an output folder) and is not timed.
     """
@@ -75,7 +75,7 @@ def paired(a: list[str], b: list[str], runs: int = 5, warmup: int = 1, env_a: di
         for argv, env, into in ((a, env_a, out.a), (b, env_b, out.b)):
             if prepare is not None:
                 prepare()
-            r = run(argv, env)
+            r = run(argv, env, cwd)
             if i >= warmup:
                 into.append(r)
     return out

@@ -474,3 +474,58 @@ def test_force_replaces_an_output_folder_whole_and_nothing_else(tmp_path, capsys
     (tmp_path / "file").write_text("mine")
     with pytest.raises(BadInputError, match="not a folder"):
         output.write_estimates([synthetic(0)], tmp_path / "file", force=True)
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_progress_bar_only_on_a_terminal_and_not_with_quiet():
+    """As `psfd run` shows its steps: a bar on a terminal; nothing in a pipe, a file or with -q."""
+    for stream, quiet in ((io.StringIO(), 0), (_Terminal(), 1)):
+        with output.progress_bar("work", quiet, stream) as progress:
+            assert progress is None
+        assert stream.getvalue() == ""
+    terminal = _Terminal()
+    with output.progress_bar("frame g1", 0, terminal) as progress:
+        for fraction in (0.0, 0.25, 0.5, 1.0, 1.2):
+            progress(fraction)
+    drawn = terminal.getvalue()
+    assert "frame g1:" in drawn and "100%" in drawn and "120%" not in drawn
+
+
+def test_edges_show_progress_on_a_terminal(tmp_path):
+    """`psfd estimate edges` on a terminal draws a bar on stderr that reaches 100 %; stdout keeps the table only."""
+    import fcntl
+    import pty
+    import struct
+    import termios
+
+    from psfd.estimator import sharpedge
+
+    image = cv2.GaussianBlur(sharpedge.edge_target(px_per_square=20.0).astype(np.float32), (0, 0), 1.0)
+    cv2.imwrite(str(tmp_path / "edges.png"), np.round(2000 + 40000 * image.astype(np.float64)).astype(np.uint16))
+    leader, follower = pty.openpty()
+    fcntl.ioctl(follower, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))  # a terminal 100 columns wide
+    try:
+        done = subprocess.run([sys.executable, "-m", "psfd", "estimate", "edges", str(tmp_path / "edges.png"),
+                               "-s", "2"], stdout=subprocess.PIPE, stderr=follower, text=True, timeout=120)
+        os.close(follower)
+        follower = -1
+        drawn = b""
+        while True:
+            try:
+                chunk = os.read(leader, 65536)
+            except OSError:  # the terminal's other end is closed: all was read
+                break
+            if not chunk:
+                break
+            drawn += chunk
+    finally:
+        os.close(leader)
+        if follower >= 0:
+            os.close(follower)
+    assert done.returncode == 0
+    assert "edges.png mono:" in drawn.decode() and "100%" in drawn.decode()
+    assert "%" not in done.stdout.split("\n", 1)[0]  # the table's header, no bar

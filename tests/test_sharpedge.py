@@ -6,6 +6,7 @@ and the closed forms of Delbracio et al., IJCV 2012, sec. 2.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from scipy import signal
@@ -276,3 +277,35 @@ def test_tiled_prediction_gives_the_dense_normal_equations(smooth_frame, form):
     np.testing.assert_allclose(ata, d_ata, rtol=0, atol=tol * np.abs(d_ata).max())
     np.testing.assert_allclose(atb, d_atb, rtol=0, atol=tol * np.abs(d_atb).max())
     assert btb == pytest.approx(d_btb, rel=tol)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_threshold_percentile_is_numpys_without_holding_every_value(seed):
+    """detect_edges' 99.5th percentile of the gradient magnitude, from the tiles' values keeping only
+    the largest (memory bounded on a 24-megapixel frame), equals np.percentile bit for bit."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 400_000))
+    values = rng.standard_normal(n) if seed % 2 else rng.integers(0, 40, n).astype(np.float64)  # ties too
+    parts = np.array_split(values, int(rng.integers(1, 60)))
+    assert sharpedge._percentile(iter(parts), n, 99.5) == float(np.percentile(values, 99.5))
+
+
+def test_a_large_frame_is_searched_shrunk_then_in_the_boards_box():
+    """Above BOARD_SEARCH_PIXELS the board is found on a shrunk copy and its corners measured again at full
+    resolution in its box: the corners of a search of the whole frame, to a small fraction of a pixel;
+    a frame without a board (the real wall photo) is refused without the full-resolution search."""
+    from psfd.estimator import raw
+
+    frame = edge_frame(simulate.gaussian_psf(0.6, 0.5, theta=0.4, s=S, support=SUPPORT), px_per_square=70,
+                       shape=(740, 740), distortion=0.02)
+    assert frame.data.size > sharpedge.BOARD_SEARCH_PIXELS
+    image = frame.data / frame.white
+    lo, hi = np.percentile(image, [1, 99])
+    grey = np.clip((image - lo) / (hi - lo) * 255, 0, 255).astype(np.uint8)
+    whole = sharpedge._find_board(grey, (7, 7), cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY, 3)
+    boxed = sharpedge._board_corners(grey, (7, 7), sharpedge.SQUARES)
+    assert whole is not None and boxed is not None
+    assert np.abs(boxed - whole).max() < 0.05  # pixels; the corners' own noise is larger
+    wall = raw.load_frame(DATA / "IMG_0608_v1.pgm", "mono")
+    with pytest.raises(TargetNotFoundError):
+        sharpedge.locate_target(wall.data / wall.white)

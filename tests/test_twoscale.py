@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -10,6 +12,8 @@ import pytest
 
 from psfd.errors import BadInputError, PairError
 from psfd.estimator import kernels, mtf, pair_register, raw, simulate, twoscale
+
+from conftest import DATA
 
 S = 3
 SUPPORT = 4 * S + 1
@@ -246,3 +250,56 @@ def _frame(shape, channel="g1", sensor=(100, 100), mask_shape=None):
 def test_bad_input(a, b, kwargs, message):
     with pytest.raises(BadInputError, match=message):
         twoscale.estimate_pair(a, b, **kwargs)
+
+
+@pytest.mark.parametrize("dtype, tol", [(np.float64, 1e-12), (np.float32, 2e-5)])
+@pytest.mark.parametrize("n", [1, 2, 7, 8, 31, 250, 251])
+def test_the_numpy_dct_is_scipy_one(dtype, tol, n):
+    """The two-photo method's DCT-II and its inverse (on numpy.fft, to spare scipy's start-up) against scipy.fft."""
+    from scipy import fft
+
+    x = np.random.default_rng(n).standard_normal((3, n)).astype(dtype)
+    full = fft.dct(x, type=2, norm="ortho", axis=-1)
+    for keep in sorted({1, n // 2, n // 2 + 1, n}):
+        ours = twoscale._dct(x, keep)
+        assert ours.dtype == full.dtype
+        np.testing.assert_allclose(ours, full[:, :keep], rtol=0, atol=tol)
+        for m in (n, 2 * n + 1):
+            theirs = fft.idct(full[:, :keep], type=2, norm="ortho", axis=-1, n=m)
+            back = twoscale._idct(full[:, :keep], m)
+            assert back.dtype == theirs.dtype
+            np.testing.assert_allclose(back, theirs, rtol=0, atol=tol)
+
+
+def test_band_limiting_is_the_shared_dct_low_pass():
+    """`band_limited` (numpy) gives resample.dct_lowpass's (scipy) band within float32 rounding (1e-6 of the signal)."""
+    from psfd.estimator import resample
+
+    image = np.random.default_rng(1).random((221, 251)) * 1000.0
+    for keep in ((50, 60), (100, 251), (221, 251)):
+        band, zoom = twoscale.band_limited(image, keep)
+        size = (int(np.ceil(twoscale.OVERSAMPLE * keep[0])), int(np.ceil(twoscale.OVERSAMPLE * keep[1])))
+        shared = resample.dct_lowpass(image.astype(np.float32), keep, size=size)
+        assert band.shape == shared.shape and zoom == (size[0] / 221, size[1] / 251)
+        assert np.abs(band - shared).max() < 1e-6 * np.abs(shared).max()
+
+
+def test_the_real_pair_needs_no_scipy():
+    """`psfd estimate pair` imports no scipy: 0.2-0.3 s of start-up that the method does not need."""
+    code = ("import sys; from psfd.cli import main; "
+            f"main(['estimate', 'pair', {str(DATA / 'IMG_0602_v1_CUT.pgm')!r}, {str(DATA / 'IMG_0608_v1.pgm')!r}, "
+            "'-s', '3']); print(sorted(m for m in sys.modules if m.split('.')[0] == 'scipy'))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "[]"
+
+
+def test_registration_does_not_depend_on_what_opencv_drew_before(data_dir):
+    """FLANN's randomised trees draw from OpenCV's generator: psfd compare searches a checkerboard
+    (which draws too) before the pair, the daemon registers pair after pair; the homography must not change."""
+    a = raw.load_frame(data_dir / "IMG_0602_v1_CUT.pgm", "mono")
+    b = raw.load_frame(data_dir / "IMG_0608_v1.pgm", "mono")
+    first = pair_register.register(a.data, b.data)
+    cv2.randu(np.zeros((64, 64)), 0.0, 1.0)  # draws from the same generator
+    again = pair_register.register(a.data, b.data)
+    np.testing.assert_array_equal(first.to_near, again.to_near)
+    assert first.inliers == again.inliers

@@ -15,6 +15,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
+import signal
 import sys
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
@@ -74,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     truth_s = sizes[BERNOULLI]["s"]
     truth = load_truth(args.truth, truth_s) if args.truth else None
     frames = [raw.load_frame(path, args.channel) for path in args.frames]
-    estimates = run_methods(frames, sizes, weights)
+    estimates = run_methods(frames, sizes, weights, quiet=args.quiet)
     done = [e for e in estimates if e.psf is not None]
     if not done:
         reasons = "; ".join(f"{e.label}: {e.reason}" for e in estimates)
@@ -139,11 +141,13 @@ def _has_edge_target(frame) -> bool:
     return True
 
 
-def run_methods(frames: list, sizes: dict[str, dict], weights: list[float]) -> list[Estimate]:
+def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quiet: int = 1) -> list[Estimate]:
     """Every method that applies to the frames (see the module docstring), in a stable order.
 
-    ``sizes`` holds each method's ``s`` and ``support`` (`psfd.cli.options.sizes`).
+    ``sizes`` holds each method's ``s`` and ``support`` (`psfd.cli.options.sizes`). The sharp-edge
+    estimates, the long ones, show a progress bar on a terminal unless ``quiet``.
     """
+    from psfd.cli.output import progress_bar
     from psfd.estimator import sharpedge
 
     def size(method: str) -> dict:
@@ -151,14 +155,13 @@ def run_methods(frames: list, sizes: dict[str, dict], weights: list[float]) -> l
 
     def edges(frame, target_form: bool) -> list[Estimate]:
         kind = "sharp-edge target" if target_form else "sharp-edge"
-        return [
-            e
-            for w in weights
-            for e in _attempt(
-                f"{kind} w={w:g} {Path(frame.source).name}",
-                lambda w=w: sharpedge.estimate_edges(frame, weight=w, target_form=target_form, **size(SHARP_EDGE)),
-            )
-        ]
+        found = []
+        for w in weights:
+            label = f"{kind} w={w:g} {Path(frame.source).name}"
+            with progress_bar(label, quiet) as progress:
+                found += _attempt(label, lambda: sharpedge.estimate_edges(frame, weight=w, target_form=target_form,
+                                                                          progress=progress, **size(SHARP_EDGE)))
+        return found
 
     out: list[Estimate] = []
     plain: list = []
@@ -173,15 +176,80 @@ def run_methods(frames: list, sizes: dict[str, dict], weights: list[float]) -> l
             out += edges(frame, target_form=True)
         else:
             plain.append(frame)
+    pair = None
     if len(plain) == 2:
         from psfd.estimator import twoscale
 
         a, b = plain
-        out += _attempt(f"two-photo {Path(a.source).name}+{Path(b.source).name}",
-                        lambda: twoscale.estimate_pair(a, b, **size(TWO_PHOTO)))
-    for frame in plain:
-        out += edges(frame, target_form=False)
-    return out
+        pair = _Beside(f"two-photo {Path(a.source).name}+{Path(b.source).name}",
+                       lambda: twoscale.estimate_pair(a, b, **size(TWO_PHOTO)))
+    try:
+        blind = [e for frame in plain for e in edges(frame, target_form=False)]
+    except BaseException:
+        if pair is not None:
+            pair.cancel()
+        raise
+    return out + (pair.result() if pair is not None else []) + blind
+
+
+_BESIDE: tuple = ()  # (label, call) of the `_Beside` being started: set in the parent, read in the forked worker
+
+
+def _run_beside() -> list[Estimate]:
+    label, call = _BESIDE
+    return _attempt(label, call)
+
+
+def _worker_signals() -> None:
+    """The worker leaves Ctrl-C to its parent (which ends it) and ends quietly when terminated."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+class _Beside:
+    """`_attempt` of one method in a forked worker while this process goes on with the others.
+
+    The two-photo estimate of a pair (SIFT, resampling) and the sharp-edge estimates of
+    its photos are independent: on two cores they overlap, a second of the 5 the real
+    pair takes. With one core, or no fork, the method runs here at once. The worker
+    receives nothing pickled (it inherits the frames by the fork) and sends back the
+    estimates, as `psfd.estimator.bernoulli` does for its windows.
+    """
+
+    def __init__(self, label: str, call: Callable[[], list]) -> None:
+        global _BESIDE
+        import multiprocessing  # only here: `psfd --help` loads this module too
+
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        self.pool = self.pending = None
+        if cores < 2 or "fork" not in multiprocessing.get_all_start_methods():
+            self.done = _attempt(label, call)
+            return
+        _BESIDE = (label, call)
+        try:
+            self.pool = multiprocessing.get_context("fork").Pool(1, initializer=_worker_signals)  # forks here
+        finally:
+            _BESIDE = ()
+        self.pending = self.pool.apply_async(_run_beside)
+
+    def result(self) -> list[Estimate]:
+        """The method's estimates, waiting for the worker if it still runs."""
+        if self.pool is None:
+            return self.done
+        try:
+            done = self.pending.get()
+            self.pool.close()
+            return done
+        except BaseException:
+            self.pool.terminate()
+            raise
+        finally:
+            self.pool.join()
+
+    def cancel(self) -> None:
+        if self.pool is not None:
+            self.pool.terminate()
+            self.pool.join()
 
 
 # ---------------------------------------------------------------- table, figure and files

@@ -155,11 +155,12 @@ def run_sharp_edge(args: argparse.Namespace) -> int:
     weight = None if args.weight is None else options.parse_float(args.weight, "--weight")
     radius = None if args.radius is None else options.parse_float(args.radius, "--radius")
     frames = _load_all(args.frames, args.channel)
+    from psfd.cli import output
     from psfd.estimator import sharpedge
 
-    estimates = [
-        psf
-        for frame in frames
-        for psf in sharpedge.estimate_edges(frame, weight=weight, radius=radius, target_form=args.target, **settings)
-    ]
+    estimates = []
+    for frame in frames:  # seconds per megapixel: a bar on a terminal
+        with output.progress_bar(f"{Path(frame.source).name} {frame.channel}", args.quiet) as progress:
+            estimates += sharpedge.estimate_edges(frame, weight=weight, radius=radius, target_form=args.target,
+                                                  progress=progress, **settings)
     return _report(args, estimates)

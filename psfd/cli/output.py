@@ -16,6 +16,7 @@ FWHM in channel pixels; field coordinates normalised, (0, 0) top-left.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -23,7 +24,7 @@ import re
 import shutil
 import sys
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -397,6 +398,35 @@ def print_json(estimates: list[PSF], stream: TextIO | None = None) -> None:
         sensor = sensors.get(est.sources[0]) if est.sources else None
         stream.write(json.dumps(estimate_json(est, sensor), allow_nan=False) + "\n")
     stream.flush()
+
+
+@contextlib.contextmanager
+def progress_bar(label: str, quiet: int = 0, stream: TextIO | None = None
+                 ) -> Iterator[Callable[[float], None] | None]:
+    """A progress callback (fraction done, 0 to 1) drawing a tqdm bar on ``stream`` (stderr), or None.
+
+    As `psfd run` shows its steps: a bar only on a terminal, and none with -q or when the
+    output goes to a file or a pipe (a log has no use for a redrawn line). The bar is
+    removed when the work ends, so the table printed next stands alone.
+    """
+    stream = sys.stderr if stream is None else stream
+    if quiet or not (hasattr(stream, "isatty") and stream.isatty()):
+        yield None
+        return
+    from tqdm import tqdm  # only a terminal needs it
+
+    bar = tqdm(total=100, desc=label, file=stream, dynamic_ncols=True, leave=False,
+               bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining}")
+
+    def update(fraction: float) -> None:
+        bar.update(round(100.0 * min(max(fraction, 0.0), 1.0), 1) - bar.n)
+        if fraction >= 1.0:
+            bar.refresh()  # the end is shown even when it comes sooner than tqdm redraws
+
+    try:
+        yield update
+    finally:
+        bar.close()
 
 
 def log_warnings(estimates: list[PSF]) -> None:

@@ -238,6 +238,10 @@ def register(a: np.ndarray, b: np.ndarray) -> Registration:
         Fewer than MIN_INLIERS consistent matches, or no more than chance
         would give ("unrelated photos").
     """
+    # FLANN's randomised k-d trees (`match`) draw from OpenCV's per-thread generator: restart it from the
+    # state a fresh thread starts with (seed 0 stands for it), or the matches, and so the PSF, would
+    # depend on what OpenCV drew before (psfd compare's checkerboard search, an earlier pair in the daemon)
+    cv2.setRNGSeed(0)
     images = (to_uint8(a), to_uint8(b))
     factors = [_factor(im.shape) for im in images]
     feats = [features(im, f) for im, f in zip(images, factors)]

@@ -10,7 +10,19 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy import fft
+
+
+class _LazySciPyFFT:
+    """scipy.fft, imported on first use: 0.2-0.3 s of a process's start-up (it loads scipy.special and
+    scipy's array-API layer), which a caller of the Keys interpolation alone (the two-photo method) never needs."""
+
+    def __getattr__(self, name: str):
+        from scipy import fft as module
+
+        return getattr(module, name)
+
+
+fft = _LazySciPyFFT()
 
 __all__ = [
     "band_part_cost", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_runs_part",

@@ -173,19 +173,44 @@ def _gauss_radius(sd: float) -> int:
     return int(4.0 * sd + 0.5)
 
 
-def _edge_maps(image: np.ndarray, tile: tuple[int, int, int, int], sigma: float, halo: int):
+def _edge_maps(image: np.ndarray, tile: tuple[int, int, int, int], sigma: float, halo: int, dog: bool = True):
     """DoG, smoothed gradient and its magnitude on a tile and ``halo`` pixels around it (within the image).
 
     Returns the region's first (row, col) and the four maps; inside the tile they are the
-    whole image's values, as the filters reach less than ``halo`` pixels.
+    whole image's values, as the filters reach less than ``halo`` pixels. Without ``dog``
+    the DoG map is None (its wider Gaussian is not computed).
     """
     y0, y1, x0, x1 = tile
     oy, ox = max(0, y0 - halo), max(0, x0 - halo)
     region = image[oy : min(image.shape[0], y1 + halo), ox : min(image.shape[1], x1 + halo)]
     g1 = ndimage.gaussian_filter(region, sigma)
-    dog = g1 - ndimage.gaussian_filter(region, DOG_RATIO * sigma)
+    difference = g1 - ndimage.gaussian_filter(region, DOG_RATIO * sigma) if dog else None
     gy, gx = np.gradient(g1)
-    return (oy, ox), dog, gx, gy, np.hypot(gx, gy)
+    return (oy, ox), difference, gx, gy, np.hypot(gx, gy)
+
+
+def _percentile(parts, total: int, q: float) -> float:
+    """``np.percentile`` (linear) of ``total`` values given in parts, keeping only the largest.
+
+    The share above the percentile (here 0.5 %) is all that is kept, so the
+    magnitudes of a whole frame are never held at once; the two order
+    statistics and their interpolation are numpy's (`numpy.percentile`,
+    method "linear": index q (n - 1), weight on the upper neighbour).
+    """
+    virtual = (total - 1) * np.true_divide(q, 100)  # numpy's virtual index of the method "linear"
+    lower = int(np.floor(virtual))
+    gamma = virtual - lower
+    keep = total - lower  # ranks lower .. total - 1, ascending
+    top = np.empty(0)
+    for values in parts:
+        top = np.concatenate([top, np.ravel(values)])
+        if top.size > 4 * keep + 65536:
+            top = np.partition(top, top.size - keep)[top.size - keep :]
+    top = np.sort(np.partition(top, top.size - keep)[top.size - keep :] if top.size > keep else top)
+    a, b = top[0], top[min(1, top.size - 1)]
+    difference = b - a
+    # numpy's _lerp: from the nearer neighbour
+    return float(b - difference * (1 - gamma) if gamma >= 0.5 else a + difference * gamma)
 
 
 def detect_edges(image: np.ndarray, sigma: float = 1.0, threshold: float | None = None,
@@ -223,14 +248,15 @@ def detect_edges(image: np.ndarray, sigma: float = 1.0, threshold: float | None 
     tiles = list(_tiles((0, rows), (0, cols)))
     if threshold is None:
         noise = noise_sigma(image) if noise is None else noise
-        mag = np.empty((rows, cols))
-        for y0, y1, x0, x1 in tiles:
-            (oy, ox), _, _, _, m = _edge_maps(image, (y0, y1, x0, x1), sigma, halo)
-            mag[y0:y1, x0:x1] = m[y0 - oy : y1 - oy, x0 - ox : x1 - ox]
+
+        def magnitudes():
+            for y0, y1, x0, x1 in tiles:
+                (oy, ox), _, _, _, m = _edge_maps(image, (y0, y1, x0, x1), sigma, halo, dog=False)
+                yield m[y0 - oy : y1 - oy, x0 - ox : x1 - ox]
+
         # std of a derivative of Gaussian-smoothed white noise: sigma_n / sqrt(8 pi) / sigma^2
         threshold = max(10.0 * noise / np.sqrt(8 * np.pi) / sigma**2,
-                        0.25 * float(np.percentile(mag, 99.5, overwrite_input=True)))
-        del mag
+                        0.25 * _percentile(magnitudes(), rows * cols, 99.5))
     border = int(np.ceil(3 * DOG_RATIO * sigma)) + 1
     parts = []
     for y0, y1, x0, x1 in tiles:
@@ -348,8 +374,9 @@ class _BlindPrediction:
             return known, sharp
         e, s, band = self.edges, self.s, self.band
         px, py = j / s, i / s
-        dist, idx = self.tree.query(np.column_stack([px, py]), distance_upper_bound=band * np.sqrt(2) + 1.0,
-                                    workers=-1)
+        # one thread: a query per block of a tile is small, and starting threads for each cost more
+        # than the search (7 of 14 s of a 2.5-megapixel frame on a loaded 2-core machine)
+        dist, idx = self.tree.query(np.column_stack([px, py]), distance_upper_bound=band * np.sqrt(2) + 1.0)
         found = np.isfinite(dist)
         k = idx[found]
         dx, dy = px[found] - e.x[k], py[found] - e.y[k]
@@ -572,17 +599,12 @@ def locate_target(image: np.ndarray, squares: tuple[int, int] = SQUARES) -> Targ
     ------
     TargetNotFoundError
     """
-    lo, hi = np.percentile(image, [1, 99])
+    lo, hi = np.percentile(image[:: _stride(image.shape), :: _stride(image.shape)], [1, 99])
     grey = np.clip((image - lo) / max(hi - lo, 1e-12) * 255, 0, 255).astype(np.uint8)
     inner = (squares[0] - 1, squares[1] - 1)
-    # the sector-based detector is not deterministic (it missed a clean board about once in 25 runs): retry
-    for _ in range(3):
-        found, corners = cv2.findChessboardCornersSB(grey, inner, flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
-        if found:
-            break
-    if not found:
+    det = _board_corners(grey, inner, squares)
+    if det is None:
         raise TargetNotFoundError("no edge target found (its checkerboard corners were not detected)")
-    det = corners.reshape(-1, 2).astype(np.float64)
     gy, gx = np.mgrid[1 : inner[1] + 1, 1 : inner[0] + 1]
     pattern = np.column_stack([gx.ravel(), gy.ravel()]).astype(np.float64)
     rows, cols = image.shape
@@ -605,6 +627,59 @@ def locate_target(image: np.ndarray, squares: tuple[int, int] = SQUARES) -> Targ
     if values[:2].mean() > values[2:].mean():
         view.homography = view.homography @ np.array([[-1.0, 0, squares[0]], [0, 1, 0], [0, 0, 1]])
     return view
+
+
+BOARD_SEARCH_PIXELS = 500_000  # larger frames are searched shrunk first (`_board_corners`)
+
+
+def _stride(shape: tuple[int, ...]) -> int:
+    """Subsampling step that leaves about a million pixels: percentiles of a large plane at a fraction of the cost."""
+    return max(1, int(np.sqrt(shape[0] * shape[1] / 1_000_000)))
+
+
+def _find_board(grey: np.ndarray, inner: tuple[int, int], flags: int, tries: int) -> np.ndarray | None:
+    # the sector-based detector is not deterministic (it missed a clean board about once in 25 runs): retry
+    for _ in range(tries):
+        found, corners = cv2.findChessboardCornersSB(grey, inner, flags=flags)
+        if found:
+            return corners.reshape(-1, 2).astype(np.float64)
+    return None
+
+
+def _board_corners(grey: np.ndarray, inner: tuple[int, int], squares: tuple[int, int]) -> np.ndarray | None:
+    """The inner corners (x, y) of the checkerboard in an 8-bit image, or None.
+
+    OpenCV's exhaustive sector-based search costs seconds on a frame of a few
+    megapixels, most of it spent where there is no board (3 tries took 8 s on
+    the 2.5-megapixel wall photo, which has none). A frame above
+    BOARD_SEARCH_PIXELS is first searched shrunk to that size (the board's
+    squares must stay some 10 pixels wide there), and the board found is then
+    searched again at full resolution in its box only, with the same flags as
+    a small frame gets: same corners, at the cost of the board's area.
+    """
+    flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+    rows, cols = grey.shape
+    factor = float(np.sqrt(rows * cols / BOARD_SEARCH_PIXELS))
+    if factor <= 1.0:
+        return _find_board(grey, inner, flags, 3)
+    small = cv2.resize(grey, (max(8, round(cols / factor)), max(8, round(rows / factor))), interpolation=cv2.INTER_AREA)
+    # the sub-pixel refinement (CALIB_CB_ACCURACY) is left to the full-resolution pass; a second,
+    # plain search covers a miss of the exhaustive one
+    coarse = _find_board(small, inner, cv2.CALIB_CB_EXHAUSTIVE, 1)
+    if coarse is None:
+        coarse = _find_board(small, inner, 0, 1)
+    if coarse is None:
+        return None
+    coarse = (coarse + 0.5) * np.array([cols / small.shape[1], rows / small.shape[0]]) - 0.5
+    # the outer squares and the white border around the inner corners, plus a square of slack
+    step = float(np.max(np.hypot(*np.diff(coarse.reshape(inner[1], inner[0], 2), axis=1).reshape(-1, 2).T)))
+    margin = (BORDER + 2.0) * step
+    x0, y0 = np.maximum(np.floor(coarse.min(axis=0) - margin).astype(int), 0)
+    x1, y1 = np.minimum(np.ceil(coarse.max(axis=0) + margin).astype(int) + 1, (cols, rows))
+    fine = _find_board(np.ascontiguousarray(grey[y0:y1, x0:x1]), inner, flags, 3)
+    if fine is None:
+        return _find_board(grey, inner, flags, 1)  # as for a small frame, on the whole of it
+    return fine + np.array([x0, y0], dtype=np.float64)
 
 
 @dataclass
@@ -859,8 +934,8 @@ class _TargetPrediction:
         sharp = np.zeros(i.shape)
         if self.tree is None or i.size == 0:
             return known, sharp
-        dist, idx = self.tree.query(np.column_stack([j / self.s, i / self.s]), distance_upper_bound=self.band,
-                                    workers=-1)
+        # one thread, as in `_BlindPrediction.predict`
+        dist, idx = self.tree.query(np.column_stack([j / self.s, i / self.s]), distance_upper_bound=self.band)
         found = np.isfinite(dist)
         found[found] = self.block.inside(i[found], j[found])
         k = idx[found]

@@ -23,7 +23,6 @@ import math
 import cv2
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy import fft
 
 from psfd.errors import BadInputError, PairError
 from psfd.vocabulary import DEFAULT_S, TWO_PHOTO, check_sizes
@@ -37,17 +36,52 @@ __all__ = [
     "texture"
 ]
 
-def _convolve_same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Central part of the full 2-D convolution a * b, the size of ``a`` (scipy.signal.fftconvolve's "same").
+# The two-photo method's transforms are written on numpy.fft: importing scipy.fft (or scipy.signal)
+# costs 0.2-0.3 s of start-up, more than the whole estimate spends in them, and nothing else on the
+# path of `psfd estimate pair` needs scipy.
 
-    Written on scipy.fft because importing scipy.signal for this one product
-    costs more start-up than the whole two-photo estimate spends here.
-    """
+
+def _convolve_same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Central part of the full 2-D convolution a * b, the size of ``a`` (scipy.signal.fftconvolve's "same")."""
     full = (a.shape[0] + b.shape[0] - 1, a.shape[1] + b.shape[1] - 1)
-    size = tuple(fft.next_fast_len(n, real=True) for n in full)
-    product = fft.irfft2(fft.rfft2(a, size) * fft.rfft2(b, size), size)
+    product = np.fft.irfft2(np.fft.rfft2(a, full) * np.fft.rfft2(b, full), full)
     r0, c0 = (full[0] - a.shape[0]) // 2, (full[1] - a.shape[1]) // 2
     return product[r0 : r0 + a.shape[0], c0 : c0 + a.shape[1]]
+
+
+def _dct(x: np.ndarray, keep: int) -> np.ndarray:
+    """The first ``keep`` orthonormal DCT-II coefficients along the last axis (scipy.fft.dct(norm="ortho")).
+
+    One real FFT of the even samples followed by the reversed odd ones
+    (Makhoul, IEEE Trans. ASSP 1980): X_k = 2 Re(exp(-i pi k / 2N) V_k).
+    float32 stays float32.
+    """
+    n = x.shape[-1]
+    v = np.concatenate([x[..., ::2], x[..., 1::2][..., ::-1]], axis=-1)
+    half = np.fft.rfft(v, axis=-1)
+    spectrum = np.concatenate([half, np.conj(half[..., 1 : (n + 1) // 2][..., ::-1])], axis=-1)[..., :keep]
+    k = np.arange(spectrum.shape[-1])
+    twiddle = np.exp(-0.5j * np.pi * k / n).astype(spectrum.dtype)
+    scale = np.where(k == 0, np.sqrt(1.0 / n), np.sqrt(2.0 / n)).astype(x.dtype)
+    return (spectrum * twiddle).real * scale
+
+
+def _idct(c: np.ndarray, n: int) -> np.ndarray:
+    """The inverse orthonormal DCT-II of length ``n`` along the last axis of coefficients ``c``, missing
+    ones zero (scipy.fft.idct(norm="ortho", n=n)): `_dct` undone, V_k = exp(i pi k / 2N) (X_k - i X_{N-k}) / 2."""
+    kept = min(c.shape[-1], n)
+    y = np.zeros(c.shape[:-1] + (n + 1,), dtype=c.dtype)
+    k = np.arange(kept)
+    y[..., :kept] = c[..., :kept] * np.where(k == 0, np.sqrt(4.0 * n), np.sqrt(2.0 * n)).astype(c.dtype)
+    m = np.arange(n // 2 + 1)
+    complex_type = np.result_type(c.dtype, np.complex64)
+    spectrum = (y[..., m] - 1j * y[..., n - m]).astype(complex_type) * np.exp(0.5j * np.pi * m / n).astype(
+        complex_type) / 2
+    v = np.fft.irfft(spectrum, n, axis=-1)
+    out = np.empty(v.shape, dtype=c.dtype)
+    out[..., ::2] = v[..., : (n + 1) // 2]
+    out[..., 1::2] = v[..., (n + 1) // 2 :][..., ::-1]
+    return out
 
 
 LAMBDA_ADVISED = (2.0, 8.0)  # IPOL 2013, App. 7, tip 2: shoot between 2 and 8 times the distance
@@ -297,7 +331,8 @@ def resample_near(
     keep = (math.ceil(crop.shape[0] * s / lam[1]), math.ceil(crop.shape[1] * s / lam[0]))
     band, zoom = band_limited(crop, keep)
     bx, by = (X - nx0 + 0.5) * zoom[1] - 0.5, (Y - ny0 + 0.5) * zoom[0] - 0.5
-    upsampled = keys_bicubic(band, bx, by, a=-0.5, fill=np.nan)
+    # in single precision like the band (half the memory traffic), the samples then in double for the sums
+    upsampled = keys_bicubic(band, bx, by, a=-0.5, fill=np.nan).astype(np.float64)
     valid = np.isfinite(upsampled)
     if saturated.any():
         # two lobes of the low-pass kernel (width lambda/s near pixels) and the cubic footprint
@@ -321,7 +356,7 @@ def band_limited(image: np.ndarray, keep: tuple[int, int]) -> tuple[np.ndarray, 
 
     Returns
     -------
-    band : ndarray
+    band : ndarray of float32
         The band-limited image on the new grid.
     zoom : (float, float)
         New samples per original pixel along rows and cols: original
@@ -331,9 +366,12 @@ def band_limited(image: np.ndarray, keep: tuple[int, int]) -> tuple[np.ndarray, 
     keep_r, keep_c = min(int(keep[0]), rows), min(int(keep[1]), cols)
     out_r = max(keep_r, int(math.ceil(OVERSAMPLE * keep_r)))
     out_c = max(keep_c, int(math.ceil(OVERSAMPLE * keep_c)))
-    # single precision (24-bit mantissa, beyond any sensor's 14 bits) halves the cost
-    band = resample.dct_lowpass(np.asarray(image, dtype=np.float32), (keep_r, keep_c), size=(out_r, out_c))
-    band = band.astype(np.float64)
+    # single precision (24-bit mantissa, beyond any sensor's 14 bits) halves the cost; the same
+    # transforms, in the same order, as resample.dct_lowpass(image, keep, size=(out_r, out_c))
+    coeffs = _dct(_dct(np.asarray(image, dtype=np.float32), keep_c).T, keep_r)  # (keep_c, keep_r)
+    band = _idct(_idct(coeffs, out_r).T, out_c)
+    # orthonormal DCTs of different lengths: sqrt(new / old) keeps the amplitude
+    band *= np.float32(np.sqrt(out_r * out_c / (rows * cols)))
     return band, (out_r / rows, out_c / cols)
 
 
