@@ -65,8 +65,10 @@ def run(capsys, *argv: str) -> tuple[int, str, str]:
 
 
 def psfd_process(*argv: str) -> subprocess.Popen:
+    """psfd as started from a terminal: Ctrl-C at its default, even where the tests run as a background job
+    (a non-interactive shell starts those with SIGINT ignored, and Python then keeps it ignored)."""
     return subprocess.Popen([sys.executable, "-m", "psfd", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def settled(fake: FakeGrbl) -> bool:
