@@ -9,6 +9,7 @@ The modules, from the bottom up (each imports only those above it in this list):
   solver, channels, rail axes, f-numbers, the default ``s`` per method, and the one
   check of each size a user gives with its bound (``s``, ``support``, ``grid``, image
   pixels, workers, backlog, plan steps and bytes, control-socket requests).
+- ``workers``: forked worker processes: the cores this process may use, the signal set-up of a worker.
 - ``exif``: a frame's metadata read from the RAW file itself (focal length, f-number,
   exposure, ISO, lens, serial, pixel pitch) and the check of requested against actual settings.
 - ``estimator/``: pure numerics, arrays in and arrays out, one module per step of the papers:

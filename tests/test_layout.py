@@ -11,7 +11,7 @@ import psfd
 
 PACKAGE = Path(psfd.__file__).parent
 # Bottom-up order of the package docstring: a module imports only modules of its own level or below.
-LEVELS = {"errors": 0, "vocabulary": 1, "exif": 1, "estimator": 2, "drivers": 3, "printing": 3, "figures": 4, "catalogue": 4,
+LEVELS = {"errors": 0, "vocabulary": 1, "workers": 1, "exif": 1, "estimator": 2, "drivers": 3, "printing": 3, "figures": 4, "catalogue": 4,
           "daemon": 5, "cli": 6, "__main__": 7}
 
 

@@ -15,8 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
-import signal
 import sys
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
@@ -24,6 +22,7 @@ from typing import Any, Callable, NamedTuple
 from psfd.cli import options
 from psfd.errors import BadInputError, EstimationError, PsfdError
 from psfd.vocabulary import BERNOULLI, DEFAULT_S, SHARP_EDGE, TWO_PHOTO
+from psfd.workers import usable_cores, worker_signals
 
 
 class Estimate(NamedTuple):
@@ -200,12 +199,6 @@ def _run_beside() -> list[Estimate]:
     return _attempt(label, call)
 
 
-def _worker_signals() -> None:
-    """The worker leaves Ctrl-C to its parent (which ends it) and ends quietly when terminated."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-
 class _Beside:
     """`_attempt` of one method in a forked worker while this process goes on with the others.
 
@@ -220,14 +213,13 @@ class _Beside:
         global _BESIDE
         import multiprocessing  # only here: `psfd --help` loads this module too
 
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         self.pool = self.pending = None
-        if cores < 2 or "fork" not in multiprocessing.get_all_start_methods():
+        if usable_cores() < 2 or "fork" not in multiprocessing.get_all_start_methods():
             self.done = _attempt(label, call)
             return
         _BESIDE = (label, call)
         try:
-            self.pool = multiprocessing.get_context("fork").Pool(1, initializer=_worker_signals)  # forks here
+            self.pool = multiprocessing.get_context("fork").Pool(1, initializer=worker_signals)  # forks here
         finally:
             _BESIDE = ()
         self.pending = self.pool.apply_async(_run_beside)

@@ -23,8 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing
-import os
-import signal
 from typing import Callable
 
 import numpy as np
@@ -36,6 +34,7 @@ from psfd.estimator import detect, geometry, kernels, radiometry, resample, targ
 from psfd.estimator.kernels import PSF
 from psfd.estimator.raw import Frame
 from psfd.vocabulary import BERNOULLI, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, check_sizes, check_solver
+from psfd.workers import usable_cores, worker_signals
 
 __all__ = [
     "PatternBand", "WindowBand", "band_reach", "cross_validated", "estimate_frames", "estimate_plane",
@@ -1038,14 +1037,13 @@ def _run_windows(planes: list[_TargetPlane], bands: dict, jobs: list[tuple[int, 
     global _WORK
     if workers is None:
         samples = sum(_area(planes[i].windows[k]) * planes[i].s ** 2 for i, k in jobs)
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        workers = min(cores, len(jobs)) if samples >= _MIN_PARALLEL_SAMPLES else 1
+        workers = min(usable_cores(), len(jobs)) if samples >= _MIN_PARALLEL_SAMPLES else 1
     workers = max(1, min(int(workers), len(jobs)))
     _WORK = (planes, bands, jobs, solver)
     try:
         if workers == 1 or "fork" not in multiprocessing.get_all_start_methods():
             return [_solve_job(n) for n in range(len(jobs))]
-        pool = multiprocessing.get_context("fork").Pool(workers, initializer=_worker_signals)
+        pool = multiprocessing.get_context("fork").Pool(workers, initializer=worker_signals)
         try:
             results = pool.map(_solve_job, range(len(jobs)), chunksize=1)
             pool.close()
@@ -1057,12 +1055,6 @@ def _run_windows(planes: list[_TargetPlane], bands: dict, jobs: list[tuple[int, 
         return results
     finally:
         _WORK = ()
-
-
-def _worker_signals() -> None:
-    """A worker leaves interrupts to its parent (which ends it) and ends quietly when terminated."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _solve_job(n: int) -> dict:
