@@ -326,16 +326,12 @@ def dct_bases(size: tuple[int, int], keep: tuple[int, int]) -> dict:
     itself): a float64 cosine of the unreduced phase, up to thousands of
     radians, costs 4x as much.
     """
+    (n_r, n_c), (k_r, k_c) = (int(n) for n in size), (int(k) for k in keep)
+    if n_r == n_c:  # a square grid: one table serves both axes
+        cos, sin = _bases(n_r, max(k_r, k_c))
+        return {("cos", 0): cos[:, :k_r], ("sin", 0): sin[:, :k_r], ("cos", 1): cos[:, :k_c], ("sin", 1): sin[:, :k_c]}
     out = {}
-    for axis in (0, 1):
-        n, k = int(size[axis]), int(keep[axis])
-        if axis == 1 and n == int(size[0]):  # a square grid: one table for both axes
-            kept = max(k, int(keep[0]))
-            if kept > int(keep[0]):
-                out["cos", 0], out["sin", 0] = _bases(n, kept)
-            out["cos", 1], out["sin", 1] = out["cos", 0][:, :k], out["sin", 0][:, :k]
-            out["cos", 0], out["sin", 0] = out["cos", 0][:, : int(keep[0])], out["sin", 0][:, : int(keep[0])]
-            continue
+    for axis, (n, k) in enumerate(((n_r, k_r), (n_c, k_c))):
         out["cos", axis], out["sin", axis] = _bases(n, k)
     return out
 
