@@ -29,3 +29,35 @@ def test_profiles_from_projections_equal_the_2d_transform(shape):
     for new, old in zip(mtf.profiles(kernel, 4), _profiles_2d(kernel, 4)):
         assert new.shape == old.shape
         np.testing.assert_allclose(new, old, rtol=0, atol=1e-14)
+
+
+def _estimate(channel: str, field: tuple[float, float], warnings: list[str], source: str = "/data/IMG_1.dng"):
+    from psfd.estimator.kernels import PSF
+
+    delta = np.zeros((5, 5))
+    delta[2, 2] = 1.0
+    return PSF(psf=delta, s=1, method="bernoulli", channel=channel, sources=[source], field=field,
+               warnings=warnings)
+
+
+def test_a_warning_shared_by_windows_is_logged_once_per_plane(capsys):
+    from psfd.cli import logs, output
+
+    scale = "imaging scale s/t = 4.20 is outside [1.0, 1.6]"
+    mass = "kernel mass 1.30 before normalisation (expected 1)"
+    estimates = [
+        _estimate("g1", (0.25, 0.25), [scale]),
+        _estimate("g1", (0.75, 0.25), [scale, mass]),
+        _estimate("g1", (0.25, 0.75), [scale]),
+        _estimate("r", (0.50, 0.50), [scale]),
+        _estimate("g1", (0.50, 0.50), [mass], source="/data/IMG_2.dng"),
+        _estimate("g1", (0.50, 0.60), [mass], source="/data/IMG_2.dng"),
+    ]
+    logs.setup()
+    output.log_warnings(estimates)
+    assert capsys.readouterr().err.splitlines() == [
+        f"psfd: warning: IMG_1.dng g1, 3 of 3 windows: {scale}",
+        f"psfd: warning: IMG_1.dng g1 at (0.75, 0.25): {mass}",  # one window: named by its field
+        f"psfd: warning: IMG_1.dng r at (0.50, 0.50): {scale}",
+        f"psfd: warning: IMG_2.dng g1, 2 of 2 windows: {mass}",
+    ]

@@ -430,14 +430,29 @@ def progress_bar(label: str, quiet: int = 0, stream: TextIO | None = None
 
 
 def log_warnings(estimates: list[PSF]) -> None:
-    """Each estimate's warnings on the log (stderr), named by source, channel and field: never inside a table."""
+    """Each estimate's warnings on the log (stderr), named by source, channel and field: never inside a table.
+
+    A warning that several windows of one plane share (the imaging scale of a
+    whole frame, for each of its 100 windows) is logged once for the plane,
+    with how many of its windows carry it: ``SOURCE CH, N of M windows: ...``.
+    """
     import logging
 
     log = logging.getLogger("psfd.estimate")
+    planes: dict[tuple[str, str], list[PSF]] = {}  # in the order of the estimates
     for est in estimates:
-        source = "+".join(Path(s).name for s in est.sources) or "estimate"
-        for warning in est.warnings:
-            log.warning("%s %s at (%.2f, %.2f): %s", source, est.channel, est.field[0], est.field[1], warning)
+        planes.setdefault(("+".join(Path(s).name for s in est.sources) or "estimate", est.channel), []).append(est)
+    for (source, channel), group in planes.items():
+        carriers: dict[str, list[PSF]] = {}  # warning -> the windows that carry it, in order of first appearance
+        for est in group:
+            for warning in est.warnings:
+                carriers.setdefault(warning, []).append(est)
+        for warning, carried in carriers.items():
+            if len(carried) == 1:
+                est = carried[0]
+                log.warning("%s %s at (%.2f, %.2f): %s", source, channel, est.field[0], est.field[1], warning)
+            else:
+                log.warning("%s %s, %d of %d windows: %s", source, channel, len(carried), len(group), warning)
 
 
 def print_table(estimates: list[PSF], stream: TextIO | None = None) -> None:
