@@ -61,3 +61,124 @@ def test_a_warning_shared_by_windows_is_logged_once_per_plane(capsys):
         f"psfd: warning: IMG_1.dng r at (0.50, 0.50): {scale}",
         f"psfd: warning: IMG_2.dng g1, 2 of 2 windows: {mass}",
     ]
+
+
+# ---------------------------------------------------------------- a small RAW, every plane, a grid
+
+
+def _old_load_raw(path) -> list:
+    """The Bayer planes as `raw.load_frames` built them before: from a full copy of the mosaic, float64."""
+    import rawpy
+
+    from psfd.estimator.raw import Frame
+
+    with rawpy.imread(str(path)) as raw:
+        mosaic = raw.raw_image_visible.copy()
+        top, left = raw.sizes.top_margin, raw.sizes.left_margin
+        colors = np.array([[raw.raw_color(top + dy, left + dx) for dx in (0, 1)] for dy in (0, 1)])
+        desc = raw.color_desc.decode("ascii")
+        blacks = list(raw.black_level_per_channel)
+        white = float(raw.white_level)
+    planes, greens = {}, 0
+    for dy in (0, 1):
+        for dx in (0, 1):
+            index = int(colors[dy, dx])
+            letter = desc[index].lower()
+            if letter == "g":
+                greens += 1
+            name = f"g{greens}" if letter == "g" else letter
+            plane = mosaic[dy::2, dx::2]
+            planes[name] = Frame(data=plane - float(blacks[index]), channel=name, white=white - float(blacks[index]),
+                                 saturated=plane >= white, source=str(path), offset=(dy, dx),
+                                 sensor_shape=mosaic.shape, from_mosaic=True)
+    return [planes[c] for c in ("r", "g1", "g2", "b")]
+
+
+def _old_estimate_frames(frames, grid, s=4, solver="nnls"):
+    """`bernoulli.estimate_frames` as it ran before, serially in this process: every plane prepared, one
+    band per raster factor, the windows solved plane after plane, the PSF records built here."""
+    from psfd.estimator import bernoulli, geometry, kernels, target
+    from psfd.estimator.kernels import PSF
+
+    with bernoulli._one_blas_thread():  # as estimate_frames: one BLAS thread sums in one order
+        return _old_path(frames, grid, s, solver)
+
+
+def _old_path(frames, grid, s, solver):
+    from psfd.estimator import bernoulli, geometry, kernels, target
+    from psfd.estimator.kernels import PSF
+
+    support = 4 * s + 1
+    noise = target.default_noise()
+    planes = []
+    for frame, detection in bernoulli._detections(frames):
+        image = np.asarray(frame.data, dtype=np.float64)
+        to_image, to_pattern = geometry.target_maps(detection, "auto")
+        box = bernoulli._target_box(to_image, image.shape, margin=(support - 1) // (2 * s) + 2)
+        v, alpha, tail = bernoulli._corrected(frame, image, box, to_image, to_pattern, noise, (support - 1) / (2 * s))
+        x0, y0 = box[0], box[1]
+
+        def local_to_pattern(x, y, to_pattern=to_pattern, x0=x0, y0=y0):
+            return to_pattern(np.asarray(x) + x0, np.asarray(y) + y0)
+
+        plane = bernoulli._Plane(v, local_to_pattern, s, support, grid)
+        planes.append((plane, frame, (x0, y0), alpha, tail, s * float(detection.scale)))
+    bands = {}
+    for factor in sorted({p.factor for p, *_ in planes}):
+        same = [p for p, *_ in planes if p.factor == factor]
+        bands[factor] = bernoulli.PatternBand(noise, factor, s, [j for p in same for j in p.jacobians],
+                                              same[0].reference)
+    out = []
+    for plane, frame, (x0, y0), alpha, tail, scale in planes:
+        for k in range(len(plane.windows)):
+            r = bernoulli._window_result(plane, k, bands[plane.factor], solver)
+            kernel, shift = bernoulli._recentred(r["psf"], solver)
+            wx0, wy0, wx1, wy1 = r["window"]
+            window = (wx0 + x0, wy0 + y0, wx1 + x0, wy1 + y0)
+            params = {"solver": solver, "support": support, "grid": [int(grid[0]), int(grid[1])], "crf_alpha": alpha,
+                      "light_tail": tail, "scale": scale, "geometry": "homography+radial", "mass": r["mass"],
+                      "samples": r["count"], "kernel_shift": [round(shift[0], 4), round(shift[1], 4)]}
+            out.append(PSF(psf=kernel, s=s, method="bernoulli", channel=frame.channel, sources=[frame.source],
+                           field=kernels.field_of_window(window, frame.shape), window=window,
+                           noise_floor=r["noise_floor"], residual=r["residual"],
+                           prediction_error=r["prediction_error"], params=params,
+                           warnings=bernoulli._warnings(scale, alpha, r["mass"])))
+    return out
+
+
+@pytest.fixture(scope="module")
+def small_raw(tmp_path_factory):
+    from psfd.estimator import simulate
+
+    path = tmp_path_factory.mktemp("frames") / "small.dng"
+    simulate.simulate_target(path, psf=simulate.diffraction_psf(5.6, s=4, support=17), s=4, pixels_per_cell=0.3,
+                             rotation_deg=3.0, sensor=(560, 720), seed=1, tilt=(0.02, -0.01), distortion=0.01)
+    return path
+
+
+@pytest.fixture(scope="module")
+def old_estimates(small_raw):
+    return _old_estimate_frames(_old_load_raw(small_raw), (3, 2))
+
+
+def _same(new, old) -> None:
+    assert len(new) == len(old)
+    for a, b in zip(new, old):
+        assert (a.channel, a.sources, a.window, a.field) == (b.channel, b.sources, b.window, b.field)
+        assert np.array_equal(a.psf, b.psf)  # bit-identical
+        assert (a.noise_floor, a.residual, a.prediction_error) == (b.noise_floor, b.residual, b.prediction_error)
+        assert a.params == b.params and a.warnings == b.warnings
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_every_plane_and_window_as_the_old_path(small_raw, old_estimates, workers):
+    from psfd.estimator import bernoulli, raw
+
+    _same(bernoulli.estimate_frames(raw.load_frames(small_raw, "all"), grid=(3, 2), workers=workers), old_estimates)
+
+
+def test_one_plane_as_the_old_path(small_raw):
+    from psfd.estimator import bernoulli, raw
+
+    b = bernoulli.estimate_frames(raw.load_frames(small_raw, "b"), grid=(3, 2), workers=2)
+    _same(b, _old_estimate_frames([f for f in _old_load_raw(small_raw) if f.channel == "b"], (3, 2)))

@@ -950,13 +950,16 @@ def _estimate_frames(frames, noise, s, support, solver, grid, recentre, tps, wor
     for factor in sorted({p.factor for p in planes}):
         same = [p for p in planes if p.factor == factor]
         bands[factor] = PatternBand(noise, factor, s, [j for p in same for j in p.jacobians], same[0].reference)
-    jobs = [(i, k) for i, p in enumerate(planes) for k in range(len(p.windows))]
-    results = _run_windows(planes, bands, jobs, solver, workers)
-    out = []
-    for (i, _), r in zip(jobs, results):
-        plane = planes[i]
-        out.append(_psf(plane, r, s, support, solver, grid, recentre, tps))
-    return out
+    # window-major across the planes: the same window of every plane in turn (one chunk of
+    # `_CHUNK` jobs when there are four planes), so a worker meets a window's neighbourhood once
+    counts = [len(p.windows) for p in planes]
+    jobs = [(i, k) for k in range(max(counts)) for i in range(len(planes)) if k < counts[i]]
+
+    def record(plane: _TargetPlane, r: dict) -> PSF:
+        return _psf(plane, r, s, support, solver, grid, recentre, tps)
+
+    results = dict(zip(jobs, _run_windows(planes, bands, jobs, solver, workers, record)))
+    return [results[i, k] for i in range(len(planes)) for k in range(counts[i])]  # plane after plane
 
 
 def _detections(frames: list[Frame]):
@@ -1029,23 +1032,32 @@ def _prepare(
 _WORK: tuple = ()
 # s-grid samples of all windows together below which forking workers costs more than it gains
 _MIN_PARALLEL_SAMPLES = 200_000
+# jobs per message to and from a worker when there are many (a 10 x 10 grid on four planes: 100 messages, not 400)
+_CHUNK = 4
 
 
 def _run_windows(planes: list[_TargetPlane], bands: dict, jobs: list[tuple[int, int]], solver: str,
-                 workers: int | None) -> list[dict]:
-    """`estimate_window` of every (plane, window) job, in order, in forked workers when worth it."""
+                 workers: int | None, record: Callable[[_TargetPlane, dict], object] | None = None) -> list:
+    """`estimate_window` of every (plane, window) job, in order, in forked workers when worth it.
+
+    ``record(plane, result)``, when given, turns each window's result into
+    what is returned (a `PSF`) where the window was solved: in a worker, in
+    parallel, and only the record crosses back to the parent.
+    """
     global _WORK
     if workers is None:
         samples = sum(_area(planes[i].windows[k]) * planes[i].s ** 2 for i, k in jobs)
         workers = min(usable_cores(), len(jobs)) if samples >= _MIN_PARALLEL_SAMPLES else 1
     workers = max(1, min(int(workers), len(jobs)))
-    _WORK = (planes, bands, jobs, solver)
+    _WORK = (planes, bands, jobs, solver, record)
     try:
         if workers == 1 or "fork" not in multiprocessing.get_all_start_methods():
             return [_solve_job(n) for n in range(len(jobs))]
+        # chunks only where every worker still gets several: four jobs on two workers go one by one
+        chunk = max(1, min(_CHUNK, len(jobs) // (_CHUNK * workers)))
         pool = multiprocessing.get_context("fork").Pool(workers, initializer=worker_signals)
         try:
-            results = pool.map(_solve_job, range(len(jobs)), chunksize=1)
+            results = pool.map(_solve_job, range(len(jobs)), chunksize=chunk)
             pool.close()
         except BaseException:
             pool.terminate()
@@ -1057,15 +1069,16 @@ def _run_windows(planes: list[_TargetPlane], bands: dict, jobs: list[tuple[int, 
         _WORK = ()
 
 
-def _solve_job(n: int) -> dict:
-    planes, bands, jobs, solver = _WORK
+def _solve_job(n: int):
+    planes, bands, jobs, solver, record = _WORK
     i, k = jobs[n]
     plane = planes[i]
     try:
-        return _window_result(plane, k, bands[plane.factor], solver)
+        result = _window_result(plane, k, bands[plane.factor], solver)
     except EstimationError as exc:
         frame = plane.frame
         raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
+    return result if record is None else record(plane, result)
 
 
 def _area(window: tuple[int, int, int, int]) -> int:
