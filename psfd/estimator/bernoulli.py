@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
 import numpy as np
@@ -945,11 +946,20 @@ def _one_blas_thread():
 
 
 def _estimate_frames(frames, noise, s, support, solver, grid, recentre, tps, workers) -> list[PSF]:
-    planes = [_prepare(frame, detection, noise, s, support, grid, tps) for frame, detection in _detections(frames)]
-    bands = {}
-    for factor in sorted({p.factor for p in planes}):
-        same = [p for p in planes if p.factor == factor]
-        bands[factor] = PatternBand(noise, factor, s, [j for p in same for j in p.jacobians], same[0].reference)
+    planes = [_locate(frame, detection, s, support, grid, tps) for frame, detection in _detections(frames)]
+    # The light and response-curve correction of the planes (numpy, most of it without the GIL) runs on a
+    # second thread while this one band-limits the pattern (DCTs): the band needs only the windows'
+    # Jacobians, which the located planes already have.
+    with ThreadPoolExecutor(1) as pool:
+        corrected = pool.submit(lambda: [_correct(plane, noise, s, support) for plane in planes])
+        try:
+            bands = {}
+            for factor in sorted({p.factor for p in planes}):
+                same = [p for p in planes if p.factor == factor]
+                bands[factor] = PatternBand(noise, factor, s, [j for p in same for j in p.jacobians],
+                                            same[0].reference)
+        finally:
+            corrected.result()  # waited for (its error first: it names the plane) before any other is raised
     # window-major across the planes: the same window of every plane in turn (one chunk of
     # `_CHUNK` jobs when there are four planes), so a worker meets a window's neighbourhood once
     counts = [len(p.windows) for p in planes]
@@ -992,9 +1002,16 @@ def _detections(frames: list[Frame]):
 
 
 class _TargetPlane(_Plane):
-    """A plane of a photograph cropped to the target, corrected, with what its PSFs record."""
+    """A plane of a photograph cropped to the target, corrected, with what its PSFs record.
+
+    Built in two steps: `_locate` (the maps, the crop ``box`` and the windows:
+    all the band-limiting needs) and `_correct` (the normalised values ``v``,
+    ``alpha`` and ``tail``).
+    """
 
     frame: Frame
+    box: tuple[int, int, int, int]
+    maps: tuple[Map, Map]  # (to_image, to_pattern) of the whole plane
     offset: tuple[int, int]
     alpha: float
     tail: float
@@ -1007,23 +1024,40 @@ def _prepare(
     tps: float | None,
 ) -> _TargetPlane:
     """The map D of a detection, the target's crop of the plane normalised, and its windows."""
-    image = np.asarray(frame.data, dtype=np.float64)
+    return _correct(_locate(frame, detection, s, support, grid, tps), noise, s, support)
+
+
+def _locate(frame: Frame, detection: detect.Detection, s: int, support: int, grid: tuple[int, int],
+            tps: float | None) -> _TargetPlane:
+    """The map D of a detection, the target's crop box and its windows; ``v`` not yet computed."""
     try:
         # the map D (IJCV 2012 sec. 4; Delbracio PhD thesis 2013, App. A.1; geometry.target_maps)
         to_image, to_pattern = geometry.target_maps(detection, "auto" if tps is None else float(tps))
-        box = _target_box(to_image, image.shape, margin=(support - 1) // (2 * s) + 2)
-        v, alpha, tail = _corrected(frame, image, box, to_image, to_pattern, noise, (support - 1) / (2 * s))
-        x0, y0 = box[0], box[1]
+        box = _target_box(to_image, frame.shape, margin=(support - 1) // (2 * s) + 2)
+        x0, y0, x1, y1 = box
 
         def local_to_pattern(x, y):
             return to_pattern(np.asarray(x) + x0, np.asarray(y) + y0)
 
-        plane = _TargetPlane(v, local_to_pattern, s, support, grid)
+        # the windows need only the crop's shape: a read-only zero of that shape stands for v until `_correct`
+        plane = _TargetPlane(np.broadcast_to(0.0, (y1 - y0, x1 - x0)), local_to_pattern, s, support, grid)
     except EstimationError as exc:
         raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
-    plane.frame, plane.offset, plane.alpha, plane.tail = frame, (x0, y0), alpha, tail
+    plane.frame, plane.box, plane.maps, plane.offset = frame, box, (to_image, to_pattern), (x0, y0)
     plane.scale = s * float(detection.scale)  # s / t, with 1/t = image pixels per cell
     plane.geometry = "homography+radial" if tps is None else f"homography+tps({float(tps):g})"
+    return plane
+
+
+def _correct(plane: _TargetPlane, noise: np.ndarray, s: int, support: int) -> _TargetPlane:
+    """``plane`` with its crop's illumination and response curve corrected (`_corrected`)."""
+    frame = plane.frame
+    image = np.asarray(frame.data, dtype=np.float64)
+    try:
+        plane.v, plane.alpha, plane.tail = _corrected(frame, image, plane.box, *plane.maps, noise,
+                                                      (support - 1) / (2 * s))
+    except EstimationError as exc:
+        raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
     return plane
 
 
