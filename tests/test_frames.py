@@ -156,6 +156,21 @@ def small_raw(tmp_path_factory):
     return path
 
 
+@pytest.mark.parametrize("channel", ["all", "r", "g1", "g2", "b"])
+def test_raw_planes_as_the_old_decode(small_raw, channel):
+    from psfd.estimator import raw
+
+    old = [f for f in _old_load_raw(small_raw) if channel in ("all", f.channel)]
+    new = raw.load_frames(small_raw, channel)
+    assert [f.channel for f in new] == [f.channel for f in old]
+    for a, b in zip(new, old):
+        assert a.data.dtype == b.data.dtype == np.float64 and np.array_equal(a.data, b.data)
+        assert np.array_equal(a.saturated, b.saturated)
+        assert (a.white, a.source, a.offset, a.sensor_shape, a.from_mosaic) == (
+            b.white, b.source, b.offset, b.sensor_shape, b.from_mosaic)
+        assert a.data.base is None or a.data.base.size == a.data.size  # its own memory, not LibRaw's buffer
+
+
 @pytest.fixture(scope="module")
 def old_estimates(small_raw):
     return _old_estimate_frames(_old_load_raw(small_raw), (3, 2))

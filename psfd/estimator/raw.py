@@ -137,25 +137,33 @@ def _load_raw(path: Path, wanted: str | None = None) -> dict[str, Frame]:
     """The Bayer planes of a RAW file, or only the ``wanted`` one (the others are named, not built)."""
     import rawpy  # imported here: LibRaw is only needed for RAW input
 
-    try:
-        with _quiet_stderr(), rawpy.RawPy() as raw:
-            raw.open_file(str(path))  # reads the header only: the size is checked before the data is unpacked
-            check_image_size(raw.sizes.raw_width, raw.sizes.raw_height, str(path))
-            raw.unpack()
-            # the photosites as decoded (uint16): each plane is converted on its own, and only the
-            # 2 x 2 colour pattern is read (raw_colors_visible would build a second full-size array)
-            mosaic = raw.raw_image_visible.copy()
-            top, left = raw.sizes.top_margin, raw.sizes.left_margin
-            colors = np.array([[raw.raw_color(top + dy, left + dx) for dx in (0, 1)] for dy in (0, 1)])
-            desc = raw.color_desc.decode("ascii", "replace")
-            blacks = list(raw.black_level_per_channel)
-            white = float(raw.white_level)
-    except (rawpy.LibRawError, OSError, ValueError) as exc:
-        if path.suffix.lower() not in RAW_SUFFIXES:
-            raise BadInputError(f"{path}: not an image psfd reads (a camera RAW file, PGM, PNG or TIFF)") from None
-        raise BadInputError(f"{path}: not a readable RAW file ({_libraw_reason(exc)})") from None
-    if mosaic.ndim != 2 or min(mosaic.shape) < 4:
-        raise BadInputError(f"{path}: not a Bayer mosaic")
+    with rawpy.RawPy() as raw:
+        try:
+            with _quiet_stderr():
+                raw.open_file(str(path))  # reads the header only: the size is checked before the data is unpacked
+                check_image_size(raw.sizes.raw_width, raw.sizes.raw_height, str(path))
+                raw.unpack()
+                # the photosites as decoded (uint16), LibRaw's own buffer, not copied: the requested planes
+                # are converted from it before it is freed, and only the 2 x 2 colour pattern is read
+                # (raw_colors_visible would build a second full-size array)
+                mosaic = raw.raw_image_visible
+                top, left = raw.sizes.top_margin, raw.sizes.left_margin
+                colors = np.array([[raw.raw_color(top + dy, left + dx) for dx in (0, 1)] for dy in (0, 1)])
+                desc = raw.color_desc.decode("ascii", "replace")
+                blacks = list(raw.black_level_per_channel)
+                white = float(raw.white_level)
+        except (rawpy.LibRawError, OSError, ValueError) as exc:
+            if path.suffix.lower() not in RAW_SUFFIXES:
+                raise BadInputError(f"{path}: not an image psfd reads (a camera RAW file, PGM, PNG or TIFF)") from None
+            raise BadInputError(f"{path}: not a readable RAW file ({_libraw_reason(exc)})") from None
+        if mosaic.ndim != 2 or min(mosaic.shape) < 4:
+            raise BadInputError(f"{path}: not a Bayer mosaic")
+        return _bayer_planes(path, mosaic, colors, desc, blacks, white, wanted)
+
+
+def _bayer_planes(path: Path, mosaic: np.ndarray, colors: np.ndarray, desc: str, blacks: list, white: float,
+                  wanted: str | None) -> dict[str, Frame]:
+    """The named planes of a mosaic (``colors``: the 2 x 2 indices into ``desc``), only ``wanted`` built."""
     planes: dict[str, Frame] = {}
     greens = 0
     for dy in (0, 1):
@@ -172,7 +180,7 @@ def _load_raw(path: Path, wanted: str | None = None) -> dict[str, Frame]:
             if wanted is not None and name != wanted:
                 planes[name] = None  # type: ignore[assignment]
                 continue
-            plane = mosaic[dy::2, dx::2]
+            plane = mosaic[dy::2, dx::2]  # a view: the two arrays below are the plane's only copies
             black = float(blacks[index]) if index < len(blacks) else 0.0
             planes[name] = Frame(
                 data=plane - black,
