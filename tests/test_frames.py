@@ -197,3 +197,14 @@ def test_one_plane_as_the_old_path(small_raw):
 
     b = bernoulli.estimate_frames(raw.load_frames(small_raw, "b"), grid=(3, 2), workers=2)
     _same(b, _old_estimate_frames([f for f in _old_load_raw(small_raw) if f.channel == "b"], (3, 2)))
+
+
+@pytest.mark.parametrize("supersample", [1, 3])
+def test_cells_in_float32_are_the_float64_raster(supersample):
+    from psfd.estimator import target
+
+    noise = target.seeded_noise(2)
+    wide = target.cells(noise, supersample)
+    narrow = target.cells(noise, supersample, dtype=np.float32)
+    assert wide.dtype == np.float64 and narrow.dtype == np.float32
+    assert np.array_equal(narrow, wide.astype(np.float32))
