@@ -19,6 +19,9 @@ interleaved with it, so the machine's load weighs on both alike:
 figure on extracted planes, 2.1 s per 1953 x 1301 plane (issue 11), times
 the four Bayer planes.
 
+The peak resident memory of each command (median over the runs, MB) is
+printed beside its time.
+
 Usage: python bench/bench_frames.py [--repeat N] [--reference CHECKOUT] [--keep DIR]
 """
 
@@ -52,14 +55,19 @@ def make_frame(path: Path, pixels_per_cell: float) -> None:
     subprocess.run([sys.executable, "-c", code, str(path)], check=True)
 
 
-def timed(command: list[str], env: dict, cwd: Path) -> float:
+def timed(command: list[str], env: dict, cwd: Path) -> tuple[float, float]:
+    """Wall seconds and peak resident memory (MB, the largest of the process and the workers it waited for)."""
     start = time.perf_counter()
-    # stderr kept aside: the large frame warns about its scale for each of its 400 PSFs
-    done = subprocess.run(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env, cwd=cwd)
-    seconds = time.perf_counter() - start
-    if done.returncode:
-        sys.exit(f"{' '.join(command)} failed:\n{done.stderr[-2000:]}")
-    return seconds
+    # stderr kept aside: what the command warns about is not timed on a terminal
+    with tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err, text=True, env=env, cwd=cwd)
+        _, status, usage = os.wait4(proc.pid, 0)
+        seconds = time.perf_counter() - start
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        if proc.returncode:
+            err.seek(0)
+            sys.exit(f"{' '.join(command)} failed:\n{err.read()[-2000:]}")
+    return seconds, usage.ru_maxrss / 1024  # Linux: kilobytes
 
 
 def checkout_env(checkout: Path) -> dict:
@@ -83,7 +91,7 @@ def main() -> None:
         folder.mkdir(parents=True, exist_ok=True)
         our_env = checkout_env(Path(__file__).resolve().parents[1])
         reference_env = checkout_env(Path(args.reference)) if args.reference else None
-        print(f"{'frame':>8} {'psfd s':>7} {'ref s':>7} {'ratio':>6} {'goal s':>7}   reference")
+        print(f"{'frame':>8} {'psfd s':>7} {'ref s':>7} {'ratio':>6} {'goal s':>7} {'psfd MB':>8} {'ref MB':>7}   reference")
         for name, (pixels_per_cell, extra, goal) in FRAMES.items():
             frame = folder / f"{name}.dng"
             if not frame.exists():
@@ -94,12 +102,13 @@ def main() -> None:
                 ours.append(timed(command, our_env, folder))
                 if reference_env is not None:
                     theirs.append(timed(command, reference_env, folder))
-            mine = statistics.median(ours)
+            mine, mine_mb = (statistics.median(run[j] for run in ours) for j in (0, 1))
             if reference_env is not None:
-                ref, label = statistics.median(theirs), f"psfd at {args.reference}"
+                ref, ref_mb = (statistics.median(run[j] for run in theirs) for j in (0, 1))
+                label = f"psfd at {args.reference}"
             else:
-                ref, label = 4 * C_PLANE_SECONDS, "C program, 4 planes (issue 11)"
-            print(f"{name:>8} {mine:7.2f} {ref:7.2f} {mine / ref:6.2f} {goal:7.1f}   {label}")
+                ref, ref_mb, label = 4 * C_PLANE_SECONDS, float("nan"), "C program, 4 planes (issue 11)"
+            print(f"{name:>8} {mine:7.2f} {ref:7.2f} {mine / ref:6.2f} {goal:7.1f} {mine_mb:8.0f} {ref_mb:7.0f}   {label}")
 
 
 if __name__ == "__main__":
