@@ -960,8 +960,9 @@ def _estimate_frames(frames, noise, s, support, solver, grid, recentre, tps, wor
                                             same[0].reference)
         finally:
             corrected.result()  # waited for (its error first: it names the plane) before any other is raised
-    # window-major across the planes: the same window of every plane in turn (one chunk of
-    # `_CHUNK` jobs when there are four planes), so a worker meets a window's neighbourhood once
+    # window-major across the planes: the same window of every plane in turn, in one chunk of `_CHUNK`
+    # jobs when there are four planes. The planes lie half a pixel apart, so those windows' Jacobians and
+    # bands nearly agree, and the worker that solves them one after the other can build on the previous one.
     counts = [len(p.windows) for p in planes]
     jobs = [(i, k) for k in range(max(counts)) for i in range(len(planes)) if k < counts[i]]
 
