@@ -13,7 +13,6 @@ import sys
 
 import numpy as np
 import pytest
-import scipy.signal
 import scipy.stats
 
 from psfd.cli import COMMANDS, COMMAND_MODULES, build_parser, command_modules
@@ -61,12 +60,3 @@ def test_the_f_quantile_is_scipy_stats_one(q, dof):
     from scipy import special
 
     assert special.fdtri(3, dof, 1.0 - q) == pytest.approx(scipy.stats.f.isf(q, 3, dof), rel=1e-10)
-
-
-@pytest.mark.parametrize("shapes", [((7, 9), (13, 5)), ((31, 31), (17, 17)), ((5, 5), (21, 21)), ((8, 6), (3, 4))])
-def test_the_kernel_product_is_fftconvolve_same(shapes):
-    from psfd.estimator.twoscale import _convolve_same
-
-    rng = np.random.default_rng(0)
-    a, b = rng.random(shapes[0]), rng.random(shapes[1])
-    np.testing.assert_allclose(_convolve_same(a, b), scipy.signal.fftconvolve(a, b, mode="same"), rtol=0, atol=1e-12)

@@ -10,10 +10,9 @@ import functools
 from typing import Callable, NamedTuple
 
 import numpy as np
-from scipy import fft
 
 from psfd.errors import EstimationError
-from psfd.estimator import target
+from psfd.estimator import fourier, target
 
 Field = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -305,11 +304,7 @@ def _tail_raster(packed_noise: bytes) -> np.ndarray:
     kernel = np.zeros_like(distance)
     ring = (distance >= _TAIL_INNER) & (distance <= _TAIL_RADIUS)
     kernel[ring] = distance[ring] ** -3.0
-    shape = [fft.next_fast_len(n + 2 * _TAIL_RADIUS, real=True) for n in layout.shape]
-    product = fft.rfft2(layout, shape) * fft.rfft2(kernel.astype(np.float32), shape)
-    full = fft.irfft2(product, shape)  # the linear convolution, the kernel's centre at (radius, radius)
-    rows, cols = layout.shape
-    around = full[_TAIL_RADIUS : _TAIL_RADIUS + rows, _TAIL_RADIUS : _TAIL_RADIUS + cols]
+    around = fourier.convolve_same(layout, kernel.astype(np.float32))  # the kernel's centre on each cell
     lost = kernel.sum() + 2 * np.pi / _TAIL_RADIUS  # beyond the radius: int r^-3 2 pi r dr
     return around.astype(np.float64) - layout * lost
 
