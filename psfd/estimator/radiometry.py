@@ -12,7 +12,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from psfd.errors import EstimationError
-from psfd.estimator import fourier, target
+from psfd.estimator import fourier, quantiles, target
 
 Field = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -126,7 +126,7 @@ def illumination(image: np.ndarray, to_image: Callable, to_pattern: Callable, re
     raster = _tail_raster(np.packbits(noise > 0.5).tobytes())
     blacks = _squares(image, to_image, to_pattern, target.BLACK_BLOCKS, reach, raster)
     whites = _squares(image, to_image, to_pattern, target.WHITE_BLOCKS, reach, raster)
-    level = [float(np.median([np.median(sq.values) for sq in group])) for group in (blacks, whites)]
+    level = [float(quantiles.median([quantiles.median(sq.values) for sq in group])) for group in (blacks, whites)]
     span = level[1] - level[0]
     squares = [sq.without_outliers(span) for sq in blacks + whites]
     xy = np.array([sq.centre for sq in squares])
@@ -233,8 +233,9 @@ class _Square(NamedTuple):
         Dust and hot pixels are further; the span term keeps a noise-free
         square's own tail gradient (up to 5 % of the span at f/22) in.
         """
-        median = np.median(self.values)
-        keep = np.abs(self.values - median) <= max(6 * 1.4826 * np.median(np.abs(self.values - median)), 0.1 * span)
+        median = quantiles.median(self.values)
+        mad = quantiles.median(np.abs(self.values - median))
+        keep = np.abs(self.values - median) <= max(6 * 1.4826 * mad, 0.1 * span)
         return _Square(self.centre, *(a[keep] for a in (self.x, self.y, self.values, self.response)))
 
 
