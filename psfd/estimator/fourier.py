@@ -39,7 +39,7 @@ def dct(x: np.ndarray, keep: int | None = None, axis: int = -1) -> np.ndarray:
     """The first ``keep`` (all by default) orthonormal DCT-II coefficients of ``x`` along ``axis``.
 
     scipy.fft.dct(x, type=2, norm="ortho", axis=axis)[..., :keep] (on ``axis``).
-    One DFT of the even samples followed by the odd ones reversed, v (Makhoul 1980):
+    One real DFT of the even samples followed by the odd ones reversed, v (Makhoul 1980):
     X_k = Re(exp(-i pi k / 2N) V_k), scaled by sqrt(1/N) for k = 0 and sqrt(2/N) otherwise.
     """
     x = _real(x)
@@ -50,29 +50,45 @@ def dct(x: np.ndarray, keep: int | None = None, axis: int = -1) -> np.ndarray:
     half = (n + 1) // 2
     v[:, :half] = lines[:, ::2]
     v[:, half:] = lines[:, 1::2][:, ::-1]
-    spectrum = cv2.dft(v, flags=cv2.DFT_ROWS | cv2.DFT_COMPLEX_OUTPUT)[:, :keep]
+    # OpenCV's packed spectrum of a real row: Re V_0, Re V_1, Im V_1, Re V_2, ... (Re V_N/2 last for even N)
+    packed = cv2.dft(v, flags=cv2.DFT_ROWS)
     k = np.arange(keep)
+    folded = np.minimum(k, n - k)  # V_k = conj(V_{N-k})
+    re_at = np.maximum(2 * folded - 1, 0)
+    im_at = np.where((folded == 0) | (2 * folded == n), -1, 2 * folded)  # -1: no imaginary part
     scale = np.where(k == 0, np.sqrt(1.0 / n), np.sqrt(2.0 / n))
     cos = (np.cos(0.5 * np.pi * k / n) * scale).astype(x.dtype)
-    sin = (np.sin(0.5 * np.pi * k / n) * scale).astype(x.dtype)
-    out = spectrum[..., 0] * cos
-    out += spectrum[..., 1] * sin
+    sin = (np.sin(0.5 * np.pi * k / n) * scale * np.where(k > n - k, -1.0, 1.0) * (im_at >= 0)).astype(x.dtype)
+    if keep > 1 and keep <= n // 2 + (n % 2):  # the usual band: strided views, no gathers
+        out = np.empty((lines.shape[0], keep), dtype=x.dtype)
+        out[:, 0] = packed[:, 0] * cos[0]
+        out[:, 1:] = packed[:, 1 : 2 * keep - 2 : 2] * cos[1:]
+        out[:, 1:] += packed[:, 2 : 2 * keep - 1 : 2] * sin[1:]
+    else:
+        out = packed[:, re_at] * cos + packed[:, np.maximum(im_at, 0)] * sin
     return _restore(out, shape, axis)
 
 
-def _idct_lines(c: np.ndarray, n: int) -> np.ndarray:
-    """`idct` of the rows of a 2-D array of coefficients (missing ones zero): `dct` undone,
-    V_m = exp(i pi m / 2N) (X_m - i X_{N-m}) / 2 for m = 0 .. N/2, then one inverse real DFT."""
-    kept = min(c.shape[1], n)
-    y = np.zeros((c.shape[0], n + 1), dtype=c.dtype)
-    k = np.arange(kept)
-    y[:, :kept] = c[:, :kept] * np.where(k == 0, np.sqrt(n), np.sqrt(n / 2.0)).astype(c.dtype)  # the /2 folded in
-    m = np.arange(n // 2 + 1)
-    a, b = y[:, m], y[:, n - m]
-    cos, sin = np.cos(0.5 * np.pi * m / n).astype(c.dtype), np.sin(0.5 * np.pi * m / n).astype(c.dtype)
-    spectrum = np.zeros((c.shape[0], n, 2), dtype=c.dtype)  # OpenCV reads the first N/2 + 1 of a real output's
-    spectrum[:, : m.size, 0] = a * cos + b * sin
-    spectrum[:, : m.size, 1] = a * sin - b * cos
+def _idct_lines(c: np.ndarray, n: int, start: int = 0) -> np.ndarray:
+    """The inverse orthonormal DCT-II of length ``n`` of the rows of ``c``, whose column j holds coefficient
+    start + j (the others zero): `dct` undone, V_m = exp(i pi m / 2N) (X_m - i X_{N-m}) / 2 for m = 0 .. N/2,
+    then one inverse real DFT. Only the nonzero parts of the half spectrum are computed."""
+    rows, kept = c.shape[0], min(c.shape[1], n - start)
+    h = n // 2 + 1
+    m = np.arange(h)
+    cos, sin = np.cos(0.5 * np.pi * m / n), np.sin(0.5 * np.pi * m / n)
+    w = np.where(m == 0, np.sqrt(n), np.sqrt(n / 2.0))  # orthonormal scale and the /2
+    spectrum = np.zeros((rows, n, 2), dtype=c.dtype)  # OpenCV reads the first N/2 + 1 for a real output
+    lo, hi = start, min(start + kept, h)  # X_m, m < N/2 + 1
+    if hi > lo:
+        a = c[:, lo - start : hi - start] * (w[lo:hi]).astype(c.dtype)
+        spectrum[:, lo:hi, 0] = a * cos[lo:hi].astype(c.dtype)
+        spectrum[:, lo:hi, 1] = a * sin[lo:hi].astype(c.dtype)
+    lo, hi = max(1, n - start - kept + 1), min(h - 1, n - start)  # X_{N-m}, m in [lo, hi]
+    if hi >= lo:
+        b = c[:, n - hi - start : n - lo - start + 1][:, ::-1] * c.dtype.type(np.sqrt(n / 2.0))
+        spectrum[:, lo : hi + 1, 0] += b * sin[lo : hi + 1].astype(c.dtype)
+        spectrum[:, lo : hi + 1, 1] -= b * cos[lo : hi + 1].astype(c.dtype)
     v = cv2.idft(spectrum, flags=cv2.DFT_ROWS | cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
     out = np.empty_like(v)
     half = (n + 1) // 2
@@ -96,15 +112,13 @@ def idst(c: np.ndarray, n: int | None = None, axis: int = -1) -> np.ndarray:
 
     DST-II_k(x) = DCT-II_{N-1-k}((-1)^j x_j), both orthonormal (sin(pi (N - k') (2j + 1) / 2N)
     = (-1)^j cos(pi k' (2j + 1) / 2N)), so the inverse is the inverse DCT-II of the
-    coefficients reversed, with the signs of the odd samples changed.
+    coefficients reversed (coefficient k at N-1-k), with the signs of the odd samples changed.
     """
     c = _real(c)
     lines, shape = _lines(c, axis)
     n = lines.shape[1] if n is None else int(n)
     kept = min(lines.shape[1], n)
-    reversed_ = np.zeros((lines.shape[0], n), dtype=c.dtype)
-    reversed_[:, n - kept :] = lines[:, :kept][:, ::-1]
-    out = _idct_lines(reversed_, n)
+    out = _idct_lines(lines[:, :kept][:, ::-1], n, start=n - kept)
     out[:, 1::2] *= -1
     return _restore(out, shape, axis)
 
