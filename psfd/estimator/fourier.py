@@ -72,29 +72,44 @@ def dct(x: np.ndarray, keep: int | None = None, axis: int = -1) -> np.ndarray:
 def _idct_lines(c: np.ndarray, n: int, start: int = 0) -> np.ndarray:
     """The inverse orthonormal DCT-II of length ``n`` of the rows of ``c``, whose column j holds coefficient
     start + j (the others zero): `dct` undone, V_m = exp(i pi m / 2N) (X_m - i X_{N-m}) / 2 for m = 0 .. N/2,
-    then one inverse real DFT. Only the nonzero parts of the half spectrum are computed."""
+    then one inverse real DFT. Only the nonzero parts of the half spectrum are computed, straight into
+    OpenCV's packed layout (Re V_0, Re V_1, Im V_1, ..., Re V_N/2 for even N)."""
     rows, kept = c.shape[0], min(c.shape[1], n - start)
     h = n // 2 + 1
     m = np.arange(h)
-    cos, sin = np.cos(0.5 * np.pi * m / n), np.sin(0.5 * np.pi * m / n)
     w = np.where(m == 0, np.sqrt(n), np.sqrt(n / 2.0))  # orthonormal scale and the /2
-    spectrum = np.zeros((rows, n, 2), dtype=c.dtype)  # OpenCV reads the first N/2 + 1 for a real output
-    lo, hi = start, min(start + kept, h)  # X_m, m < N/2 + 1
+    wcos = (w * np.cos(0.5 * np.pi * m / n)).astype(c.dtype)
+    wsin = (w * np.sin(0.5 * np.pi * m / n)).astype(c.dtype)
+    packed = np.zeros((rows, n), dtype=c.dtype)
+    lo, hi = start, min(start + kept, h)  # X_m for m < N/2 + 1
     if hi > lo:
-        a = c[:, lo - start : hi - start] * (w[lo:hi]).astype(c.dtype)
-        spectrum[:, lo:hi, 0] = a * cos[lo:hi].astype(c.dtype)
-        spectrum[:, lo:hi, 1] = a * sin[lo:hi].astype(c.dtype)
-    lo, hi = max(1, n - start - kept + 1), min(h - 1, n - start)  # X_{N-m}, m in [lo, hi]
+        _add_half_spectrum(packed, lo, c[:, : hi - lo], wcos[lo:hi], wsin[lo:hi])
+    lo, hi = max(1, n - start - kept + 1), min(h - 1, n - start)  # X_{N-m} for m in [lo, hi]
     if hi >= lo:
-        b = c[:, n - hi - start : n - lo - start + 1][:, ::-1] * c.dtype.type(np.sqrt(n / 2.0))
-        spectrum[:, lo : hi + 1, 0] += b * sin[lo : hi + 1].astype(c.dtype)
-        spectrum[:, lo : hi + 1, 1] -= b * cos[lo : hi + 1].astype(c.dtype)
-    v = cv2.idft(spectrum, flags=cv2.DFT_ROWS | cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
+        b = c[:, n - hi - start : n - lo - start + 1][:, ::-1]
+        _add_half_spectrum(packed, lo, b, wsin[lo : hi + 1], -wcos[lo : hi + 1])
+    v = cv2.idft(packed, flags=cv2.DFT_ROWS | cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
     out = np.empty_like(v)
     half = (n + 1) // 2
     out[:, ::2] = v[:, :half]
     out[:, 1::2] = v[:, half:][:, ::-1]
     return out
+
+
+def _add_half_spectrum(packed: np.ndarray, lo: int, x: np.ndarray, re: np.ndarray, im: np.ndarray) -> None:
+    """Add x (re + i im) to V_m, m = lo, lo + 1, ..., in OpenCV's packed rows (Re V_0 in column 0, Re V_m
+    and Im V_m in 2m - 1 and 2m, Re V_N/2 last for even N), through strided views."""
+    n = packed.shape[1]
+    if lo == 0:
+        packed[:, 0] += x[:, 0] * re[0]
+        x, re, im, lo = x[:, 1:], re[1:], im[1:], 1
+    count = x.shape[1]
+    if count and n % 2 == 0 and lo + count - 1 == n // 2:  # V_N/2 is real
+        packed[:, n - 1] += x[:, -1] * re[-1]
+        x, re, im, count = x[:, :-1], re[:-1], im[:-1], count - 1
+    if count:
+        packed[:, 2 * lo - 1 : 2 * (lo + count) - 1 : 2] += x * re
+        packed[:, 2 * lo : 2 * (lo + count) : 2] += x * im
 
 
 def idct(c: np.ndarray, n: int | None = None, axis: int = -1) -> np.ndarray:
