@@ -175,24 +175,26 @@ def f_quantile(q: float, d1: int, d2: int) -> float:
     """The upper ``q`` quantile of Snedecor's F(d1, d2) distribution: P(F > f) = q.
 
     scipy.special.fdtri(d1, d2, 1 - q) to 1e-10 (tests/test_geometry.py), without scipy.special and
-    scipy.stats: their imports cost 0.2-0.5 s of start-up for this one number. P(F <= f) =
-    I_x(d1 / 2, d2 / 2) with x = d1 f / (d1 f + d2) (Abramowitz & Stegun 26.6.2), increasing in x:
-    x by bisection to the last bit.
+    scipy.stats: their imports cost 0.2-0.5 s of start-up for this one number. With x = d1 f / (d1 f + d2),
+    P(F <= f) = I_x(d1 / 2, d2 / 2) and P(F > f) = I_{1-x}(d2 / 2, d1 / 2) (Abramowitz & Stegun 26.6.2,
+    26.5.2): the smaller of x and 1 - x is found by bisection to its last bit, so that the other, and f,
+    keep their precision in either tail.
     """
     if not 0.0 < q < 1.0:
         raise ValueError(f"the tail probability must be in (0, 1), got {q}")
+    upper = q < 0.5  # f is large: 1 - x is small
+    a, b, target = (d2 / 2.0, d1 / 2.0, q) if upper else (d1 / 2.0, d2 / 2.0, 1.0 - q)
     lo, hi = 0.0, 1.0
-    for _ in range(200):
+    for _ in range(2000):  # halves the bracket, down to the subnormals for a tiny root
         mid = 0.5 * (lo + hi)
         if mid in (lo, hi):
             break
-        if _incomplete_beta(mid, d1 / 2.0, d2 / 2.0) < 1.0 - q:
+        if _incomplete_beta(mid, a, b) < target:
             lo = mid
         else:
             hi = mid
-    x = 0.5 * (lo + hi)
-    return d2 * x / (d1 * (1.0 - x))
-
+    y = 0.5 * (lo + hi)
+    return d2 * (1.0 - y) / (d1 * y) if upper else d2 * y / (d1 * (1.0 - y))
 
 class RadialHomography:
     """Homography followed by radial lens distortion about an unknown centre.
