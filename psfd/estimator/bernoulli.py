@@ -989,6 +989,10 @@ _OPENBLAS_SETTERS = ("openblas_set_num_threads", "scipy_openblas_set_num_threads
 def _openblas_libraries() -> list[tuple[Callable[[], int], Callable[[int], None]]]:
     """(get, set) of the number of threads of every OpenBLAS this process has loaded (Linux: /proc/self/maps)."""
     import ctypes
+    import os
+
+    if not hasattr(os, "RTLD_NOLOAD"):
+        return []
 
     try:
         with open("/proc/self/maps") as maps:
@@ -998,8 +1002,8 @@ def _openblas_libraries() -> list[tuple[Callable[[], int], Callable[[int], None]
         return []
     found = []
     for path in paths:
-        try:  # already loaded: RTLD_NOLOAD only returns its handle
-            library = ctypes.CDLL(path, mode=getattr(ctypes, "RTLD_NOLOAD", 4) | ctypes.RTLD_GLOBAL)
+        try:  # already loaded: RTLD_NOLOAD only returns its handle, its symbols stay local
+            library = ctypes.CDLL(path, mode=os.RTLD_NOLOAD)
         except OSError:
             continue
         for name in _OPENBLAS_SETTERS:
