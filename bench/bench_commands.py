@@ -29,7 +29,7 @@ the real wall photo in every Bayer plane (sharp edges and compare: time and peak
 
 Compile the trees timed first (`python -m compileall psfd`): an installed
 package has its bytecode, and without it every run would compile the
-modules it loads.
+modules it loads; a tree with missing or stale bytecode is named on stderr.
 
 Usage: python bench/bench_commands.py [--runs N] [--warmup N] [--cases a,b] [--before DIR] [--reference K=CMD] [--raw24]
 """
@@ -175,6 +175,40 @@ def reference(kind: str, args: list[str], fields: dict[str, str], options, out_d
     return [sys.executable, "-c", BASELINE] + files, None, "baseline"
 
 
+def stale_bytecode(tree: Path) -> list[str]:
+    """The modules of ``tree``/psfd whose bytecode is missing or older than their source.
+
+    Python recompiles those in every run it cannot write the cache of, and
+    otherwise in the first (warm-up) run only: 0.1-0.5 s a run, which a
+    timing of start-up must not include. Timestamp-based .pyc files record
+    the source's modification time and size (PEP 552).
+    """
+    import importlib.util
+
+    stale = []
+    for source in sorted((tree / "psfd").rglob("*.py")):
+        cached = Path(importlib.util.cache_from_source(str(source)))
+        try:
+            header = cached.read_bytes()[:16]
+        except OSError:
+            stale.append(f"{source.relative_to(tree)} (no bytecode)")
+            continue
+        flags = int.from_bytes(header[4:8], "little")
+        info = source.stat()
+        if flags == 0 and (int.from_bytes(header[8:12], "little") != int(info.st_mtime) & 0xFFFFFFFF
+                           or int.from_bytes(header[12:16], "little") != info.st_size & 0xFFFFFFFF):
+            stale.append(f"{source.relative_to(tree)} (bytecode older than the source)")
+    return stale
+
+
+def warn_stale(tree: Path) -> None:
+    stale = stale_bytecode(tree)
+    if stale:
+        shown = ", ".join(stale[:5]) + (f" and {len(stale) - 5} more" if len(stale) > 5 else "")
+        print(f"warning: {tree}: {len(stale)} modules would be compiled while timed: {shown}; "
+              f"run `{Path(sys.executable).name} -m compileall -q {tree / 'psfd'}` first", file=sys.stderr, flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=5, help="timed runs of each command (default 5)")
@@ -187,6 +221,8 @@ def main() -> None:
     parser.add_argument("--raw24", action="store_true", help="also a simulated 24-megapixel RAW (slow to make)")
     options = parser.parse_args()
     options.reference = dict(item.split("=", 1) for item in options.reference)
+    for tree in [TREE] + ([Path(options.before).resolve()] if options.before else []):
+        warn_stale(tree)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         print(f"{'case':<24} {'psfd s':>7} {'MiB':>6} {'ref s':>7} {'MiB':>6} {'ratio':>6}  {'reference':<9}"

@@ -396,3 +396,24 @@ def test_sweep_frames_without_or_with_two_targets(seed):
         detect.find_target(scenes.plane_scene(seed, targets=0).image)
     with pytest.raises(MultipleTargetsError):
         detect.find_target(scenes.plane_scene(seed, targets=2).image)
+
+
+@pytest.mark.parametrize("seed, n, spread", [(0, 0, 100.0), (1, 1, 100.0), (2, 50, 30.0), (3, 2000, 400.0),
+                                             (4, 3000, 2000.0)])
+def test_the_neighbour_search_is_ckdtrees(seed, n, spread):
+    """detect._Neighbours (which spares scipy.spatial's start-up) finds what scipy.spatial.cKDTree finds."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    points = rng.random((n, 2)) * spread
+    points[: n // 10] = np.round(points[: n // 10])  # some on cell borders
+    ours, tree = detect._Neighbours(points), cKDTree(points)
+    for r in (1.0, 7.5, 40.0):
+        expected = tree.query_pairs(r, output_type="ndarray").reshape(-1, 2)
+        np.testing.assert_array_equal(ours.pairs(r), expected[np.lexsort((expected[:, 1], expected[:, 0]))])
+    queries = np.vstack([rng.random((300, 2)) * spread * 1.2 - 0.1 * spread, [[-1e9, -1e9], [1e308, 5.0]]])
+    for bound in (2.0, 25.0):
+        dist, idx = ours.nearest(queries, 6, bound)
+        expected_dist, expected_idx = tree.query(queries, k=6, distance_upper_bound=bound)
+        np.testing.assert_array_equal(idx, expected_idx)
+        np.testing.assert_allclose(dist, expected_dist, rtol=1e-15, atol=0)

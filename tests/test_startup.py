@@ -7,16 +7,17 @@ alone cost more than the estimate of a target photo.
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib
+import os
 import subprocess
 import sys
+from pathlib import Path
 
-import numpy as np
 import pytest
-import scipy.signal
-import scipy.stats
-
 from psfd.cli import COMMANDS, COMMAND_MODULES, build_parser, command_modules
+
+DATA = Path(__file__).parent / "data"
 
 
 def _words(module: str) -> set[str]:
@@ -55,18 +56,53 @@ def test_the_estimators_load_neither_scipy_stats_nor_scipy_signal():
     assert out.strip() == "[]"
 
 
-@pytest.mark.parametrize("q", [0.001, 0.01, 0.05])
-@pytest.mark.parametrize("dof", [1, 13, 37, 1000])
-def test_the_f_quantile_is_scipy_stats_one(q, dof):
-    from scipy import special
+def _imported(argv: list[str]) -> set[str]:
+    """Every module a whole `psfd ...` process imports (-X importtime lists them on stderr)."""
+    done = subprocess.run([sys.executable, "-X", "importtime", "-m", "psfd", *argv], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return {line.rsplit("|", 1)[1].strip() for line in done.stderr.splitlines() if line.startswith("import time:")}
 
-    assert special.fdtri(3, dof, 1.0 - q) == pytest.approx(scipy.stats.f.isf(q, 3, dof), rel=1e-10)
+
+@pytest.fixture(scope="module")
+def small_dng(tmp_path_factory) -> Path:
+    from psfd.estimator import simulate
+
+    dng = tmp_path_factory.mktemp("startup") / "target.dng"
+    simulate.simulate_target(dng, psf=simulate.diffraction_psf(5.6, s=4, support=17), pixels_per_cell=0.37,
+                             rotation_deg=3.0, sensor=(500, 600), centre=(0.5, 0.5), seed=1)
+    return dng
 
 
-@pytest.mark.parametrize("shapes", [((7, 9), (13, 5)), ((31, 31), (17, 17)), ((5, 5), (21, 21)), ((8, 6), (3, 4))])
-def test_the_kernel_product_is_fftconvolve_same(shapes):
-    from psfd.estimator.twoscale import _convolve_same
+@pytest.mark.parametrize("frame", ["pgm", "dng"])
+def test_estimating_a_target_imports_no_scipy_and_no_numpy_ma(frame, small_dng):
+    """`psfd estimate target`: scipy (0.5-1 s of start-up) and numpy.ma (35-55 ms) are never loaded,
+    on a single-channel image and on the four planes of a RAW file."""
+    modules = _imported(["estimate", "target", str(DATA / "img_example.pgm" if frame == "pgm" else small_dng)])
+    assert "psfd.estimator.bernoulli" in modules
+    assert sorted(m for m in modules if m.split(".")[0] == "scipy" or m.split(".")[:2] == ["numpy", "ma"]) == []
 
-    rng = np.random.default_rng(0)
-    a, b = rng.random(shapes[0]), rng.random(shapes[1])
-    np.testing.assert_allclose(_convolve_same(a, b), scipy.signal.fftconvolve(a, b, mode="same"), rtol=0, atol=1e-12)
+
+def test_writing_the_results_imports_no_scipy(tmp_path):
+    """With --out the figures load matplotlib (and numpy.ma with it), still no scipy."""
+    modules = _imported(["estimate", "target", str(DATA / "img_example.pgm"), "--out", str(tmp_path / "out")])
+    assert "matplotlib" in modules
+    assert sorted(m for m in modules if m.split(".")[0] == "scipy") == []
+
+
+def test_the_estimate_runs_every_openblas_on_one_thread_without_threadpoolctl():
+    """bernoulli._one_blas_thread sets the loaded OpenBLAS libraries (numpy's, OpenCV's) to one thread and back,
+    as threadpoolctl would, which is not imported for it (20-45 ms a process)."""
+    code = ("import sys, cv2, numpy; from psfd.estimator import bernoulli\n"
+            "with bernoulli._one_blas_thread():\n"
+            "    print('threadpoolctl' in sys.modules)\n"
+            "    from threadpoolctl import threadpool_info\n"
+            "    inside = sorted((d['filepath'], d['num_threads']) for d in threadpool_info() if d['internal_api'] == 'openblas')\n"
+            "outside = sorted((d['filepath'], d['num_threads']) for d in threadpool_info() if d['internal_api'] == 'openblas')\n"
+            "print(inside); print(outside)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                          env={**os.environ, "OPENBLAS_NUM_THREADS": "2"})
+    imported, inside, outside = done.stdout.strip().splitlines()
+    inside, outside = ast.literal_eval(inside), ast.literal_eval(outside)
+    assert imported == "False"
+    assert inside and [n for _, n in inside] == [1] * len(inside)
+    assert [p for p, _ in outside] == [p for p, _ in inside] and all(n == 2 for _, n in outside)

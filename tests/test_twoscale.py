@@ -252,27 +252,8 @@ def test_bad_input(a, b, kwargs, message):
         twoscale.estimate_pair(a, b, **kwargs)
 
 
-@pytest.mark.parametrize("dtype, tol", [(np.float64, 1e-12), (np.float32, 2e-5)])
-@pytest.mark.parametrize("n", [1, 2, 7, 8, 31, 250, 251])
-def test_the_numpy_dct_is_scipy_one(dtype, tol, n):
-    """The two-photo method's DCT-II and its inverse (on numpy.fft, to spare scipy's start-up) against scipy.fft."""
-    from scipy import fft
-
-    x = np.random.default_rng(n).standard_normal((3, n)).astype(dtype)
-    full = fft.dct(x, type=2, norm="ortho", axis=-1)
-    for keep in sorted({1, n // 2, n // 2 + 1, n}):
-        ours = twoscale._dct(x, keep)
-        assert ours.dtype == full.dtype
-        np.testing.assert_allclose(ours, full[:, :keep], rtol=0, atol=tol)
-        for m in (n, 2 * n + 1):
-            theirs = fft.idct(full[:, :keep], type=2, norm="ortho", axis=-1, n=m)
-            back = twoscale._idct(full[:, :keep], m)
-            assert back.dtype == theirs.dtype
-            np.testing.assert_allclose(back, theirs, rtol=0, atol=tol)
-
-
 def test_band_limiting_is_the_shared_dct_low_pass():
-    """`band_limited` (numpy) gives resample.dct_lowpass's (scipy) band within float32 rounding (1e-6 of the signal)."""
+    """`band_limited` gives resample.dct_lowpass's band within float32 rounding (1e-6 of the signal)."""
     from psfd.estimator import resample
 
     image = np.random.default_rng(1).random((221, 251)) * 1000.0

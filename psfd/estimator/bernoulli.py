@@ -26,12 +26,12 @@ import multiprocessing
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
+import cv2
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy import fft, linalg
 
 from psfd.errors import BadInputError, EstimationError, SaturatedError
-from psfd.estimator import detect, geometry, kernels, radiometry, resample, target
+from psfd.estimator import detect, geometry, kernels, quantiles, radiometry, resample, target
 from psfd.estimator.kernels import PSF
 from psfd.estimator.raw import Frame
 from psfd.vocabulary import BERNOULLI, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, check_sizes, check_solver
@@ -482,9 +482,9 @@ def normal_equations(
 
 
 def _gram(a: np.ndarray) -> np.ndarray:
-    """A^T A of a float32 matrix as one symmetric rank update (BLAS syrk: half the multiply-adds of A^T A)."""
-    upper = linalg.blas.ssyrk(1.0, a.T, trans=0, lower=0)  # a.T is Fortran-ordered: no copy
-    return upper + np.triu(upper, 1).T
+    """A^T A of a float32 matrix as one symmetric rank update: numpy's matmul of an array's transpose with
+    itself calls BLAS syrk (half the multiply-adds of a general product) and fills in the other triangle."""
+    return a.T @ a
 
 
 def solve(
@@ -533,10 +533,10 @@ def solve(
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}: use one of {', '.join(SOLVERS)}")
     try:
-        lower = linalg.cholesky(ata, lower=True, check_finite=False)
-    except linalg.LinAlgError:
+        lower = np.linalg.cholesky(ata)  # LAPACK potrf
+        h_ls = _cholesky_solve(ata, atv)
+    except np.linalg.LinAlgError:
         raise EstimationError("the system S_s U h = v is singular: is the target in view?") from None
-    h_ls = linalg.cho_solve((lower, True), atv, check_finite=False)
     return _project(ata, atv, h_ls, solver, h_ls > 0), h_ls, lower
 
 
@@ -595,21 +595,50 @@ def nnls_normal(q: np.ndarray, c: np.ndarray, passive: np.ndarray | None = None)
             free[last] = ~free[last]
         h, y = kkt(free)
     # not reached in exact arithmetic (Murty's rule terminates); the slow solver as a safeguard
-    from scipy import optimize  # 0.15-0.3 s of imports: only here
+    from scipy import linalg, optimize  # 0.3-0.5 s of imports: only here
 
     lower = linalg.cholesky(q, lower=True, check_finite=False)
     return optimize.nnls(lower.T, linalg.solve_triangular(lower, c, lower=True), maxiter=50 * n)[0]
 
 
-def _cholesky_solve(q: np.ndarray, c: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """Q_FF^-1 c_F for the rows and columns ``idx`` of a symmetric positive definite Q, by LAPACK's Cholesky
-    directly (potrf, potrs: the block gathered by two takes, a third of the time of np.ix_, and no
-    argument checks of scipy's wrappers on the many small solves of `nnls_normal`)."""
-    factor, info = linalg.lapack.dpotrf(q.take(idx, axis=0).take(idx, axis=1), lower=True, clean=False,
-                                        overwrite_a=True)
-    if info != 0:
-        raise linalg.LinAlgError("the free block of the normal equations is not positive definite")
-    return linalg.lapack.dpotrs(factor, c[idx], lower=True)[0]
+def _cholesky_solve(q: np.ndarray, c: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+    """Q_FF^-1 c_F for the rows and columns ``idx`` (all by default) of a symmetric positive definite Q.
+
+    OpenCV's Cholesky solve: as fast as LAPACK's potrf and potrs on these
+    sizes (10-300 unknowns, one thread), one call, and no scipy.linalg to
+    import (0.2 s of start-up); the block is gathered by two takes (a third
+    of the time of np.ix_).
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        The block is not positive definite.
+    """
+    block = q if idx is None else q.take(idx, axis=0).take(idx, axis=1)
+    rhs = c if idx is None else c[idx]
+    if block.shape[0] <= 3:  # OpenCV solves up to 3 x 3 by Cramer's rule, without the Cholesky test
+        np.linalg.cholesky(block)
+    ok, x = cv2.solve(block, rhs.reshape(-1, 1), flags=cv2.DECOMP_CHOLESKY)
+    if not ok or not np.isfinite(x).all():
+        raise np.linalg.LinAlgError("the free block of the normal equations is not positive definite")
+    return x[:, 0]
+
+
+def _triangular_inverse(lower: np.ndarray) -> np.ndarray:
+    """L^-1 of a lower triangular L, by halves: [[A, 0], [B, C]]^-1 = [[A^-1, 0], [-C^-1 B A^-1, C^-1]].
+
+    LAPACK's trtri is not in numpy; the recursion costs n^3 / 3 multiply-adds as trtri does, most of
+    them in two matrix products per level, where a general inverse would cost 2 n^3.
+    """
+    n = lower.shape[0]
+    if n <= 32:
+        return np.linalg.inv(lower)
+    k = n // 2
+    out = np.zeros_like(lower)
+    a_inv, c_inv = _triangular_inverse(lower[:k, :k]), _triangular_inverse(lower[k:, k:])
+    out[:k, :k], out[k:, k:] = a_inv, c_inv
+    out[k:, :k] = -(c_inv @ lower[k:, :k]) @ a_inv
+    return out
 
 
 def estimate_window(
@@ -657,7 +686,7 @@ def estimate_window(
     observed = v[y0:y1, x0:x1][usable]
     _check_pattern_fits(sigma**2, float(np.var(observed)))
     # trace((A^T A)^-1) = ||L^-1||_F^2
-    inverse_factor = linalg.lapack.dtrtri(lower, lower=1)[0]  # L^-1 directly: a third less work than a solve
+    inverse_factor = _triangular_inverse(lower)  # L^-1 directly: a third less work than a solve
     mass = float(h.sum())
     if not np.isfinite(mass) or mass <= 0:
         raise EstimationError("the estimated kernel has no positive mass: check the target and exposure")
@@ -678,7 +707,7 @@ def _quadrants(usable: np.ndarray) -> np.ndarray:
     rows, cols = np.nonzero(usable)
     labels = np.full(usable.shape, -1, dtype=np.int64)
     if rows.size:
-        labels[rows, cols] = (cols >= np.median(cols)) + 2 * (rows >= np.median(rows))
+        labels[rows, cols] = (cols >= quantiles.median(cols)) + 2 * (rows >= quantiles.median(rows))
     return labels
 
 
@@ -729,9 +758,8 @@ def cross_validated(
                 if solver == "nnls":  # started from the whole fit's signs, no LS solve needed
                     h = nnls_normal(q, c, positive)
                 else:
-                    h_ls = linalg.cho_solve(linalg.cho_factor(q, check_finite=False), c, check_finite=False)
-                    h = _project(q, c, h_ls, solver, positive)
-            except linalg.LinAlgError:
+                    h = _project(q, c, _cholesky_solve(q, c), solver, positive)
+            except np.linalg.LinAlgError:
                 return None
             q, c, b = ata[test].sum(axis=0), atv[test].sum(axis=0), vtv[test].sum()
             rss += max(float(b - 2.0 * h @ c + h @ q @ h), 0.0)
@@ -931,18 +959,73 @@ def estimate_frames(
 
 
 def _one_blas_thread():
-    """BLAS on one thread while estimating (threadpoolctl, inherited by forked workers).
+    """BLAS on one thread while estimating (inherited by forked workers).
 
     The products are small (289 unknowns): on a shared 2-core machine a
     second BLAS thread that loses its core stalls a 289 x 289 Cholesky or a
     4096 x 289 product 5-100x, and the windows already share the cores between
-    processes. Without threadpoolctl installed the BLAS keeps its own setting.
+    processes (a single window in-process on a loaded machine: median 0.81 s
+    with one thread, 1.5 s with two). OpenBLAS, the BLAS of numpy's and
+    OpenCV's wheels, is set through its own public openblas_set_num_threads:
+    threadpoolctl does the same but its import and its scan of every loaded
+    library cost 20-45 ms a process, 5-10 % of a target photo's estimate;
+    it remains the way for any other BLAS. Without either the BLAS keeps its
+    own setting.
     """
+    libraries = _openblas_libraries()
+    if libraries:
+        return _openblas_threads(libraries, 1)
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:
         return contextlib.nullcontext()
     return threadpool_limits(1, user_api="blas")
+
+
+# OpenBLAS's thread setting, in the builds of numpy's wheels (scipy_openblas, 64-bit integers) and others
+_OPENBLAS_SETTERS = ("openblas_set_num_threads", "scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads",
+                     "openblas_set_num_threads64_", "openblas_set_num_threads_64")
+
+
+def _openblas_libraries() -> list[tuple[Callable[[], int], Callable[[int], None]]]:
+    """(get, set) of the number of threads of every OpenBLAS this process has loaded (Linux: /proc/self/maps)."""
+    import ctypes
+    import os
+
+    if not hasattr(os, "RTLD_NOLOAD"):
+        return []
+
+    try:
+        with open("/proc/self/maps") as maps:
+            paths = sorted({line.split(None, 5)[5].strip() for line in maps
+                            if "openblas" in line.lower() and len(line.split(None, 5)) == 6})
+    except OSError:
+        return []
+    found = []
+    for path in paths:
+        try:  # already loaded: RTLD_NOLOAD only returns its handle, its symbols stay local
+            library = ctypes.CDLL(path, mode=os.RTLD_NOLOAD)
+        except OSError:
+            continue
+        for name in _OPENBLAS_SETTERS:
+            setter = getattr(library, name, None)
+            getter = getattr(library, name.replace("_set_", "_get_"), None)
+            if setter is not None and getter is not None:
+                found.append((getter, setter))
+                break
+    return found
+
+
+@contextlib.contextmanager
+def _openblas_threads(libraries, threads: int):
+    before = [get() for get, _ in libraries]
+    for _, set_threads in libraries:
+        set_threads(threads)
+    try:
+        yield
+    finally:
+        for (_, set_threads), n in zip(libraries, before):
+            set_threads(n)
 
 
 def _estimate_frames(frames, noise, s, support, solver, grid, recentre, tps, workers) -> list[PSF]:
@@ -1159,10 +1242,10 @@ def recentre(kernel: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
     rows, cols = kernel.shape
     padded = np.zeros((2 * rows, 2 * cols))
     padded[:rows, :cols] = kernel
-    fy = fft.fftfreq(2 * rows)[:, None]
-    fx = fft.fftfreq(2 * cols)[None, :]
+    fy = np.fft.fftfreq(2 * rows)[:, None]
+    fx = np.fft.fftfreq(2 * cols)[None, :]
     ramp = np.exp(2j * np.pi * (fx * shift[0] + fy * shift[1]))
-    return np.real(fft.ifft2(fft.fft2(padded) * ramp))[:rows, :cols]
+    return np.real(np.fft.ifft2(np.fft.fft2(padded) * ramp))[:rows, :cols]
 
 
 def _recentred(kernel: np.ndarray, solver: str) -> tuple[np.ndarray, tuple[float, float]]:

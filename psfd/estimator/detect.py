@@ -36,10 +36,9 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from psfd.errors import BadInputError, MultipleTargetsError, TargetNotFoundError
-from psfd.estimator import target
+from psfd.estimator import quantiles, target
 
 # Smoothing of the saddle detector, in pixels of each pyramid level. With levels
 # a factor 2 apart, level L smooths by 3 to 8 cells for targets imaged at
@@ -256,7 +255,7 @@ def _normalise(image: np.ndarray, saturated: np.ndarray | None) -> np.ndarray:
         small += (top - small) * share  # the reduced copy of the clipped pixels set to the top
     else:
         clipped = None
-    lo, hi = np.percentile(small, (0.05, 99.95))
+    lo, hi = quantiles.percentile(small, (0.05, 99.95))
     if hi - lo <= 0:
         return np.zeros(data.shape, np.float32)
     # No clipping: the saddle positions need the linear data.
@@ -364,7 +363,87 @@ class _Saddles:
     smooth: np.ndarray  # the smoothed level image
 
     def __post_init__(self) -> None:
-        self.tree = cKDTree(self.points)
+        self.tree = _Neighbours(self.points)
+
+
+class _Neighbours:
+    """Fixed-radius neighbour search on a few thousand points: the points binned in square cells of the radius.
+
+    The two searches the detection asks of scipy.spatial.cKDTree (`pairs`, `nearest`), with its results;
+    scipy.spatial costs 0.1-0.2 s of start-up (it loads scipy.sparse, scipy.special and scipy.constants),
+    more than the searches take on a pyramid level's saddles. A point within distance r of another lies
+    in its cell or one of the 8 around it, the distances of those candidates are compared exactly.
+    """
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+
+    def _cells(self, size: float, xy: np.ndarray | None = None):
+        """Cell (col, row) of the points or of ``xy`` in a grid of ``size`` over the points, clipped two
+        cells outside (nothing there is within one cell of a point), and the grid's width with that margin."""
+        low = self.points.min(axis=0)
+        top = np.floor((self.points.max(axis=0) - low) / size).astype(np.int64)
+        where = self.points if xy is None else xy
+        cell = np.floor((where - low) / size)
+        cell = np.clip(np.nan_to_num(cell, nan=-2.0), -2, top + 2).astype(np.int64)
+        width = int(top[0]) + 7
+        return cell, width
+
+    def _candidates(self, size: float, xy: np.ndarray, offsets) -> tuple[np.ndarray, np.ndarray]:
+        """(query index, point index) of every point in the cells at ``offsets`` (dcol, drow) from each query's."""
+        own, width = self._cells(size)
+        keys = (own[:, 1] + 3) * width + own[:, 0] + 3
+        order = np.argsort(keys, kind="stable")
+        ordered = keys[order]
+        cell, _ = self._cells(size, xy)
+        base = (cell[:, 1] + 3) * width + cell[:, 0] + 3
+        queries, found = [], []
+        for dx, dy in offsets:
+            key = base + dy * width + dx
+            start, stop = np.searchsorted(ordered, key, "left"), np.searchsorted(ordered, key, "right")
+            counts = stop - start
+            q = np.repeat(np.arange(len(xy)), counts)
+            within = np.arange(q.size) - np.repeat(np.cumsum(counts) - counts, counts)
+            queries.append(q)
+            found.append(order[start[q] + within])
+        return np.concatenate(queries), np.concatenate(found)
+
+    def pairs(self, r: float) -> np.ndarray:
+        """(m, 2) pairs i < j of points at most ``r`` apart (cKDTree.query_pairs(r, output_type="ndarray")),
+        in lexicographic order."""
+        if len(self.points) < 2 or not r > 0:
+            return np.empty((0, 2), dtype=np.intp)
+        around = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+        i, j = self._candidates(r * (1 + 1e-9), self.points, around)
+        keep = i < j
+        i, j = i[keep], j[keep]
+        d = self.points[i] - self.points[j]
+        keep = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= r * r
+        out = np.stack([i[keep], j[keep]], axis=1).astype(np.intp)
+        return out[np.lexsort((out[:, 1], out[:, 0]))]
+
+    def nearest(self, xy: np.ndarray, k: int, bound: float) -> tuple[np.ndarray, np.ndarray]:
+        """The ``k`` nearest points closer than ``bound`` to each of ``xy`` (n, 2), nearest first:
+        distances (inf where fewer) and indices (the number of points there), as
+        cKDTree.query(xy, k, distance_upper_bound=bound)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        dist = np.full((len(xy), k), np.inf)
+        idx = np.full((len(xy), k), len(self.points), dtype=np.intp)
+        if len(self.points) == 0 or len(xy) == 0:
+            return dist, idx
+        around = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+        q, j = self._candidates(bound * (1 + 1e-9), xy, around)
+        d = np.hypot(xy[q, 0] - self.points[j, 0], xy[q, 1] - self.points[j, 1])
+        keep = d < bound
+        q, j, d = q[keep], j[keep], d[keep]
+        order = np.lexsort((j, d, q))  # by query, then distance (ties: lower index)
+        q, j, d = q[order], j[order], d[order]
+        first = np.searchsorted(q, q, "left")
+        rank = np.arange(q.size) - first
+        take = rank < k
+        dist[q[take], rank[take]] = d[take]
+        idx[q[take], rank[take]] = j[take]
+        return dist, idx
 
 
 def _proposals(lv: _Level, coarser: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -651,7 +730,7 @@ def _seed_pairs(sad: _Saddles) -> np.ndarray:
     centre and a quarter block to either side, along and across. Every test
     is symmetric, so each pair that passes is returned in both orders.
     """
-    pairs = sad.tree.query_pairs(_SPACING[1], output_type="ndarray").reshape(-1, 2)
+    pairs = sad.tree.pairs(_SPACING[1])
     a, b = pairs[:, 0], pairs[:, 1]
     x, y = sad.points[:, 0].astype(np.float32), sad.points[:, 1].astype(np.float32)
     cos, sin = np.cos(sad.axis).astype(np.float32), np.sin(sad.axis).astype(np.float32)
@@ -695,9 +774,7 @@ def _match(sad: _Saddles, models: np.ndarray, pattern: np.ndarray, seed_strength
     spacing = np.linalg.norm(np.roll(guess, -1, axis=1) - guess, axis=2)
     local = 0.5 * (spacing + np.roll(spacing, 1, axis=1))  # mean distance to the two ring neighbours
     bound = np.nan_to_num(tol * local, nan=0.0, posinf=0.0)
-    dist, idx = sad.tree.query(
-        np.nan_to_num(guess.reshape(-1, 2), nan=-1e9), k=6, distance_upper_bound=max(bound.max(), 1e-9)
-    )
+    dist, idx = sad.tree.nearest(np.nan_to_num(guess.reshape(-1, 2), nan=-1e9), 6, max(bound.max(), 1e-9))
     dist, idx = dist.reshape(*guess.shape[:2], 6), idx.reshape(*guess.shape[:2], 6)
     valid = np.isfinite(dist) & (dist < bound[..., None])
     idx = np.where(valid, idx, 0)
@@ -777,7 +854,7 @@ def _looks_like_target(norm: np.ndarray, h: np.ndarray) -> bool:
         return False
     # 12 dark and 12 light squares, well apart.
     ranked = np.sort(level)
-    contrast = np.median(ranked[12:]) - np.median(ranked[:12])
+    contrast = quantiles.median(ranked[12:]) - quantiles.median(ranked[:12])
     if contrast < 0.1 or ranked[12] - ranked[11] < 0.3 * contrast:
         return False
     dark = {b for b, v in zip(flats, level) if v < 0.5 * (ranked[11] + ranked[12])}

@@ -14,11 +14,12 @@ the noise region, image -> pattern to render the pattern on the camera grid.
 
 from __future__ import annotations
 
+import functools
+import math
 from typing import Callable
 
 import cv2
 import numpy as np
-from scipy import special
 
 from psfd.estimator.detect import Detection
 
@@ -134,6 +135,67 @@ Mapping = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 RADIAL_SIGNIFICANCE = 0.01
 
 
+def _incomplete_beta(x: float, a: float, b: float) -> float:
+    """The regularised incomplete beta function I_x(a, b) (Abramowitz & Stegun 26.5.8).
+
+    Its continued fraction, evaluated by the modified Lentz method (Thompson & Barnett,
+    J. Comput. Phys. 64, 1986), converges fast for x < (a + 1) / (a + b + 2); above,
+    I_x(a, b) = 1 - I_{1-x}(b, a) (A&S 26.5.2).
+    """
+    if x <= 0.0:
+        return 0.0
+    if x >= 1.0:
+        return 1.0
+    if x > (a + 1.0) / (a + b + 2.0):
+        return 1.0 - _incomplete_beta(1.0 - x, b, a)
+    log_beta = math.lgamma(a) + math.lgamma(b) - math.lgamma(a + b)
+    log_front = a * math.log(x) + b * math.log1p(-x) - math.log(a) - log_beta  # x^a (1-x)^b / (a B(a, b))
+    tiny = 1e-300
+    f, c, d = tiny, tiny, 0.0
+    for i in range(400):  # 1 / (1 + d_1 / (1 + d_2 / (1 + ...)))
+        m = i // 2
+        if i == 0:
+            term = 1.0
+        elif i % 2:  # d_{2m+1}
+            term = -(a + m) * (a + b + m) * x / ((a + 2 * m) * (a + 2 * m + 1))
+        else:  # d_{2m}
+            term = m * (b - m) * x / ((a + 2 * m - 1) * (a + 2 * m))
+        d = 1.0 + term * d
+        d = 1.0 / (d if abs(d) > tiny else tiny)
+        c = 1.0 + term / c
+        c = c if abs(c) > tiny else tiny
+        f *= c * d
+        if abs(c * d - 1.0) < 1e-16:
+            break
+    return math.exp(log_front) * f
+
+
+@functools.lru_cache(maxsize=None)
+def f_quantile(q: float, d1: int, d2: int) -> float:
+    """The upper ``q`` quantile of Snedecor's F(d1, d2) distribution: P(F > f) = q.
+
+    scipy.special.fdtri(d1, d2, 1 - q) to 1e-10 (tests/test_geometry.py), without scipy.special and
+    scipy.stats: their imports cost 0.2-0.5 s of start-up for this one number. With x = d1 f / (d1 f + d2),
+    P(F <= f) = I_x(d1 / 2, d2 / 2) and P(F > f) = I_{1-x}(d2 / 2, d1 / 2) (Abramowitz & Stegun 26.6.2,
+    26.5.2): the smaller of x and 1 - x is found by bisection to its last bit, so that the other, and f,
+    keep their precision in either tail.
+    """
+    if not 0.0 < q < 1.0:
+        raise ValueError(f"the tail probability must be in (0, 1), got {q}")
+    upper = q < 0.5  # f is large: 1 - x is small
+    a, b, target = (d2 / 2.0, d1 / 2.0, q) if upper else (d1 / 2.0, d2 / 2.0, 1.0 - q)
+    lo, hi = 0.0, 1.0
+    for _ in range(2000):  # halves the bracket, down to the subnormals for a tiny root
+        mid = 0.5 * (lo + hi)
+        if mid in (lo, hi):
+            break
+        if _incomplete_beta(mid, a, b) < target:
+            lo = mid
+        else:
+            hi = mid
+    y = 0.5 * (lo + hi)
+    return d2 * (1.0 - y) / (d1 * y) if upper else d2 * y / (d1 * (1.0 - y))
+
 class RadialHomography:
     """Homography followed by radial lens distortion about an unknown centre.
 
@@ -197,8 +259,7 @@ class RadialHomography:
         if rss_radial <= 0.0:
             return radial if rss_plain > 0.0 else plain
         f = (rss_plain - rss_radial) / 3 / (rss_radial / dof)
-        # upper F(3, dof) quantile; scipy.special, as scipy.stats costs half a second of start-up
-        return radial if f > special.fdtri(3, dof, 1.0 - significance) else plain
+        return radial if f > f_quantile(significance, 3, dof) else plain
 
     def residual(self, pattern: np.ndarray, corners: np.ndarray) -> float:
         """Sum of squared distances between the mapped pattern points and the corners."""

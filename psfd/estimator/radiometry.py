@@ -10,10 +10,9 @@ import functools
 from typing import Callable, NamedTuple
 
 import numpy as np
-from scipy import fft
 
 from psfd.errors import EstimationError
-from psfd.estimator import target
+from psfd.estimator import fourier, quantiles, target
 
 Field = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -127,7 +126,7 @@ def illumination(image: np.ndarray, to_image: Callable, to_pattern: Callable, re
     raster = _tail_raster(np.packbits(noise > 0.5).tobytes())
     blacks = _squares(image, to_image, to_pattern, target.BLACK_BLOCKS, reach, raster)
     whites = _squares(image, to_image, to_pattern, target.WHITE_BLOCKS, reach, raster)
-    level = [float(np.median([np.median(sq.values) for sq in group])) for group in (blacks, whites)]
+    level = [float(quantiles.median([quantiles.median(sq.values) for sq in group])) for group in (blacks, whites)]
     span = level[1] - level[0]
     squares = [sq.without_outliers(span) for sq in blacks + whites]
     xy = np.array([sq.centre for sq in squares])
@@ -234,8 +233,9 @@ class _Square(NamedTuple):
         Dust and hot pixels are further; the span term keeps a noise-free
         square's own tail gradient (up to 5 % of the span at f/22) in.
         """
-        median = np.median(self.values)
-        keep = np.abs(self.values - median) <= max(6 * 1.4826 * np.median(np.abs(self.values - median)), 0.1 * span)
+        median = quantiles.median(self.values)
+        mad = quantiles.median(np.abs(self.values - median))
+        keep = np.abs(self.values - median) <= max(6 * 1.4826 * mad, 0.1 * span)
         return _Square(self.centre, *(a[keep] for a in (self.x, self.y, self.values, self.response)))
 
 
@@ -305,11 +305,7 @@ def _tail_raster(packed_noise: bytes) -> np.ndarray:
     kernel = np.zeros_like(distance)
     ring = (distance >= _TAIL_INNER) & (distance <= _TAIL_RADIUS)
     kernel[ring] = distance[ring] ** -3.0
-    shape = [fft.next_fast_len(n + 2 * _TAIL_RADIUS, real=True) for n in layout.shape]
-    product = fft.rfft2(layout, shape) * fft.rfft2(kernel.astype(np.float32), shape)
-    full = fft.irfft2(product, shape)  # the linear convolution, the kernel's centre at (radius, radius)
-    rows, cols = layout.shape
-    around = full[_TAIL_RADIUS : _TAIL_RADIUS + rows, _TAIL_RADIUS : _TAIL_RADIUS + cols]
+    around = fourier.convolve_same(layout, kernel.astype(np.float32))  # the kernel's centre on each cell
     lost = kernel.sum() + 2 * np.pi / _TAIL_RADIUS  # beyond the radius: int r^-3 2 pi r dr
     return around.astype(np.float64) - layout * lost
 

@@ -11,18 +11,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-
-class _LazySciPyFFT:
-    """scipy.fft, imported on first use: 0.2-0.3 s of a process's start-up (it loads scipy.special and
-    scipy's array-API layer), which a caller of the Keys interpolation alone (the two-photo method) never needs."""
-
-    def __getattr__(self, name: str):
-        from scipy import fft as module
-
-        return getattr(module, name)
-
-
-fft = _LazySciPyFFT()
+from psfd.estimator import fourier
 
 __all__ = [
     "band_part_cost", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_runs_part",
@@ -95,8 +84,8 @@ def dct_coefficients(image: np.ndarray, keep: tuple[int, int]) -> np.ndarray:
     Axis by axis, dropping the unwanted coefficients at once, so the second
     pass works on fewer lines. float32 input stays float32.
     """
-    coeffs = fft.dct(image, type=2, norm="ortho", axis=1, workers=-1)[:, : int(keep[1])]
-    return fft.dct(coeffs, type=2, norm="ortho", axis=0, workers=-1)[: int(keep[0])]
+    coeffs = fourier.dct(image, int(keep[1]), axis=1)
+    return fourier.dct(coeffs, int(keep[0]), axis=0)
 
 
 def dct_synthesise(
@@ -123,11 +112,9 @@ def dct_synthesise(
         if cross is not same and np.any(cross != same):
             anti = (coeffs * (cross - same) / 2)[1:, 1:]
         coeffs = coeffs * (same + cross) / 2
-    lowpassed = fft.idct(coeffs, type=2, norm="ortho", axis=0, n=out_r, workers=-1)
-    lowpassed = fft.idct(lowpassed, type=2, norm="ortho", axis=1, n=out_c, workers=-1)
+    lowpassed = fourier.idct(fourier.idct(coeffs, out_r, axis=0), out_c, axis=1)
     if anti is not None and anti.size:
-        sine = fft.idst(anti, type=2, norm="ortho", axis=0, n=out_r, workers=-1)
-        lowpassed += fft.idst(sine, type=2, norm="ortho", axis=1, n=out_c, workers=-1)
+        lowpassed += fourier.idst(fourier.idst(anti, out_r, axis=0), out_c, axis=1)
     return lowpassed
 
 

@@ -26,7 +26,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from psfd.errors import BadInputError, PairError
 from psfd.vocabulary import DEFAULT_S, TWO_PHOTO, check_sizes
-from psfd.estimator import pair_register, resample
+from psfd.estimator import fourier, pair_register, resample
 from psfd.estimator.kernels import PSF, clip_negatives, core_centroid, field_of_window, normalise, split_grid
 from psfd.estimator.raw import Frame
 from psfd.estimator.resample import keys_bicubic
@@ -35,54 +35,6 @@ __all__ = [
     "band_limited", "estimate_pair", "observation_mask", "psf_from_kernel", "resample_near", "solve_kernel",
     "texture"
 ]
-
-# The two-photo method's transforms are written on numpy.fft: importing scipy.fft (or scipy.signal)
-# costs 0.2-0.3 s of start-up, more than the whole estimate spends in them, and nothing else on the
-# path of `psfd estimate pair` needs scipy.
-
-
-def _convolve_same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Central part of the full 2-D convolution a * b, the size of ``a`` (scipy.signal.fftconvolve's "same")."""
-    full = (a.shape[0] + b.shape[0] - 1, a.shape[1] + b.shape[1] - 1)
-    product = np.fft.irfft2(np.fft.rfft2(a, full) * np.fft.rfft2(b, full), full)
-    r0, c0 = (full[0] - a.shape[0]) // 2, (full[1] - a.shape[1]) // 2
-    return product[r0 : r0 + a.shape[0], c0 : c0 + a.shape[1]]
-
-
-def _dct(x: np.ndarray, keep: int) -> np.ndarray:
-    """The first ``keep`` orthonormal DCT-II coefficients along the last axis (scipy.fft.dct(norm="ortho")).
-
-    One real FFT of the even samples followed by the reversed odd ones
-    (Makhoul, IEEE Trans. ASSP 1980): X_k = 2 Re(exp(-i pi k / 2N) V_k).
-    float32 stays float32.
-    """
-    n = x.shape[-1]
-    v = np.concatenate([x[..., ::2], x[..., 1::2][..., ::-1]], axis=-1)
-    half = np.fft.rfft(v, axis=-1)
-    spectrum = np.concatenate([half, np.conj(half[..., 1 : (n + 1) // 2][..., ::-1])], axis=-1)[..., :keep]
-    k = np.arange(spectrum.shape[-1])
-    twiddle = np.exp(-0.5j * np.pi * k / n).astype(spectrum.dtype)
-    scale = np.where(k == 0, np.sqrt(1.0 / n), np.sqrt(2.0 / n)).astype(x.dtype)
-    return (spectrum * twiddle).real * scale
-
-
-def _idct(c: np.ndarray, n: int) -> np.ndarray:
-    """The inverse orthonormal DCT-II of length ``n`` along the last axis of coefficients ``c``, missing
-    ones zero (scipy.fft.idct(norm="ortho", n=n)): `_dct` undone, V_k = exp(i pi k / 2N) (X_k - i X_{N-k}) / 2."""
-    kept = min(c.shape[-1], n)
-    y = np.zeros(c.shape[:-1] + (n + 1,), dtype=c.dtype)
-    k = np.arange(kept)
-    y[..., :kept] = c[..., :kept] * np.where(k == 0, np.sqrt(4.0 * n), np.sqrt(2.0 * n)).astype(c.dtype)
-    m = np.arange(n // 2 + 1)
-    complex_type = np.result_type(c.dtype, np.complex64)
-    spectrum = (y[..., m] - 1j * y[..., n - m]).astype(complex_type) * np.exp(0.5j * np.pi * m / n).astype(
-        complex_type) / 2
-    v = np.fft.irfft(spectrum, n, axis=-1)
-    out = np.empty(v.shape, dtype=c.dtype)
-    out[..., ::2] = v[..., : (n + 1) // 2]
-    out[..., 1::2] = v[..., (n + 1) // 2 :][..., ::-1]
-    return out
-
 
 LAMBDA_ADVISED = (2.0, 8.0)  # IPOL 2013, App. 7, tip 2: shoot between 2 and 8 times the distance
 LAMBDA_MAX = 50.0  # IPOL 2013, sec. 4.4: a kernel contracted 50x acts as a Dirac
@@ -368,8 +320,8 @@ def band_limited(image: np.ndarray, keep: tuple[int, int]) -> tuple[np.ndarray, 
     out_c = max(keep_c, int(math.ceil(OVERSAMPLE * keep_c)))
     # single precision (24-bit mantissa, beyond any sensor's 14 bits) halves the cost; the same
     # transforms, in the same order, as resample.dct_lowpass(image, keep, size=(out_r, out_c))
-    coeffs = _dct(_dct(np.asarray(image, dtype=np.float32), keep_c).T, keep_r)  # (keep_c, keep_r)
-    band = _idct(_idct(coeffs, out_r).T, out_c)
+    coeffs = fourier.dct(fourier.dct(np.asarray(image, dtype=np.float32), keep_c).T, keep_r)  # (keep_c, keep_r)
+    band = fourier.idct(fourier.idct(coeffs, out_r).T, out_c)
     # orthonormal DCTs of different lengths: sqrt(new / old) keeps the amplitude
     band *= np.float32(np.sqrt(out_r * out_c / (rows * cols)))
     return band, (out_r / rows, out_c / cols)
@@ -504,7 +456,7 @@ def psf_from_kernel(
         dilated = _sample(kernel, x[None, :], y[:, None])
         dilated /= dilated.sum()
         # central part of the convolution, the size of the dilated factor (IPOL 2013, step 3)
-        product = _convolve_same(dilated, product)
+        product = fourier.convolve_same(dilated, product)
     if n == 0:
         return kernel.copy()
     rows, cols = product.shape

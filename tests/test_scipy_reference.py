@@ -1,0 +1,153 @@
+"""The estimate of a target photo on the scipy-free path equals the one on the scipy path it replaced.
+
+The Bernoulli estimate runs without scipy (0.5-1 s of start-up): the DCTs and
+convolutions on OpenCV's DFT (`fourier`), medians and percentiles without
+numpy.ma (`quantiles`), the Cholesky solves on OpenCV and numpy, the
+neighbour search of the detection on a grid of cells, the F-quantile of the
+map's test from its continued fraction. Here the same estimates are run on
+the earlier path (scipy.fft, scipy.signal.fftconvolve, scipy.linalg's LAPACK,
+numpy's median and percentile, scipy.spatial.cKDTree, scipy.special.fdtri),
+kept as the reference, and the PSFs must agree within 1e-3 of their noise
+floor: the changes are float rounding (float32 transforms: ~1e-7 of the
+pattern), three orders of magnitude below what the estimate can resolve.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.fft
+import scipy.signal
+from scipy import linalg, special
+from scipy.spatial import cKDTree
+
+from psfd.estimator import bernoulli, detect, fourier, geometry, quantiles, radiometry, raw, simulate
+
+DATA = Path(__file__).parent / "data"
+
+
+class _TreeNeighbours:
+    def __init__(self, points: np.ndarray) -> None:
+        self.tree = cKDTree(points)
+
+    def pairs(self, r: float) -> np.ndarray:
+        return self.tree.query_pairs(r, output_type="ndarray").reshape(-1, 2)
+
+    def nearest(self, xy: np.ndarray, k: int, bound: float):
+        return self.tree.query(xy, k=k, distance_upper_bound=bound)
+
+
+def _scipy_cholesky_solve(q, c, idx=None):
+    if idx is not None:
+        q, c = q.take(idx, axis=0).take(idx, axis=1), c[idx]
+    factor, info = linalg.lapack.dpotrf(q, lower=True, clean=False)
+    if info != 0:
+        raise np.linalg.LinAlgError("not positive definite")
+    return linalg.lapack.dpotrs(factor, c, lower=True)[0]
+
+
+def _scipy_gram(a):
+    upper = linalg.blas.ssyrk(1.0, a.T, trans=0, lower=0)
+    return upper + np.triu(upper, 1).T
+
+
+REFERENCE = [
+    (fourier, "dct", lambda x, keep=None, axis=-1: np.take(
+        scipy.fft.dct(x, type=2, norm="ortho", axis=axis), np.arange(x.shape[axis] if keep is None else keep), axis)),
+    (fourier, "idct", lambda c, n=None, axis=-1: scipy.fft.idct(c, type=2, norm="ortho", n=n, axis=axis)),
+    (fourier, "idst", lambda c, n=None, axis=-1: scipy.fft.idst(c, type=2, norm="ortho", n=n, axis=axis)),
+    (fourier, "convolve_same", lambda a, b: scipy.signal.fftconvolve(a, b, mode="same")),
+    (quantiles, "median", np.median),
+    (quantiles, "percentile", np.percentile),
+    (bernoulli, "_gram", _scipy_gram),
+    (bernoulli, "_cholesky_solve", _scipy_cholesky_solve),
+    (bernoulli, "_triangular_inverse", lambda lower: linalg.lapack.dtrtri(lower, lower=1)[0]),
+    (detect, "_Neighbours", _TreeNeighbours),
+    (geometry, "f_quantile", lambda q, d1, d2: special.fdtri(d1, d2, 1.0 - q)),
+]
+
+
+def _estimates(frames, monkeypatch, reference: bool, **kwargs):
+    with monkeypatch.context() as patch:
+        if reference:
+            for module, name, function in REFERENCE:
+                patch.setattr(module, name, function)
+        radiometry._tail_raster.cache_clear()  # computed with the transforms in force
+        try:
+            return bernoulli.estimate_frames(frames, **kwargs)
+        finally:
+            radiometry._tail_raster.cache_clear()
+
+
+def _assert_same(new, old):
+    assert len(new) == len(old)
+    for a, b in zip(new, old):
+        floor = b.noise_floor
+        assert np.abs(a.psf - b.psf).max() <= 1e-3 * floor
+        assert a.noise_floor == pytest.approx(floor, rel=1e-4)
+        assert a.window == b.window
+        assert a.params["geometry"] == b.params["geometry"]
+        for key in ("mass", "crf_alpha", "light_tail"):
+            assert a.params[key] == pytest.approx(b.params[key], rel=1e-5, abs=1e-9)
+        assert a.prediction_error == pytest.approx(b.prediction_error, rel=1e-4)
+
+
+@pytest.mark.parametrize("kwargs", [{}, {"grid": (2, 2)}, {"solver": "ls", "support": 25}])
+def test_the_example_photo_gives_the_scipy_path_psfs(kwargs, monkeypatch):
+    frames = [raw.load_frame(DATA / "img_example.pgm")]
+    _assert_same(_estimates(frames, monkeypatch, False, **kwargs), _estimates(frames, monkeypatch, True, **kwargs))
+
+
+def test_a_raw_file_gives_the_scipy_path_psfs(tmp_path, monkeypatch):
+    """Four Bayer planes of a simulated RAW: the detection once and refined per plane, one pattern band."""
+    dng = tmp_path / "target.dng"
+    simulate.simulate_target(dng, psf=simulate.diffraction_psf(5.6, s=4, support=17), pixels_per_cell=0.37,
+                             rotation_deg=3.0, sensor=(500, 600), centre=(0.5, 0.5), seed=1)
+    frames = raw.load_frames(dng, "all")
+    _assert_same(_estimates(frames, monkeypatch, False, workers=1),
+                 _estimates(frames, monkeypatch, True, workers=1))
+
+
+def _normal_matrix(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    a = np.random.default_rng(seed).standard_normal((4 * n + 3, n))
+    return a.T @ a, a.T @ np.random.default_rng(seed + 1).standard_normal(4 * n + 3)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 17, 289])
+def test_the_cholesky_solve_is_scipys(n):
+    q, c = _normal_matrix(n, n)
+    expected = linalg.cho_solve(linalg.cho_factor(q), c)
+    # condition numbers of these normal matrices are ~10-100: a few hundred ulps
+    np.testing.assert_allclose(bernoulli._cholesky_solve(q, c), expected, rtol=1e-10, atol=1e-12)
+    idx = np.flatnonzero(np.arange(n) % 3 != 1)
+    block = q[np.ix_(idx, idx)]
+    np.testing.assert_allclose(bernoulli._cholesky_solve(q, c, idx), linalg.cho_solve(linalg.cho_factor(block), c[idx]),
+                               rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("q", [np.array([[1.0, 2.0], [2.0, 1.0]]), np.diag([1.0, 1.0, -1.0]), np.diag([1.0, 0.0, 1.0, 1.0]),
+                               np.diag([2.0, 1.0, 1.0, 1.0, -1e-3])])
+def test_a_matrix_that_is_not_positive_definite_is_refused(q):
+    with pytest.raises(np.linalg.LinAlgError):
+        linalg.cho_factor(q)
+    with pytest.raises(np.linalg.LinAlgError):
+        bernoulli._cholesky_solve(q, np.ones(len(q)))
+
+
+@pytest.mark.parametrize("n", [1, 5, 32, 33, 100, 289, 625])
+def test_the_triangular_inverse_is_lapacks(n):
+    lower = np.linalg.cholesky(_normal_matrix(n, n)[0])
+    expected = linalg.lapack.dtrtri(lower, lower=1)[0]
+    ours = bernoulli._triangular_inverse(lower)
+    assert np.array_equal(np.tril(ours), ours)
+    np.testing.assert_allclose(ours, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
+def test_the_gram_matrix_is_the_symmetric_rank_update():
+    a = np.random.default_rng(5).standard_normal((20000, 289)).astype(np.float32)
+    ours = bernoulli._gram(a)
+    assert ours.dtype == np.float32 and np.array_equal(ours, ours.T)
+    # float32 sums of 20000 products of unit-variance terms: rounding ~1e-7 relative of ~2e4 on the diagonal
+    np.testing.assert_allclose(ours, _scipy_gram(a), rtol=0, atol=5e-3)
