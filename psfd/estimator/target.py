@@ -81,7 +81,7 @@ def save_noise(noise: np.ndarray, path: str | Path) -> None:
         raise BadInputError(f"{path}: cannot write noise pattern")
 
 
-def cells(noise: np.ndarray | None = None, supersample: int = 1) -> np.ndarray:
+def cells(noise: np.ndarray | None = None, supersample: int = 1, dtype=np.float64) -> np.ndarray:
     """Reflectance of the whole target on a grid of ``supersample`` pixels per cell.
 
     Parameters
@@ -92,15 +92,17 @@ def cells(noise: np.ndarray | None = None, supersample: int = 1) -> np.ndarray:
         Pixels per cell side. The hourglass X-corner marks are exact only at
         the cell level when supersample is 1 (their edges are diagonal), so
         renderers use 8 or more.
+    dtype : numpy dtype
+        Of the result (float32 halves a fine raster's memory: 0 and 1 are exact).
 
     Returns
     -------
-    ndarray of float64, (320 * supersample, 320 * supersample), 0 black and 1 white.
+    ndarray of ``dtype``, (320 * supersample, 320 * supersample), 0 black and 1 white.
     """
     noise = default_noise() if noise is None else np.asarray(noise, dtype=np.float64)
     n = int(supersample)
-    out = np.ones((SIZE * n, SIZE * n), dtype=np.float64)
-    out[NOISE_START * n : NOISE_STOP * n, NOISE_START * n : NOISE_STOP * n] = np.kron(noise, np.ones((n, n)))
+    out = np.ones((SIZE * n, SIZE * n), dtype=dtype)
+    out[NOISE_START * n : NOISE_STOP * n, NOISE_START * n : NOISE_STOP * n] = noise.astype(dtype).repeat(n, axis=0).repeat(n, axis=1)
     for bx, by in BLACK_BLOCKS:
         out[by * BLOCK * n : (by + 1) * BLOCK * n, bx * BLOCK * n : (bx + 1) * BLOCK * n] = 0.0
     # Hourglass: black triangles on the top and bottom edges, apexes at the block centre.
