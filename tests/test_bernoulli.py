@@ -576,7 +576,10 @@ def test_windows_read_from_kept_parts_equal_the_difference_from_the_reference(tm
     assert len(band._kept) == len(planes[0].windows)
 
 
-def test_float32_raster_equals_the_float64_one():
-    """`PatternBand` rasterises the target in float32: its values (0, 1 and the marks) are those of float64."""
-    for factor in (4, 10):
-        assert np.array_equal(target.cells(None, factor, dtype=np.float32), target.cells(None, factor))
+def test_pattern_band_rasterised_in_float32_is_the_band_of_the_float64_raster():
+    """`PatternBand` rasterises the target in float32 (no float64 raster at its memory peak): its reference band is
+    bit for bit `u_tilde`'s, which rasterises in float64 and rounds to float32."""
+    noise = target.default_noise()
+    jacobian = np.array([[2.7, 0.3], [-0.25, 2.75]])
+    band = bernoulli.PatternBand(noise, 4, S, [jacobian * 1.01], jacobian)
+    assert np.array_equal(band.base, bernoulli.u_tilde(noise, S, jacobian, 4))
