@@ -300,7 +300,7 @@ def _cover(row: np.ndarray, start: np.ndarray, stop: np.ndarray, shape: tuple[in
     multiply-adds of one part (cosine or sine).
 
     A band difference is made of strips along the edges of two close bands,
-    one run per row along each edge (`bernoulli.PatternBand.difference`
+    one run per row along each edge (`bernoulli._band_difference`
     lists them edge by edge, rows increasing). A near-vertical edge spans
     many rows and few columns: its columns are the cheaper cover; a
     near-horizontal one the other way round. Each edge is cut into chunks
