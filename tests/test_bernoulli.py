@@ -515,13 +515,71 @@ def test_normal_equations_equal_the_float64_products():
 
 
 def test_pattern_band_window_equals_u_tilde():
-    """A window's u~ read from the shared band equals `u_tilde` for its own Jacobian, to float32 rounding."""
+    """A window's u~ read from the shared band equals `u_tilde` for its own Jacobian, to float32 rounding, whether
+    read from the reference band or from the part kept for a nearby window with a close Jacobian (another Bayer
+    plane: a few coefficients apart, a pixel away)."""
     noise = target.default_noise()
     s, factor = 4, 4
-    jacobians = [np.array([[2.7, 0.3], [-0.25, 2.75]]), np.array([[2.75, 0.32], [-0.2, 2.7]])]
+    jacobians = [np.array([[2.7, 0.3], [-0.25, 2.75]]), np.array([[2.75, 0.32], [-0.2, 2.7]]),
+                 np.array([[2.7503, 0.3198], [-0.2002, 2.7001]])]
     band = bernoulli.PatternBand(noise, factor, s, jacobians, jacobians[0])
     y, x = np.mgrid[400:430, 500:540] / factor + 0.01
-    for jac in jacobians:
-        want = resample.keys_bicubic(bernoulli.u_tilde(noise, s, jac, factor), x * factor - 0.5, y * factor - 0.5)
-        got = band.window(jac).sample(x, y)
+    for n, jac in enumerate(jacobians):
+        at_x, at_y = x + 0.3 * n, y - 0.2 * n
+        want = resample.keys_bicubic(bernoulli.u_tilde(noise, s, jac, factor), at_x * factor - 0.5,
+                                     at_y * factor - 0.5)
+        got = band.window(jac).sample(at_x, at_y)
         assert np.abs(got - want).max() < 1e-5
+    # the first window reads the reference band as it is, the second is corrected from it and kept, the
+    # third starts from the second's part
+    assert len(band._kept) == 1
+
+
+class _DifferenceBand(bernoulli.WindowBand):
+    """The window's u~ as the band was read before parts were kept: the reference band's crop plus the image of
+    every coefficient where the window's band differs from the reference (the former `PatternBand.difference`)."""
+
+    def sample(self, X, Y):
+        band = self.band
+        x, y = X * band.factor - 0.5, Y * band.factor - 0.5
+        finite = np.isfinite(x) & np.isfinite(y)
+        rows, cols = band.shape
+        r0 = int(np.clip(np.floor(y[finite].min()) - 1, 0, rows))
+        r1 = int(np.clip(np.floor(y[finite].max()) + 3, r0, rows))
+        c0 = int(np.clip(np.floor(x[finite].min()) - 1, 0, cols))
+        c1 = int(np.clip(np.floor(x[finite].max()) + 3, c0, cols))
+        runs = bernoulli._band_difference(band.rows(self.jacobian), band.reference)
+        part = resample.dct_runs_part(band.coeffs, runs, band.shape, slice(r0, r1), slice(c0, c1))
+        crop = (band.base[r0:r1, c0:c1] + part).astype(np.float32)
+        return resample.keys_bicubic(crop, x - c0, y - r0, a=-0.5)
+
+
+def test_windows_read_from_kept_parts_equal_the_difference_from_the_reference(tmp_path):
+    """The four Bayer planes' windows, read from the band part kept for the same window of an earlier plane
+    (`PatternBand.read`), give the PSFs of the reference band corrected per window over its crop (the former
+    path), within 1 % of the noise floor; and the later planes did start from the kept parts."""
+    path = tmp_path / "t.dng"
+    simulate.simulate_target(path, psf=PSFS["f/5.6"](), s=S, seed=3, **GEOMETRY)
+    noise = target.default_noise()
+    planes = [bernoulli._prepare(f, d, noise, S, 4 * S + 1, (2, 2), None)
+              for f, d in bernoulli._detections(raw.load_frames(path, "all"))]
+    band = bernoulli.PatternBand(noise, planes[0].factor, S, [j for p in planes for j in p.jacobians],
+                                 planes[0].reference)
+    for n, plane in enumerate(planes):
+        for k, window in enumerate(plane.windows):
+            got = bernoulli._window_result(plane, k, band, "ls")
+            old = bernoulli.estimate_window(plane.v, plane.mask, window, _DifferenceBand(band, plane.jacobians[k]),
+                                            plane.factor, plane.to_pattern, S, 4 * S + 1, "ls")
+            gap = float(np.linalg.norm(got["psf"] - old["psf"]))
+            assert gap < 0.01 * old["noise_floor"], (plane.frame.channel, k, gap, old["noise_floor"])
+    # a part is kept only when read from the reference: one per window of the first plane
+    assert len(band._kept) == len(planes[0].windows)
+
+
+def test_pattern_band_rasterised_in_float32_is_the_band_of_the_float64_raster():
+    """`PatternBand` rasterises the target in float32 (no float64 raster at its memory peak): its reference band is
+    bit for bit `u_tilde`'s, which rasterises in float64 and rounds to float32."""
+    noise = target.default_noise()
+    jacobian = np.array([[2.7, 0.3], [-0.25, 2.75]])
+    band = bernoulli.PatternBand(noise, 4, S, [jacobian * 1.01], jacobian)
+    assert np.array_equal(band.base, bernoulli.u_tilde(noise, S, jacobian, 4))

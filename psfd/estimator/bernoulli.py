@@ -283,12 +283,18 @@ class PatternBand:
     few per cent across a target). The synthesis is linear in the band, so a
     window's u~ is the u~ of one reference band (synthesised once) plus the
     image of the coefficients where its band differs from the reference
-    (`difference`, from the bands' row intervals; `resample.dct_runs_part`),
-    evaluated only on the part of the raster that the window reads, or its
-    own band synthesised whole when that costs less. The result equals
+    (`_band_difference`, from the bands' row intervals; `resample.dct_runs_part`),
+    evaluated only on the part of the raster that the window reads (`read`),
+    or its own band synthesised whole when that costs less. The result equals
     `u_tilde`'s up to float rounding. Sharing one band between windows whose
     Jacobians differ by 0.3 % already moves their PSFs by 13 % of the noise
     floor (measured on a 24-megapixel frame), so no window skips its own band.
+
+    The same window on the other Bayer planes of a photograph reads nearly the
+    same part of the raster through a band a few hundred coefficients away
+    (the planes see the target half a pixel apart), against tens of thousands
+    from the reference: the parts already read are kept (a bounded number, per
+    process) and a window starts from the kept part whose band is closest.
 
     Parameters
     ----------
@@ -302,21 +308,32 @@ class PatternBand:
         The Jacobian whose band is synthesised whole (e.g. at the target's centre).
     """
 
+    # bytes of parts kept for later windows, per process (100 windows of a 24-megapixel frame's plane)
+    KEPT_BYTES = 48 << 20
+
     def __init__(self, noise: np.ndarray, factor: int, s: int, jacobians, reference: np.ndarray) -> None:
-        # float32: 4x faster on the raster, rounding far below sensor noise (as in `u_tilde`)
-        cells = target.cells(noise, factor).astype(np.float32)
+        # float32 from the start: 4x faster on the raster, rounding far below sensor noise (as in `u_tilde`),
+        # and no float64 copy of the raster (80 MB at 10 pixels per cell) at the peak
+        cells = target.cells(noise, factor, dtype=np.float32)
         self.factor, self.s, self.shape = factor, s, cells.shape
         # a bound on every window's band (the masks of 400 windows would hold gigabytes, and even their
         # exact sizes cost milliseconds each); the coefficients past a band are zero in its masks
         shapes = [_reach_box(cells.shape, factor, s, j) for j in [reference, *jacobians]]
         self.keep = (max(r for r, _ in shapes), max(c for _, c in shapes))
         self.coeffs = resample.dct_coefficients(cells, self.keep)
-        ref = s_band(cells.shape, factor, s, reference)
+        del cells
+        ref = s_band(self.shape, factor, s, reference)
         self.base = resample.dct_synthesise(self.coeffs[: ref[0].shape[0], : ref[0].shape[1]], self.shape, *ref)
         self.reference = self.rows(reference)
         # the basis functions the differences are synthesised from (tens of MB): tabulated once, before
         # the workers fork, when many windows will read them; computed per window for a few
         self.bases = resample.dct_bases(self.shape, self.keep) if len(jacobians) > 4 else None
+        # a part read for a window is kept with margins that hold the same window on the other Bayer planes:
+        # their windows move by up to a channel pixel (the planes' offsets, the mask's bounds), which is
+        # up to factor x |J| row sums raster pixels
+        self.margin = int(np.ceil(factor * max(np.abs(j).sum(axis=1).max() for j in [reference, *jacobians]))) + 2
+        self._kept: list[tuple[tuple[int, int, int, int], tuple[np.ndarray, ...], np.ndarray]] = []
+        self._kept_bytes = 0
 
     def rows(self, jacobian: np.ndarray) -> tuple[np.ndarray, ...]:
         """`s_band` of ``jacobian`` as row intervals over the kept rows: lo, hi of ``same``, then of ``cross``."""
@@ -333,24 +350,89 @@ class PatternBand:
         """The band of the window whose local linear part of D is ``jacobian``."""
         return WindowBand(self, jacobian)
 
-    def difference(self, jacobian: np.ndarray) -> tuple[np.ndarray, ...]:
-        """The coefficients where the band of ``jacobian`` differs from the reference band, as runs
-        (row, start, stop, cosine weight, sine weight) for `resample.dct_runs_part`: built from the row
-        intervals, never from masks of the whole band."""
-        own, ref = self.rows(jacobian), self.reference
-        rows = np.arange(self.keep[0])
-        parts = []
-        # (a, b) = (same, cross) enter as cos (a + b) / 2 and sin (b - a) / 2 (`resample.dct_synthesise`)
-        for k, (cos_w, sin_w) in ((0, (0.5, -0.5)), (2, (0.5, 0.5))):
-            lo, hi, lo_ref, hi_ref = own[k], own[k + 1], ref[k], ref[k + 1]
-            for sign, (a, b, c, d) in ((1.0, (lo, hi, lo_ref, hi_ref)), (-1.0, (lo_ref, hi_ref, lo, hi))):
-                # [a, b) minus [c, d): [a, min(b, c)) and [max(a, d), b)
-                for start, stop in ((a, np.minimum(b, c)), (np.maximum(a, d), b)):
-                    run = stop > start
-                    n = int(np.count_nonzero(run))
-                    weights = (np.full(n, sign * cos_w), np.full(n, sign * sin_w))
-                    parts.append((rows[run], start[run], stop[run], *weights))
-        return tuple(np.concatenate(column) for column in zip(*parts))
+    def read(self, jacobian: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+        """u~ of the band of ``jacobian`` on raster rows r0 .. r1 - 1 and columns c0 .. c1 - 1 (``box``), float32.
+
+        Read from the reference band or from the closest part kept from an
+        earlier window that holds ``box``, corrected by the coefficients where
+        the two bands differ.
+        """
+        r0, r1, c0, c1 = box
+        own = self.rows(jacobian)
+        # start from the band with the fewest differing coefficients
+        source, source_rows, at = self.base, self.reference, (0, 0)
+        fewest = _band_gap(own, self.reference)
+        for (k0, k1, l0, l1), kept_rows, part in self._kept:
+            if k0 <= r0 and r1 <= k1 and l0 <= c0 and c1 <= l1:
+                gap = _band_gap(own, kept_rows)
+                if gap < fewest:
+                    source, source_rows, at, fewest = part, kept_rows, (k0, l0), gap
+        fresh = source is self.base and fewest > 0  # the reference band itself is read as it is
+        if fresh:  # read with margins, kept for the same window on the other planes
+            rows, cols = self.shape
+            m = self.margin
+            r0, r1, c0, c1 = max(r0 - m, 0), min(r1 + m, rows), max(c0 - m, 0), min(c1 + m, cols)
+        crop = source[r0 - at[0]: r1 - at[0], c0 - at[1]: c1 - at[1]]
+        if fewest:
+            crop = self._corrected(crop, jacobian, _band_difference(own, source_rows), (r0, r1, c0, c1))
+        if fresh:
+            self._keep((r0, r1, c0, c1), own, crop)
+        return crop[box[0] - r0: box[1] - r0, box[2] - c0: box[3] - c0]
+
+    def _corrected(self, crop: np.ndarray, jacobian: np.ndarray, runs: tuple[np.ndarray, ...],
+                   box: tuple[int, int, int, int]) -> np.ndarray:
+        """``crop`` plus the image of ``runs`` on ``box``, or the band of ``jacobian`` synthesised whole and
+        cropped when that costs less."""
+        r0, r1, c0, c1 = box
+        rows, cols = self.shape
+        cost = resample.band_part_cost(runs, r1 - r0, c1 - c0, self.coeffs.shape)
+        if not cost:
+            return crop
+        # the difference costs `band_part_cost` multiply-adds on the crop, the window's own band
+        # a synthesis of the whole raster by FFTs, measured ~4x slower per rows x cols x log2(rows x cols)
+        if cost < 4 * rows * cols * np.log2(rows * cols):
+            part = resample.dct_runs_part(self.coeffs, runs, self.shape, slice(r0, r1), slice(c0, c1), self.bases)
+            return (crop + part).astype(np.float32)
+        same, cross = s_band(self.shape, self.factor, self.s, jacobian)
+        coeffs = self.coeffs[: same.shape[0], : same.shape[1]]
+        return np.ascontiguousarray(resample.dct_synthesise(coeffs, self.shape, same, cross)[r0:r1, c0:c1])
+
+    def _keep(self, box: tuple[int, int, int, int], rows: tuple[np.ndarray, ...], part: np.ndarray) -> None:
+        """Keep a part read for later windows, the oldest dropped past `KEPT_BYTES`."""
+        self._kept.append((box, rows, part))
+        self._kept_bytes += part.nbytes
+        while self._kept_bytes > self.KEPT_BYTES and len(self._kept) > 1:
+            self._kept_bytes -= self._kept.pop(0)[2].nbytes
+
+
+def _band_gap(own: tuple[np.ndarray, ...], other: tuple[np.ndarray, ...]) -> int:
+    """Number of coefficients where two bands (`PatternBand.rows`) differ: the sizes of the symmetric
+    differences of their row intervals, of both masks."""
+    gap = 0
+    for k in (0, 2):
+        lo, hi, lo_o, hi_o = own[k], own[k + 1], other[k], other[k + 1]
+        common = np.maximum(np.minimum(hi, hi_o) - np.maximum(lo, lo_o), 0)
+        gap += int((hi - lo).sum() + (hi_o - lo_o).sum() - 2 * common.sum())
+    return gap
+
+
+def _band_difference(own: tuple[np.ndarray, ...], other: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
+    """The coefficients where the band ``own`` differs from ``other`` (both `PatternBand.rows`), as runs
+    (row, start, stop, cosine weight, sine weight) for `resample.dct_runs_part`: built from the row
+    intervals, never from masks of the whole band."""
+    rows = np.arange(own[0].size)
+    parts = []
+    # (a, b) = (same, cross) enter as cos (a + b) / 2 and sin (b - a) / 2 (`resample.dct_synthesise`)
+    for k, (cos_w, sin_w) in ((0, (0.5, -0.5)), (2, (0.5, 0.5))):
+        lo, hi, lo_ref, hi_ref = own[k], own[k + 1], other[k], other[k + 1]
+        for sign, (a, b, c, d) in ((1.0, (lo, hi, lo_ref, hi_ref)), (-1.0, (lo_ref, hi_ref, lo, hi))):
+            # [a, b) minus [c, d): [a, min(b, c)) and [max(a, d), b)
+            for start, stop in ((a, np.minimum(b, c)), (np.maximum(a, d), b)):
+                run = stop > start
+                n = int(np.count_nonzero(run))
+                weights = (np.full(n, sign * cos_w), np.full(n, sign * sin_w))
+                parts.append((rows[run], start[run], stop[run], *weights))
+    return tuple(np.concatenate(column) for column in zip(*parts))
 
 
 class WindowBand:
@@ -374,20 +456,7 @@ class WindowBand:
         r1 = int(np.clip(np.floor(y[finite].max()) + 3, r0, rows))
         c0 = int(np.clip(np.floor(x[finite].min()) - 1, 0, cols))
         c1 = int(np.clip(np.floor(x[finite].max()) + 3, c0, cols))
-        crop = band.base[r0:r1, c0:c1]
-        runs = band.difference(self.jacobian)
-        cost = resample.band_part_cost(runs, r1 - r0, c1 - c0, band.coeffs.shape)
-        if cost:
-            # the difference costs `band_part_cost` multiply-adds on the crop, the window's own band
-            # a synthesis of the whole raster by FFTs, measured ~4x slower per rows x cols x log2(rows x cols)
-            if cost < 4 * rows * cols * np.log2(rows * cols):
-                part = resample.dct_runs_part(band.coeffs, runs, band.shape, slice(r0, r1), slice(c0, c1),
-                                              band.bases)
-                crop = (crop + part).astype(np.float32)
-            else:
-                same, cross = s_band(band.shape, factor, band.s, self.jacobian)
-                coeffs = band.coeffs[: same.shape[0], : same.shape[1]]
-                crop = resample.dct_synthesise(coeffs, band.shape, same, cross)[r0:r1, c0:c1]
+        crop = band.read(self.jacobian, (r0, r1, c0, c1))
         return resample.keys_bicubic(crop, x - c0, y - r0, a=-0.5)
 
 

@@ -142,17 +142,18 @@ def dct_runs_part(
     grid) saves tabulating the basis functions on every call.
     """
     out_r, out_c = int(size[0]), int(size[1])
-    n_r = np.arange(out_r)[rows] + 0.5
-    n_c = np.arange(out_c)[cols] + 0.5
-    out = np.zeros((n_r.size, n_c.size))
+    n_r = np.arange(out_r)[rows].size
+    n_c = np.arange(out_c)[cols].size
+    out = np.zeros((n_r, n_c))
     row, start, stop, cos_w, sin_w = (np.asarray(x) for x in runs)
     keep = stop > start
     row, start, stop, cos_w, sin_w = row[keep], start[keep], stop[keep], cos_w[keep], sin_w[keep]
     if row.size == 0:
         return out
     length = stop - start
+    first = np.cumsum(length) - length  # where each run's coefficients begin in i, j
     i = np.repeat(row, length)
-    j = np.arange(i.size) - np.repeat(np.cumsum(length) - length - start, length)
+    j = np.arange(i.size) - np.repeat(first - start, length)
     value = coeffs[i, j].astype(np.float32)
     # sin(0) = 0 on the first row and column
     sine = np.where((i == 0) | (j == 0), 0.0, np.repeat(sin_w, length)).astype(np.float32)
@@ -163,78 +164,93 @@ def dct_runs_part(
         for axis, (n, at) in enumerate(((out_r, np.arange(out_r)[rows]), (out_c, np.arange(out_c)[cols]))):
             bases["cos", axis], bases["sin", axis] = _bases(n, coeffs.shape[axis], at)
         rows = cols = slice(None)
-    tables = {wave: (bases[wave, 0][rows], bases[wave, 1][cols]) for wave, _ in waves}
-    by_row = _cover(row, start, stop, coeffs.shape, (n_r.size, n_c.size))[0]
-    first = np.cumsum(length) - length  # where each run's coefficients begin in i, j
-    # through the columns: M = B_rows D, then M[:, C] B_cols[:, C]^T; through the rows: N = D B_cols^T, then
-    # B_rows[:, R] N[R]; D is filled and multiplied a dense tile at a time (`_tiles`)
-    tiles = []
-    for lo, hi in _tiles(row, start, stop, by_row, (n_r.size, n_c.size)):
-        tiles.append((bool(by_row[lo]), int(row[lo]), int(row[hi - 1]) + 1, int(start[lo:hi].min()),
-                      int(stop[lo:hi].max()), int(first[lo]), int(first[hi - 1] + length[hi - 1])))
-    # the accumulators span the rows (columns) of the tiles that reach the image through them
-    row_span = _span([(r0, r1) for turned, r0, r1, *_ in tiles if turned])
-    col_span = _span([(c0, c1) for turned, _, _, c0, c1, *_ in tiles if not turned])
-    through_rows = {wave: np.zeros((row_span[1] - row_span[0], n_c.size), dtype=np.float32) for wave, _ in waves}
-    through_cols = {wave: np.zeros((n_r.size, col_span[1] - col_span[0]), dtype=np.float32) for wave, _ in waves}
-    used_rows = np.zeros(row_span[1] - row_span[0], dtype=bool)
-    used_cols = np.zeros(col_span[1] - col_span[0], dtype=bool)
+    # (frequency, sample) tables: the frequencies a product needs are rows, read without a gather of columns
+    tables = {wave: (bases[wave, 0][:, rows], bases[wave, 1][:, cols]) for wave, _ in waves}
+    by_row = _cover(row, start, stop, coeffs.shape, (n_r, n_c))[0]
+    # the runs in dense tiles (`_tiles`): each tile's rows r0 .. r1 - 1, columns c0 .. c1 - 1 and entries
+    # e0 .. e1 - 1 of i, j
+    lo, hi = _tiles(row, start, stop, by_row, (n_r, n_c))
+    turned = by_row[lo]
+    r0, r1 = row[lo], row[hi - 1] + 1
+    c0, c1 = np.minimum.reduceat(start, lo), np.maximum.reduceat(stop, lo)
+    e0, e1 = first[lo], first[hi - 1] + length[hi - 1]
     # a tile of few coefficients, or mostly empty (scattered coefficients along an edge, as between
     # two nearly equal bands), costs less gathered: its basis functions times their weights, summed
-    # per column (row) of D
-    scattered = {False: [], True: []}
-    for turned, r0, r1, c0, c1, e0, e1 in tiles:
-        if e1 - e0 < 32 or (r1 - r0) * (c1 - c0) > 40 * (e1 - e0):
-            scattered[turned].append(np.arange(e0, e1))
-            continue
-        at = (i[e0:e1] - r0, j[e0:e1] - c0)
+    # per row (column) of D
+    scattered = (e1 - e0 < 32) | ((r1 - r0) * (c1 - c0) > 40 * (e1 - e0))
+    # the accumulators span the rows (columns) of the tiles that reach the image through them; through the
+    # rows: N = D B_cols^T, then B_rows[:, R] N[R]; through the columns, kept transposed: M^T = D^T B_rows^T,
+    # then M^T[C]^T B_cols[:, C]^T
+    row_span = (int(r0[turned].min()), int(r1[turned].max())) if turned.any() else (0, 0)
+    col_span = (int(c0[~turned].min()), int(c1[~turned].max())) if (~turned).any() else (0, 0)
+    through_rows = {wave: np.zeros((row_span[1] - row_span[0], n_c), dtype=np.float32) for wave, _ in waves}
+    through_cols = {wave: np.zeros((col_span[1] - col_span[0], n_r), dtype=np.float32) for wave, _ in waves}
+    used_rows = np.zeros(row_span[1] - row_span[0], dtype=bool)
+    used_cols = np.zeros(col_span[1] - col_span[0], dtype=bool)
+    for t in np.flatnonzero(~scattered).tolist():
+        a0, a1, b0, b1, f0, f1 = int(r0[t]), int(r1[t]), int(c0[t]), int(c1[t]), int(e0[t]), int(e1[t])
+        at = (i[f0:f1] - a0, j[f0:f1] - b0)
         for wave, weights in waves:
-            tile = np.zeros((r1 - r0, c1 - c0), dtype=np.float32)
-            tile[at] = weights[e0:e1]
+            tile = np.zeros((a1 - a0, b1 - b0), dtype=np.float32)
+            tile[at] = weights[f0:f1]
             table_r, table_c = tables[wave]
-            if turned:
-                through_rows[wave][r0 - row_span[0]: r1 - row_span[0]] += tile @ table_c[:, c0:c1].T
+            if turned[t]:
+                through_rows[wave][a0 - row_span[0]: a1 - row_span[0]] += tile @ table_c[b0:b1]
             else:
-                through_cols[wave][:, c0 - col_span[0]: c1 - col_span[0]] += table_r[:, r0:r1] @ tile
-        if turned:
-            used_rows[r0 - row_span[0]: r1 - row_span[0]] = True
+                through_cols[wave][b0 - col_span[0]: b1 - col_span[0]] += tile.T @ table_r[a0:a1]
+        if turned[t]:
+            used_rows[a0 - row_span[0]: a1 - row_span[0]] = True
         else:
-            used_cols[c0 - col_span[0]: c1 - col_span[0]] = True
-    for turned, parts in scattered.items():
-        if not parts:
+            used_cols[b0 - col_span[0]: b1 - col_span[0]] = True
+    tile_of = np.repeat(np.arange(lo.size), e1 - e0)  # the tile of each entry of i, j
+    for way in (False, True):
+        entries = np.flatnonzero((scattered & (turned == way))[tile_of])
+        if not entries.size:
             continue
-        entries = np.concatenate(parts)
-        kept, summed = (i, j) if turned else (j, i)  # D's index kept (columns by columns), the one summed over
+        kept, summed = (i, j) if way else (j, i)  # D's index kept (columns by columns), the one summed over
         order = entries[np.argsort(kept[entries], kind="stable")]
-        index, first_of = np.unique(kept[order], return_index=True)
-        offset = row_span[0] if turned else col_span[0]
-        (used_rows if turned else used_cols)[index - offset] = True
+        index, first_of, counts = np.unique(kept[order], return_index=True, return_counts=True)
+        offset = row_span[0] if way else col_span[0]
+        (used_rows if way else used_cols)[index - offset] = True
         for wave, weights in waves:
-            table = tables[wave][1 if turned else 0]
-            terms = np.add.reduceat(table[:, summed[order]] * weights[order], first_of, axis=1)
-            if turned:
-                through_rows[wave][index - offset] += terms.T
-            else:
-                through_cols[wave][:, index - offset] += terms
+            terms = tables[wave][1 if way else 0][summed[order]]
+            terms *= weights[order, None]
+            _add_groups((through_rows if way else through_cols)[wave], index - offset, terms, first_of, counts)
+    # both parts through both covers as one product: B_rows[:, R] N[R] + M[:, C] B_cols[:, C]^T stacked along
+    # the summed index (the same multiply-adds as four products, at the cost of one call)
+    left, right = [], []
     for wave, _ in waves:
         table_r, table_c = tables[wave]
         if used_cols.any():
-            out += through_cols[wave][:, used_cols] @ table_c[:, col_span[0]: col_span[1]][:, used_cols].T
+            left.append(through_cols[wave][used_cols])
+            right.append(table_c[col_span[0]: col_span[1]][used_cols])
         if used_rows.any():
-            out += table_r[:, row_span[0]: row_span[1]][:, used_rows] @ through_rows[wave][used_rows]
+            left.append(table_r[row_span[0]: row_span[1]][used_rows])
+            right.append(through_rows[wave][used_rows])
+    if left:
+        out += np.concatenate(left).T @ np.concatenate(right)
     return out
 
 
-def _span(intervals: list[tuple[int, int]]) -> tuple[int, int]:
-    """The smallest [lo, hi) holding every interval ((0, 0) for none)."""
-    if not intervals:
-        return 0, 0
-    return min(lo for lo, _ in intervals), max(hi for _, hi in intervals)
+def _add_groups(out: np.ndarray, index: np.ndarray, terms: np.ndarray, first: np.ndarray, counts: np.ndarray) -> None:
+    """out[index[g]] += the sum of the rows first[g] .. first[g] + counts[g] - 1 of ``terms``, for every group g.
+
+    Between two close bands most groups hold one or two rows: adding the groups' first rows, then their
+    second rows, ... costs a few indexed additions, 5-10x less than np.add.reduceat along axis 0 (which
+    pays per group); long groups go to reduceat.
+    """
+    if counts.max() > 8:
+        out[index] += np.add.reduceat(terms, first, axis=0)
+        return
+    for p in range(int(counts.max())):
+        some = counts > p
+        out[index[some]] += terms[first[some] + p]
 
 
 def _tiles(row: np.ndarray, start: np.ndarray, stop: np.ndarray, by_row: np.ndarray,
-           out: tuple[int, int]) -> list[tuple[int, int]]:
-    """Consecutive runs of `dct_runs_part` grouped into dense tiles: [lo, hi) ranges of the run list.
+           out: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Consecutive runs of `dct_runs_part` grouped into dense tiles: the [lo, hi) ranges of the run list, as two
+    arrays.
 
     A tile holds runs of nearby rows of one edge (one run per row),
     as many as keep the tile's box at most about twice the coefficients it
@@ -262,7 +278,7 @@ def _tiles(row: np.ndarray, start: np.ndarray, stop: np.ndarray, by_row: np.ndar
     position = np.arange(n) - np.flatnonzero(new_section)[section]
     tile = position // rows_per_tile[section]
     boundary = np.flatnonzero(new_section | np.r_[True, tile[1:] != tile[:-1]])
-    return list(zip(boundary.tolist(), np.r_[boundary[1:], n].tolist()))
+    return boundary, np.r_[boundary[1:], n]
 
 
 def _cover(row: np.ndarray, start: np.ndarray, stop: np.ndarray, shape: tuple[int, int],
@@ -271,7 +287,7 @@ def _cover(row: np.ndarray, start: np.ndarray, stop: np.ndarray, shape: tuple[in
     multiply-adds of one part (cosine or sine).
 
     A band difference is made of strips along the edges of two close bands,
-    one run per row along each edge (`bernoulli.PatternBand.difference`
+    one run per row along each edge (`bernoulli._band_difference`
     lists them edge by edge, rows increasing). A near-vertical edge spans
     many rows and few columns: its columns are the cheaper cover; a
     near-horizontal one the other way round. Each edge is cut into chunks
@@ -306,7 +322,8 @@ def band_part_cost(runs: tuple[np.ndarray, ...], rows: int, cols: int, shape: tu
 
 def dct_bases(size: tuple[int, int], keep: tuple[int, int]) -> dict:
     """The basis functions `dct_runs_part` reads, on every row and column of a ``size`` grid, for the
-    frequencies below ``keep``, in float32: {("cos" or "sin", axis): ndarray (size[axis], keep[axis])}.
+    frequencies below ``keep``, in float32: {("cos" or "sin", axis): ndarray (keep[axis], size[axis])},
+    a frequency per row (the products of `dct_runs_part` read whole frequencies: contiguous rows).
 
     The phase pi k (2 n + 1) / 2N is reduced modulo 2 pi in integers before it
     is rounded to float32 (error ~5e-7, the float32 rounding of the band
@@ -316,7 +333,7 @@ def dct_bases(size: tuple[int, int], keep: tuple[int, int]) -> dict:
     (n_r, n_c), (k_r, k_c) = (int(n) for n in size), (int(k) for k in keep)
     if n_r == n_c:  # a square grid: one table serves both axes
         cos, sin = _bases(n_r, max(k_r, k_c))
-        return {("cos", 0): cos[:, :k_r], ("sin", 0): sin[:, :k_r], ("cos", 1): cos[:, :k_c], ("sin", 1): sin[:, :k_c]}
+        return {("cos", 0): cos[:k_r], ("sin", 0): sin[:k_r], ("cos", 1): cos[:k_c], ("sin", 1): sin[:k_c]}
     out = {}
     for axis, (n, k) in enumerate(((n_r, k_r), (n_c, k_c))):
         out["cos", axis], out["sin", axis] = _bases(n, k)
@@ -324,17 +341,17 @@ def dct_bases(size: tuple[int, int], keep: tuple[int, int]) -> dict:
 
 
 def _bases(n: int, k: int, at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """`dct_bases`'s cosine and sine tables of one axis of length ``n``, on its samples ``at`` (all by
-    default)."""
+    """`dct_bases`'s cosine and sine tables (frequency, sample) of one axis of length ``n``, on its samples
+    ``at`` (all by default)."""
     at = np.arange(n) if at is None else np.asarray(at)
-    phase = np.outer(2 * at.astype(np.int64) + 1, np.arange(k, dtype=np.int64))
+    phase = np.outer(np.arange(k, dtype=np.int64), 2 * at.astype(np.int64) + 1)
     phase %= 4 * n
     angle = phase.astype(np.float32)
     angle *= np.float32(np.pi / (2 * n))
     scale = np.float32(np.sqrt(2.0 / n))
     cos = np.cos(angle)
     cos *= scale
-    cos[:, 0] *= np.float32(np.sqrt(0.5))
+    cos[0] *= np.float32(np.sqrt(0.5))
     sin = np.sin(angle, out=angle)
     sin *= scale
     return cos, sin
