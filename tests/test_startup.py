@@ -57,10 +57,20 @@ def test_the_estimators_load_neither_scipy_stats_nor_scipy_signal():
 
 
 def _imported(argv: list[str]) -> set[str]:
-    """Every module a whole `psfd ...` process imports (-X importtime lists them on stderr)."""
-    done = subprocess.run([sys.executable, "-X", "importtime", "-m", "psfd", *argv], capture_output=True, text=True)
+    """Every module a whole `psfd ...` process has loaded when it ends, on every thread.
+
+    Read from sys.modules at exit rather than from -X importtime, whose report
+    leaves out a module imported on a second thread (cli.estimate imports the
+    estimator beside the decoding).
+    """
+    code = ("import atexit, runpy, sys\n"
+            "atexit.register(lambda: sys.__stderr__.write('modules: ' + ' '.join(sorted(sys.modules)) + '\\n'))\n"
+            f"sys.argv = ['psfd', *{argv!r}]\n"
+            "runpy.run_module('psfd', run_name='__main__')\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
-    return {line.rsplit("|", 1)[1].strip() for line in done.stderr.splitlines() if line.startswith("import time:")}
+    line = next(line for line in done.stderr.splitlines() if line.startswith("modules: "))
+    return set(line.split()[1:])
 
 
 @pytest.fixture(scope="module")
