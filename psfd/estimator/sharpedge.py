@@ -565,7 +565,7 @@ def _accumulate(crop: np.ndarray, candidates: np.ndarray, prediction, s: int, su
     half = support // 2
     grid = (s * (crop.shape[0] - 1) + 1, s * (crop.shape[1] - 1) + 1)
     n = support * support
-    levels = np.array(_levels(s))[:, None]
+    levels = _levels(s)
     ata, atb, btb, used = np.zeros((n, n)), np.zeros(n), 0.0, 0
     done = 0
     for y0, y1, x0, x1 in tiles:
@@ -580,17 +580,22 @@ def _accumulate(crop: np.ndarray, candidates: np.ndarray, prediction, s: int, su
             queried = np.zeros((bi1 - bi0, bj1 - bj0), bool)
             known = np.zeros_like(queried)
             sharp = np.zeros(queried.shape)
-            on_i, on_j = np.arange(bi0, bi1) % levels == 0, np.arange(bj0, bj1) % levels == 0
             alive = np.ones(cy.size, bool)
-            for level in range(len(levels)):
+            for step in levels:
                 if not alive.any():
                     break
                 corners = np.zeros_like(queried)
                 corners[ci[alive], cj[alive]] = True
-                need = _box_any(corners, support, forward=False) & on_i[level][:, None] & on_j[level] & ~queried
-                ii, jj = np.nonzero(need)
+                # the samples of this level's lattice (multiples of step) in the footprints, not yet asked:
+                # looked for on the lattice alone, in the same raster order
+                i0, j0 = -bi0 % step, -bj0 % step
+                lattice = (slice(i0, None, step), slice(j0, None, step))
+                need = _box_any(corners, support, forward=False)[lattice]
+                need &= ~queried[lattice]
+                li, lj = np.nonzero(need)
+                ii, jj = li * step + i0, lj * step + j0
                 known[ii, jj], sharp[ii, jj] = prediction.predict(ii + bi0, jj + bj0)
-                queried |= need
+                queried[ii, jj] = True
                 alive &= ~_box_any(queried & ~known, support, forward=True)[ci, cj]
             if alive.any():
                 patches = sliding_window_view(sharp, (support, support))
