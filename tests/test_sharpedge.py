@@ -406,7 +406,8 @@ def test_edges_of_a_24_megapixel_raw_stay_under_500_mb(tmp_path):
     probe = ("import resource, subprocess, sys\n"
              "done = subprocess.run([sys.executable, '-m', 'psfd', 'estimate', 'edges', sys.argv[1], '-q', '--json'],"
              " capture_output=True, text=True)\n"
-             "print(done.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, done.stdout.count('\\n'))\n")
+             "peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss\n"
+             "print(done.returncode, peak, done.stdout.count('\\n'))\n")
     out = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "wall.dng")], capture_output=True, text=True,
                          timeout=1200, check=True).stdout.split()
     code, peak_kib, estimates = int(out[0]), int(out[1]), int(out[2])

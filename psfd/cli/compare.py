@@ -228,7 +228,8 @@ def _pair(a, b, sizes: dict[str, dict]) -> list[Estimate]:
                     lambda: twoscale.estimate_pair(a, b, **_method_size(sizes, TWO_PHOTO)))
 
 
-_BESIDE: Callable[[], Any] | None = None  # the call of the `_Beside` being started: set in the parent, read in the worker
+# the call of the `_Beside` being started: set in the parent, read in the forked worker
+_BESIDE: Callable[[], Any] | None = None
 
 
 def _run_beside() -> Any:
