@@ -141,6 +141,9 @@ def _has_edge_target(frame) -> bool:
 
 
 BERNOULLI_FRAME, EDGE_TARGET_FRAME, PLAIN_FRAME = "bernoulli", "edge target", "plain"
+# frames searched for their targets at once while their planes together hold no more pixels than one plane of
+# a 24-megapixel RAW: the Bernoulli search of such a plane alone takes 240 MB at its peak
+SEARCH_TOGETHER_PIXELS = 6_000_000
 
 
 def _kind(frame) -> str:
@@ -165,8 +168,11 @@ def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quie
     """
     from psfd.estimator import pair_register
 
-    # what each frame shows decides the methods: the frames are searched for the targets at once
-    kinds = pair_register.concurrently(*(lambda f=frame: _kind(f) for frame in frames))
+    # what each frame shows decides the methods: the frames are searched for the targets at once, unless
+    # the searches' temporaries together would pass the memory bound (some 40 bytes per pixel each)
+    searches = [lambda f=frame: _kind(f) for frame in frames]
+    together = sum(_size(frame) for frame in frames) <= SEARCH_TOGETHER_PIXELS
+    kinds = pair_register.concurrently(*searches) if together else [search() for search in searches]
     plain = [frame for frame, kind in zip(frames, kinds) if kind == PLAIN_FRAME]
     main = max(range(len(frames)), key=lambda i: _size(frames[i]))
     # the worker draws no bar: two processes redrawing one terminal line would garble it
