@@ -349,3 +349,25 @@ def test_the_real_pair_on_threads_is_the_pair_on_one(data_dir, monkeypatch):
     np.testing.assert_array_equal(threaded_reg.far_points, alone_reg.far_points)
     np.testing.assert_array_equal(threaded.psf, alone.psf)
     assert threaded.params == alone.params and threaded.noise_floor == alone.noise_floor
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_stretch_percentiles_are_numpys(seed):
+    """to_uint8's percentiles by one partition equal np.percentile bit for bit (ties, tiny and strided samples)."""
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        n = int(rng.integers(1, 3000))
+        values = rng.integers(0, 40, n).astype(np.float64) if seed % 2 else rng.standard_normal(n) * 1e3
+        qs = (0.1, 99.9) if rng.random() < 0.5 else tuple(rng.uniform(0, 100, 2))
+        assert pair_register._percentiles(values, qs) == [float(v) for v in np.percentile(values, qs)]
+    plane = rng.random((301, 257))
+    assert pair_register._percentiles(plane[::3, ::2], (0.1, 99.9)) == list(np.percentile(plane[::3, ::2], (0.1, 99.9)))
+
+
+def test_the_real_pair_does_not_load_numpy_ma():
+    """np.percentile's NaN check imports numpy.ma (0.06 s of start-up): the pair's stretch does without it."""
+    code = ("import sys; from psfd.cli import main; "
+            f"main(['estimate', 'pair', {str(DATA / 'IMG_0602_v1_CUT.pgm')!r}, {str(DATA / 'IMG_0608_v1.pgm')!r}, "
+            "'-s', '3', '-q']); print('numpy.ma' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "False"
