@@ -9,12 +9,14 @@ Bernoulli pattern needs no penalty and recovers them.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
 from psfd.cli import main
+from psfd.errors import PsfdError
 from psfd import figures
 from psfd.cli.compare import Estimate, print_table
 from psfd.estimator import gamma, mtf, sharpedge, simulate
@@ -218,3 +220,44 @@ def test_a_failed_comparison_figure_leaves_no_output_folder(tmp_path, monkeypatc
     with pytest.raises(BadInputError, match="No space left on device"):
         compare.write_outputs(out, estimates, {}, None, 4)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_compare_of_the_real_pair_is_each_method_run_alone(data_dir, monkeypatch):
+    """The largest frame's methods here, the other frame's and the pair's in the forked worker: the estimates,
+    and their order, of each method run alone in this process (the two-photo estimate, then the sharp-edge
+    estimate of each photo), bit for bit; the frame done here shows its progress, up to the end."""
+    import contextlib
+
+    from psfd.cli import compare, output
+    from psfd.estimator import raw, twoscale
+    from psfd.vocabulary import BERNOULLI, DEFAULT_S, SHARP_EDGE, TWO_PHOTO
+
+    far = raw.load_frame(data_dir / "IMG_0602_v1_CUT.pgm", "g1")
+    near = raw.load_frame(data_dir / "IMG_0608_v1.pgm", "g1")
+    sizes = {m: {"s": DEFAULT_S[m], "support": None, "grid": (1, 1)} for m in (BERNOULLI, TWO_PHOTO, SHARP_EDGE)}
+    bars = {}
+
+    @contextlib.contextmanager
+    def recorded(label, quiet=0, stream=None):
+        bars[label] = []
+        yield None if quiet else bars[label].append
+
+    monkeypatch.setattr(output, "progress_bar", recorded)
+    found = compare.run_methods([far, near], sizes, [2.0], quiet=0)
+    [pair] = twoscale.estimate_pair(far, near, s=DEFAULT_S[TWO_PHOTO])
+    alone = [("two-photo IMG_0602_v1_CUT.pgm+IMG_0608_v1.pgm", pair)]
+    for frame in (far, near):
+        label = f"sharp-edge w=2 {Path(frame.source).name}"
+        try:
+            alone += [(label, psf) for psf in sharpedge.estimate_edges(frame, s=DEFAULT_S[SHARP_EDGE])]
+        except PsfdError as exc:
+            alone.append((label, str(exc)))
+    assert [e.label for e in found] == [label for label, _ in alone]
+    for estimate, (_, expected) in zip(found, alone):
+        if isinstance(expected, str):
+            assert estimate.psf is None and estimate.reason == expected
+        else:
+            np.testing.assert_array_equal(estimate.psf.psf, expected.psf)
+            assert estimate.psf.params == expected.params
+    near_bar = bars["sharp-edge w=2 IMG_0608_v1.pgm"]  # the largest frame: done in this process, with its bar
+    assert near_bar and near_bar[-1] == pytest.approx(1.0) and near_bar == sorted(near_bar)

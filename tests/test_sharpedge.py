@@ -309,3 +309,108 @@ def test_a_large_frame_is_searched_shrunk_then_in_the_boards_box():
     wall = raw.load_frame(DATA / "IMG_0608_v1.pgm", "mono")
     with pytest.raises(TargetNotFoundError):
         sharpedge.locate_target(wall.data / wall.white)
+
+
+# ---------------------------------------------------------------- memory: the plane read where needed
+
+
+def _levels_whole_plane(image, edges, length):
+    """`sharpedge.edge_levels` as it was: both marches sampled over the whole plane at once (the reference)."""
+    from scipy import ndimage
+
+    steps = np.arange(1, length + 1, dtype=np.float64)[None, :]
+    x, y = edges.x[:, None], edges.y[:, None]
+    nx, ny = edges.nx[:, None], edges.ny[:, None]
+    bright = ndimage.map_coordinates(image, [y + steps * ny, x + steps * nx], order=1, mode="nearest")
+    dark = ndimage.map_coordinates(image, [y - steps * ny, x - steps * nx], order=1, mode="nearest")
+    hi = sharpedge._plateau_max(bright)
+    lo = sharpedge._plateau_min(dark, hi - dark[:, 0])
+    return sharpedge.Edgels(edges.x, edges.y, edges.nx, edges.ny, edges.strength, lo, hi).subset(hi > lo)
+
+
+def _noise_whole_plane(image):
+    """`sharpedge.noise_sigma` as it was: the Haar sub-band of the whole plane at once (the reference)."""
+    rows, cols = (image.shape[0] // 2) * 2, (image.shape[1] // 2) * 2
+    a = image[:rows, :cols]
+    hh = (a[0::2, 0::2] - a[0::2, 1::2] - a[1::2, 0::2] + a[1::2, 1::2]) / 2.0
+    return float(np.median(np.abs(hh)) / 0.6745)
+
+
+@pytest.mark.parametrize("integer", [False, True])
+def test_the_plane_read_in_strips_gives_what_a_float64_copy_gives(monkeypatch, integer):
+    """The plane divided where it is read (`_Scaled`, float64 or integer samples), its noise and the edge levels
+    measured strip by strip: the edge points, levels and normal equations of a float64 copy of the whole plane,
+    bit for bit, on a part of the real wall photo (many strips: none aligned with the edges' rows)."""
+    from psfd.estimator import raw
+
+    wall = raw.load_frame(DATA / "IMG_0608_v1.pgm", "mono")
+    rows, cols = slice(300, 811), slice(400, 1101)  # odd sizes: the last strip and the Haar blocks are partial
+    data = wall.data[rows, cols].astype(np.uint16) if integer else wall.data[rows, cols]
+    saturated = wall.saturated[rows, cols]
+    copy = np.asarray(data, dtype=np.float64) / float(wall.white)
+    scaled = sharpedge._Scaled(data, wall.white)
+    monkeypatch.setattr(sharpedge, "LEVEL_CHUNK", 397)
+    monkeypatch.setattr(sharpedge, "STRIP", 62)
+    sigma = sharpedge.noise_sigma(scaled)
+    assert sigma == _noise_whole_plane(copy) == sharpedge.noise_sigma(copy)
+    length = 6
+    found = sharpedge.detect_edges(scaled, noise=sigma)
+    reference = sharpedge.detect_edges(copy, noise=sigma)
+    assert len(found) > 10 * sharpedge.LEVEL_CHUNK  # many chunks
+    for name in ("x", "y", "nx", "ny", "strength"):
+        np.testing.assert_array_equal(getattr(found, name), getattr(reference, name))
+    levelled, whole = sharpedge.edge_levels(scaled, found, length), _levels_whole_plane(copy, reference, length)
+    for name in ("x", "y", "lo", "hi"):
+        np.testing.assert_array_equal(getattr(levelled, name), getattr(whole, name))
+    support, s = 9, 2
+    window = (40, 30, copy.shape[1] - 50, copy.shape[0] - 20)
+    args = (saturated, window, s, support, 4.0, length, sigma, None)  # band: estimate_edges's default
+    ata, atb, btb, used, _, _ = sharpedge._window_equations(scaled, *args)
+    r_ata, r_atb, r_btb, r_used, _, _ = sharpedge._window_equations(copy, *args)
+    print(f"\n{len(found)} edge points, {used} pixels used")
+    assert used == r_used > support * support and btb == r_btb
+    np.testing.assert_array_equal(ata, r_ata)
+    np.testing.assert_array_equal(atb, r_atb)
+
+
+def test_the_heap_is_returned_only_where_glibc_has_malloc_trim():
+    import os
+
+    sharpedge._trim_heap()  # looks malloc_trim up once; harmless where there is none
+    trim = sharpedge._MALLOC_TRIM[0]
+    libc = os.confstr("CS_GNU_LIBC_VERSION") if hasattr(os, "confstr") else None
+    assert (trim is not None) == bool(libc and "glibc" in libc)
+
+
+@pytest.mark.slow
+def test_edges_of_a_24_megapixel_raw_stay_under_500_mb(tmp_path):
+    """`psfd estimate edges` on a 6000 x 4000 RGGB DNG whose planes are the real wall photo (issue 11: <= 500 MB).
+
+    The peak is read by a small Python process that starts psfd: a child forked from the test process
+    would count the test process's pages too.
+    """
+    import subprocess
+    import sys
+
+    from psfd.estimator import raw
+
+    wall = cv2.imread(str(DATA / "IMG_0608_v1.pgm"), cv2.IMREAD_UNCHANGED).astype(np.uint16) * 64
+    row = np.hstack([wall, wall[:, ::-1]])[:, :3000]
+    plane = np.vstack([row, row[::-1]])[:2000]
+    mosaic = np.empty((4000, 6000), np.uint16)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            mosaic[dy::2, dx::2] = plane
+    raw.write_dng(tmp_path / "wall.dng", mosaic, white=16383)
+    del wall, row, plane, mosaic
+    probe = ("import resource, subprocess, sys\n"
+             "done = subprocess.run([sys.executable, '-m', 'psfd', 'estimate', 'edges', sys.argv[1], '-q', '--json'],"
+             " capture_output=True, text=True)\n"
+             "peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss\n"
+             "print(done.returncode, peak, done.stdout.count('\\n'))\n")
+    out = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "wall.dng")], capture_output=True, text=True,
+                         timeout=1200, check=True).stdout.split()
+    code, peak_kib, estimates = int(out[0]), int(out[1]), int(out[2])
+    print(f"\npeak {peak_kib / 1024:.0f} MiB for {estimates} estimates")
+    assert code == 0 and estimates == 4
+    assert peak_kib / 1024 <= 500

@@ -284,3 +284,71 @@ def test_registration_does_not_depend_on_what_opencv_drew_before(data_dir):
     again = pair_register.register(a.data, b.data)
     np.testing.assert_array_equal(first.to_near, again.to_near)
     assert first.inliers == again.inliers
+
+
+def test_concurrently_keeps_the_order_and_raises_the_first_error(monkeypatch):
+    import threading
+    import time
+
+    seen = []
+
+    def slow(value):
+        time.sleep(0.05)
+        seen.append(threading.get_ident())
+        return value
+
+    assert pair_register.concurrently(lambda: slow(1), lambda: slow(2), lambda: 3) == [1, 2, 3]
+    monkeypatch.setattr(pair_register, "usable_cores", lambda: 2)
+    finished = []
+
+    def fails(message):
+        time.sleep(0.02)
+        finished.append(message)
+        raise PairError(message)
+
+    with pytest.raises(PairError, match="first"):
+        pair_register.concurrently(lambda: fails("first"), lambda: fails("second"), lambda: finished.append("ok"))
+    assert sorted(finished) == ["first", "ok", "second"]  # all ended before the error was raised
+    monkeypatch.setattr(pair_register, "usable_cores", lambda: 1)
+    seen.clear()
+    assert pair_register.concurrently(lambda: slow("a"), lambda: slow("b")) == ["a", "b"]
+    assert set(seen) == {threading.get_ident()}  # one core: all on this thread
+
+
+def test_the_real_pair_on_threads_is_the_pair_on_one(data_dir, monkeypatch):
+    """SIFT of the two photos and the near photo's Keys sampling on two threads: the registration and the
+    PSF of the same work done on one thread, bit for bit."""
+    a = raw.load_frame(data_dir / "IMG_0602_v1_CUT.pgm", "mono")
+    b = raw.load_frame(data_dir / "IMG_0608_v1.pgm", "mono")
+    monkeypatch.setattr(pair_register, "usable_cores", lambda: 2)
+    threaded_reg = pair_register.register(a.data, b.data)
+    [threaded] = twoscale.estimate_pair(a, b, s=3)
+    monkeypatch.setattr(pair_register, "usable_cores", lambda: 1)
+    alone_reg = pair_register.register(a.data, b.data)
+    [alone] = twoscale.estimate_pair(a, b, s=3)
+    np.testing.assert_array_equal(threaded_reg.to_near, alone_reg.to_near)
+    np.testing.assert_array_equal(threaded_reg.far_points, alone_reg.far_points)
+    np.testing.assert_array_equal(threaded.psf, alone.psf)
+    assert threaded.params == alone.params and threaded.noise_floor == alone.noise_floor
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_stretch_percentiles_are_numpys(seed):
+    """to_uint8's percentiles by one partition equal np.percentile bit for bit (ties, tiny and strided samples)."""
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        n = int(rng.integers(1, 3000))
+        values = rng.integers(0, 40, n).astype(np.float64) if seed % 2 else rng.standard_normal(n) * 1e3
+        qs = (0.1, 99.9) if rng.random() < 0.5 else tuple(rng.uniform(0, 100, 2))
+        assert pair_register._percentiles(values, qs) == [float(v) for v in np.percentile(values, qs)]
+    plane = rng.random((301, 257))
+    assert pair_register._percentiles(plane[::3, ::2], (0.1, 99.9)) == list(np.percentile(plane[::3, ::2], (0.1, 99.9)))
+
+
+def test_the_real_pair_does_not_load_numpy_ma():
+    """np.percentile's NaN check imports numpy.ma (0.06 s of start-up): the pair's stretch does without it."""
+    code = ("import sys; from psfd.cli import main; "
+            f"main(['estimate', 'pair', {str(DATA / 'IMG_0602_v1_CUT.pgm')!r}, {str(DATA / 'IMG_0608_v1.pgm')!r}, "
+            "'-s', '3', '-q']); print('numpy.ma' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "False"

@@ -140,92 +140,136 @@ def _has_edge_target(frame) -> bool:
     return True
 
 
+BERNOULLI_FRAME, EDGE_TARGET_FRAME, PLAIN_FRAME = "bernoulli", "edge target", "plain"
+# frames searched for their targets at once while their planes together hold no more pixels than one plane of
+# a 24-megapixel RAW: the Bernoulli search of such a plane alone takes 240 MB at its peak
+SEARCH_TOGETHER_PIXELS = 6_000_000
+
+
+def _kind(frame) -> str:
+    """What a frame shows: the Bernoulli target, the edge target, or neither (a textured plane)."""
+    if _has_bernoulli(frame):
+        return BERNOULLI_FRAME
+    return EDGE_TARGET_FRAME if _has_edge_target(frame) else PLAIN_FRAME
+
+
+def _size(frame) -> int:
+    """Pixels of a frame's plane: the sharp-edge work, the longest of a comparison, follows them."""
+    rows, cols = frame.data.shape
+    return rows * cols
+
+
 def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quiet: int = 1) -> list[Estimate]:
     """Every method that applies to the frames (see the module docstring), in a stable order.
 
-    ``sizes`` holds each method's ``s`` and ``support`` (`psfd.cli.options.sizes`). The sharp-edge
-    estimates, the long ones, show a progress bar on a terminal unless ``quiet``.
+    ``sizes`` holds each method's ``s`` and ``support`` (`psfd.cli.options.sizes`). The largest
+    frame's methods run in this process, with a progress bar on a terminal unless ``quiet``;
+    the other frames' and the pair's run beside them in a forked worker (`_Beside`), without one.
     """
+    from psfd.estimator import pair_register
+
+    # what each frame shows decides the methods: the frames are searched for the targets at once, unless
+    # the searches' temporaries together would pass the memory bound (some 40 bytes per pixel each)
+    searches = [lambda f=frame: _kind(f) for frame in frames]
+    together = sum(_size(frame) for frame in frames) <= SEARCH_TOGETHER_PIXELS
+    kinds = pair_register.concurrently(*searches) if together else [search() for search in searches]
+    plain = [frame for frame, kind in zip(frames, kinds) if kind == PLAIN_FRAME]
+    main = max(range(len(frames)), key=lambda i: _size(frames[i]))
+    # the worker draws no bar: two processes redrawing one terminal line would garble it
+    beside_calls = [(i, lambda f=frames[i], k=kinds[i]: _frame_methods(f, k, sizes, weights, 1))
+                    for i in range(len(frames)) if i != main]
+    if len(plain) == 2:
+        beside_calls.append((len(frames), lambda: _pair(*plain, sizes)))  # its results' key: after the frames'
+    beside = _Beside(lambda: [(i, call()) for i, call in beside_calls]) if beside_calls else None
+    try:
+        results = {main: _frame_methods(frames[main], kinds[main], sizes, weights, quiet)}
+    except BaseException:
+        if beside is not None:
+            beside.cancel()
+        raise
+    if beside is not None:
+        results.update(beside.result())
+    targets = [e for i, kind in enumerate(kinds) if kind != PLAIN_FRAME for e in results[i]]
+    blind = [e for i, kind in enumerate(kinds) if kind == PLAIN_FRAME for e in results[i]]
+    return targets + results.get(len(frames), []) + blind
+
+
+def _frame_methods(frame, kind: str, sizes: dict[str, dict], weights: list[float], quiet: int) -> list[Estimate]:
+    """The estimates of one frame that shows ``kind`` (`_kind`): its target's methods, or the blind sharp-edge."""
+    if kind == BERNOULLI_FRAME:
+        from psfd.estimator import bernoulli
+
+        found = _attempt(f"bernoulli {Path(frame.source).name}",
+                         lambda: bernoulli.estimate_target(frame, **_method_size(sizes, BERNOULLI)))
+        # its marks: the noise cells are no isolated step edges
+        return found + _edges(frame, True, sizes, weights, quiet)
+    return _edges(frame, kind == EDGE_TARGET_FRAME, sizes, weights, quiet)
+
+
+def _method_size(sizes: dict[str, dict], method: str) -> dict:
+    return {key: sizes[method][key] for key in ("s", "support")}
+
+
+def _edges(frame, target_form: bool, sizes: dict[str, dict], weights: list[float], quiet: int) -> list[Estimate]:
+    """The sharp-edge estimates of a frame, one per weight, each with its progress bar."""
     from psfd.cli.output import progress_bar
     from psfd.estimator import sharpedge
 
-    def size(method: str) -> dict:
-        return {key: sizes[method][key] for key in ("s", "support")}
-
-    def edges(frame, target_form: bool) -> list[Estimate]:
-        kind = "sharp-edge target" if target_form else "sharp-edge"
-        found = []
-        for w in weights:
-            label = f"{kind} w={w:g} {Path(frame.source).name}"
-            with progress_bar(label, quiet) as progress:
-                found += _attempt(label, lambda: sharpedge.estimate_edges(frame, weight=w, target_form=target_form,
-                                                                          progress=progress, **size(SHARP_EDGE)))
-        return found
-
-    out: list[Estimate] = []
-    plain: list = []
-    for frame in frames:
-        if _has_bernoulli(frame):
-            from psfd.estimator import bernoulli
-
-            out += _attempt(f"bernoulli {Path(frame.source).name}",
-                            lambda f=frame: bernoulli.estimate_target(f, **size(BERNOULLI)))
-            out += edges(frame, target_form=True)  # its marks: the noise cells are no isolated step edges
-        elif _has_edge_target(frame):
-            out += edges(frame, target_form=True)
-        else:
-            plain.append(frame)
-    pair = None
-    if len(plain) == 2:
-        from psfd.estimator import twoscale
-
-        a, b = plain
-        pair = _Beside(f"two-photo {Path(a.source).name}+{Path(b.source).name}",
-                       lambda: twoscale.estimate_pair(a, b, **size(TWO_PHOTO)))
-    try:
-        blind = [e for frame in plain for e in edges(frame, target_form=False)]
-    except BaseException:
-        if pair is not None:
-            pair.cancel()
-        raise
-    return out + (pair.result() if pair is not None else []) + blind
+    kind = "sharp-edge target" if target_form else "sharp-edge"
+    found = []
+    for w in weights:
+        label = f"{kind} w={w:g} {Path(frame.source).name}"
+        with progress_bar(label, quiet) as progress:
+            found += _attempt(label, lambda: sharpedge.estimate_edges(frame, weight=w, target_form=target_form,
+                                                                      progress=progress,
+                                                                      **_method_size(sizes, SHARP_EDGE)))
+    return found
 
 
-_BESIDE: tuple = ()  # (label, call) of the `_Beside` being started: set in the parent, read in the forked worker
+def _pair(a, b, sizes: dict[str, dict]) -> list[Estimate]:
+    """The two-photo estimate of two frames without a target."""
+    from psfd.estimator import twoscale
+
+    return _attempt(f"two-photo {Path(a.source).name}+{Path(b.source).name}",
+                    lambda: twoscale.estimate_pair(a, b, **_method_size(sizes, TWO_PHOTO)))
 
 
-def _run_beside() -> list[Estimate]:
-    label, call = _BESIDE
-    return _attempt(label, call)
+# the call of the `_Beside` being started: set in the parent, read in the forked worker
+_BESIDE: Callable[[], Any] | None = None
+
+
+def _run_beside() -> Any:
+    return _BESIDE()
 
 
 class _Beside:
-    """`_attempt` of one method in a forked worker while this process goes on with the others.
+    """A call run in a forked worker while this process goes on with other work.
 
-    The two-photo estimate of a pair (SIFT, resampling) and the sharp-edge estimates of
-    its photos are independent: on two cores they overlap, a second of the 5 the real
-    pair takes. With one core, or no fork, the method runs here at once. The worker
-    receives nothing pickled (it inherits the frames by the fork) and sends back the
-    estimates, as `psfd.estimator.bernoulli` does for its windows.
+    The frames of a comparison are independent, and so is the two-photo estimate
+    of a pair (SIFT, resampling): on two cores they overlap. With one core, or
+    no fork, the call runs here at once. The worker receives nothing pickled (it
+    inherits the frames by the fork) and sends back what the call returns, as
+    `psfd.estimator.bernoulli` does for its windows. The call catches the
+    failures the photographs cause (`_attempt`); anything else is raised here.
     """
 
-    def __init__(self, label: str, call: Callable[[], list]) -> None:
+    def __init__(self, call: Callable[[], Any]) -> None:
         global _BESIDE
         import multiprocessing  # only here: `psfd --help` loads this module too
 
         self.pool = self.pending = None
         if usable_cores() < 2 or "fork" not in multiprocessing.get_all_start_methods():
-            self.done = _attempt(label, call)
+            self.done = call()
             return
-        _BESIDE = (label, call)
+        _BESIDE = call
         try:
             self.pool = multiprocessing.get_context("fork").Pool(1, initializer=worker_signals)  # forks here
         finally:
-            _BESIDE = ()
+            _BESIDE = None
         self.pending = self.pool.apply_async(_run_beside)
 
-    def result(self) -> list[Estimate]:
-        """The method's estimates, waiting for the worker if it still runs."""
+    def result(self) -> Any:
+        """What the call returned, waiting for the worker if it still runs."""
         if self.pool is None:
             return self.done
         try:

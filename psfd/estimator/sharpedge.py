@@ -25,13 +25,14 @@ predicting every sample of the s-grid.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, fields
 from typing import Callable
 
 import cv2
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy import linalg, ndimage, optimize, sparse
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from psfd.errors import BadInputError, EstimationError, TargetNotFoundError
@@ -144,21 +145,85 @@ class Edgels:
                            minlength=ORIENTATION_BINS)
 
 
-def noise_sigma(image: np.ndarray) -> float:
+class _Scaled:
+    """A channel plane over its white level, divided where it is read.
+
+    A float64 copy of a 24-megapixel frame's plane is 48 MB, and the edge
+    search reads the plane strip by strip and the accumulation pixel by pixel:
+    each read divides only what it takes, element by element the same values
+    as dividing the whole plane at once.
+    """
+
+    def __init__(self, data: np.ndarray, white: float) -> None:
+        self.data, self.white = data, float(white)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.data.shape
+
+    def __getitem__(self, key) -> np.ndarray:
+        return np.true_divide(self.data[key], self.white, dtype=np.float64)
+
+    def crop(self, y0: int, y1: int, x0: int, x1: int) -> "_Scaled":
+        return _Scaled(self.data[y0:y1, x0:x1], self.white)
+
+
+def _plane(image) -> "_Scaled | np.ndarray":
+    """A `_Scaled` plane as it is, anything else as a float64 array."""
+    return image if isinstance(image, _Scaled) else np.asarray(image, dtype=np.float64)
+
+
+STRIP = 512  # rows of a plane read at once where a whole-plane statistic is computed (even: whole 2 x 2 blocks)
+
+
+def noise_sigma(image: "np.ndarray | _Scaled") -> float:
     """Noise standard deviation from the finest diagonal Haar sub-band, median(|HH|) / 0.6745.
 
     Stands in for the Liu et al. estimator the paper uses (sec. 5): the
     diagonal detail of 2 x 2 blocks is almost free of image content away from
     edges, and the median ignores the edges.
     """
-    a = np.asarray(image, dtype=np.float64)
+    a = _plane(image)
     rows, cols = (a.shape[0] // 2) * 2, (a.shape[1] // 2) * 2
-    a = a[:rows, :cols]
-    hh = (a[0::2, 0::2] - a[0::2, 1::2] - a[1::2, 0::2] + a[1::2, 1::2]) / 2.0
-    return float(np.median(np.abs(hh)) / 0.6745)
+    parts = []
+    for y0 in range(0, rows, STRIP):  # strips of whole 2 x 2 blocks: only |HH| is held, a quarter of the plane
+        b = a[y0 : min(y0 + STRIP, rows), :cols]
+        hh = (b[0::2, 0::2] - b[0::2, 1::2] - b[1::2, 0::2] + b[1::2, 1::2]) / 2.0
+        parts.append(np.abs(hh, out=hh).ravel())
+    return float(np.median(np.concatenate(parts) if parts else np.zeros(0)) / 0.6745)
 
 
 TILE_PX = 128  # channel pixels per side of the tiles the work is cut into: memory stays bounded on any frame
+
+
+TRIM_EVERY = 256  # tiles between two returns of the freed heap to the system (`_trim_heap`)
+_MALLOC_TRIM: list = []  # glibc's malloc_trim, or None elsewhere: looked up once
+
+
+def _trim_heap() -> None:
+    """Hand the heap's freed pages back to the system (glibc's ``malloc_trim(0)``); nothing on other C libraries.
+
+    The tile-sized temporaries of the edge search and the accumulation leave
+    glibc's heap fragmented: the process would keep its largest footprint of
+    every step, and each plane of a 24-megapixel frame would add to it. glibc
+    offers no option for this through Python, hence ctypes.
+    """
+    if not _MALLOC_TRIM:
+        trim = None
+        if hasattr(os, "confstr") and "glibc" in (_confstr("CS_GNU_LIBC_VERSION") or ""):
+            import ctypes
+
+            trim = getattr(ctypes.CDLL(None), "malloc_trim", None)
+        _MALLOC_TRIM.append(trim)
+    if _MALLOC_TRIM[0] is not None:
+        _MALLOC_TRIM[0](0)
+
+
+def _confstr(name: str) -> str | None:
+    try:
+        return os.confstr(name)
+    except (ValueError, OSError):
+        return None
 
 
 def _tiles(rows: tuple[int, int], cols: tuple[int, int], size: int = TILE_PX):
@@ -241,7 +306,7 @@ def detect_edges(image: np.ndarray, sigma: float = 1.0, threshold: float | None 
     -------
     Edgels
     """
-    image = np.asarray(image, dtype=np.float64)
+    image = _plane(image)
     rows, cols = image.shape
     # both Gaussians, the gradient, and the interpolations up to one pixel along the normal
     halo = _gauss_radius(DOG_RATIO * sigma) + 3
@@ -332,15 +397,44 @@ def edge_levels(image: np.ndarray, edges: Edgels, length: int) -> Edgels:
 
     Edges whose dark level is not below their bright level are dropped.
     """
+    image = _plane(image)
     steps = np.arange(1, length + 1, dtype=np.float64)[None, :]
-    x, y = edges.x[:, None], edges.y[:, None]
-    nx, ny = edges.nx[:, None], edges.ny[:, None]
-    bright = ndimage.map_coordinates(image, [y + steps * ny, x + steps * nx], order=1, mode="nearest")
-    dark = ndimage.map_coordinates(image, [y - steps * ny, x - steps * nx], order=1, mode="nearest")
-    hi = _plateau_max(bright)
-    lo = _plateau_min(dark, hi - dark[:, 0])
+    lo, hi = np.empty(len(edges)), np.empty(len(edges))
+    # edges come in raster order: a chunk of them spans a strip of rows, read alone (`_strip_levels`)
+    for start in range(0, len(edges), LEVEL_CHUNK):
+        chunk = slice(start, start + LEVEL_CHUNK)
+        lo[chunk], hi[chunk] = _strip_levels(image, edges.x[chunk, None], edges.y[chunk, None],
+                                             edges.nx[chunk, None], edges.ny[chunk, None], steps)
     out = Edgels(edges.x, edges.y, edges.nx, edges.ny, edges.strength, lo, hi)
     return out.subset(hi > lo)
+
+
+LEVEL_CHUNK = 32768  # edge points whose levels are measured at once (`edge_levels`)
+
+
+def _strip_levels(image, x, y, nx, ny, steps) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of edge points by the marches of `edge_levels`, sampling only the rows they reach.
+
+    The strip's first row is an integer subtracted from positive coordinates:
+    exact, so the bilinear weights are those of the whole plane; its rows reach
+    two beyond the farthest sample, and where it stops short of the plane's
+    border no sample is clamped ("nearest" only acts at the plane's own border,
+    which the strip then shares).
+    """
+    by, bx = y + steps * ny, x + steps * nx
+    dy, dx = y - steps * ny, x - steps * nx
+    rows = image.shape[0]
+    reach = np.concatenate([by.ravel(), dy.ravel()]) if by.size else np.zeros(1)
+    y0 = int(min(max(np.floor(reach.min()) - 1, 0), rows))
+    y1 = int(min(max(np.floor(reach.max()) + 3, y0 + 1), rows))
+    strip = image[y0:y1]
+    if y0:
+        by -= y0
+        dy -= y0
+    bright = ndimage.map_coordinates(strip, [by, bx], order=1, mode="nearest")
+    dark = ndimage.map_coordinates(strip, [dy, dx], order=1, mode="nearest")
+    hi = _plateau_max(bright)
+    return _plateau_min(dark, hi - dark[:, 0]), hi
 
 
 # --------------------------------------------------------------------------- predicted image, normal equations (sec. 5.1)
@@ -471,8 +565,9 @@ def _accumulate(crop: np.ndarray, candidates: np.ndarray, prediction, s: int, su
     half = support // 2
     grid = (s * (crop.shape[0] - 1) + 1, s * (crop.shape[1] - 1) + 1)
     n = support * support
-    levels = np.array(_levels(s))[:, None]
+    levels = _levels(s)
     ata, atb, btb, used = np.zeros((n, n)), np.zeros(n), 0.0, 0
+    done = 0
     for y0, y1, x0, x1 in tiles:
         cy, cx = np.nonzero(candidates[y0:y1, x0:x1])
         if cy.size:
@@ -485,17 +580,22 @@ def _accumulate(crop: np.ndarray, candidates: np.ndarray, prediction, s: int, su
             queried = np.zeros((bi1 - bi0, bj1 - bj0), bool)
             known = np.zeros_like(queried)
             sharp = np.zeros(queried.shape)
-            on_i, on_j = np.arange(bi0, bi1) % levels == 0, np.arange(bj0, bj1) % levels == 0
             alive = np.ones(cy.size, bool)
-            for level in range(len(levels)):
+            for step in levels:
                 if not alive.any():
                     break
                 corners = np.zeros_like(queried)
                 corners[ci[alive], cj[alive]] = True
-                need = _box_any(corners, support, forward=False) & on_i[level][:, None] & on_j[level] & ~queried
-                ii, jj = np.nonzero(need)
+                # the samples of this level's lattice (multiples of step) in the footprints, not yet asked:
+                # looked for on the lattice alone, in the same raster order
+                i0, j0 = -bi0 % step, -bj0 % step
+                lattice = (slice(i0, None, step), slice(j0, None, step))
+                need = _box_any(corners, support, forward=False)[lattice]
+                need &= ~queried[lattice]
+                li, lj = np.nonzero(need)
+                ii, jj = li * step + i0, lj * step + j0
                 known[ii, jj], sharp[ii, jj] = prediction.predict(ii + bi0, jj + bj0)
-                queried |= need
+                queried[ii, jj] = True
                 alive &= ~_box_any(queried & ~known, support, forward=True)[ci, cj]
             if alive.any():
                 patches = sliding_window_view(sharp, (support, support))
@@ -503,14 +603,21 @@ def _accumulate(crop: np.ndarray, candidates: np.ndarray, prediction, s: int, su
                 used += int(alive.sum())
         if progress is not None:
             progress()
+        done += 1
+        if done % TRIM_EVERY == 0:
+            _trim_heap()
     return ata, atb, btb, used
 
 
 # --------------------------------------------------------------------------- PSF (sec. 5)
 
 
-def gradient_operator(support: int) -> sparse.csr_matrix:
-    """Forward differences along x and y inside a support x support kernel (the grad of eq. (5))."""
+def gradient_operator(support: int):
+    """Forward differences along x and y inside a support x support kernel (the grad of eq. (5)), a CSR matrix."""
+    # scipy.sparse, linalg and optimize only here and in `solve_kernel`: loaded after the edge search,
+    # they are not part of its peak memory (optimize alone maps 11 MB)
+    from scipy import sparse
+
     d = sparse.diags([-np.ones(support - 1), np.ones(support - 1)], [0, 1], shape=(support - 1, support))
     eye = sparse.identity(support)
     return sparse.vstack([sparse.kron(eye, d), sparse.kron(d, eye)]).tocsr()
@@ -531,6 +638,8 @@ def solve_kernel(ata: np.ndarray, atb: np.ndarray, sigma: float, support: int, w
     kernel : ndarray (support, support), not normalised.
     hessian : ndarray, Q (its inverse is the posterior covariance of k).
     """
+    from scipy import linalg, optimize
+
     g = gradient_operator(support)
     q = ata / sigma**2 + weight * support**2 * (g.T @ g).toarray()
     c = atb / sigma**2
@@ -1001,13 +1110,14 @@ def estimate_edges(
     """
     s, support, grid = check_sizes(s, support, grid)
     weight, radius = _check(weight, radius)
-    image = np.asarray(frame.data, dtype=np.float64) / float(frame.white)
+    image = _Scaled(frame.data, frame.white)
     sigma = max(noise_sigma(image), 1e-6)
     kernel_radius = (support // 2) / s
     radius = max(kernel_radius, 1.0) if radius is None else radius
     band = radius + kernel_radius
     length = int(np.ceil(2 * kernel_radius)) + 2  # march far enough to leave the blurred ramp
-    known = pattern if pattern is not None else locate_pattern(image, frame.saturated) if target_form else None
+    # the target's search needs the whole plane at once: divided for it alone
+    known = pattern if pattern is not None else locate_pattern(image[:, :], frame.saturated) if target_form else None
     rows, cols = image.shape
     windows = split_grid((0, 0, cols, rows), grid)
     out = []
@@ -1023,6 +1133,7 @@ def estimate_edges(
                     "pattern": known.name if known else "blind", **info},
             warnings=warnings,
         ))
+        _trim_heap()
     return out
 
 
@@ -1060,7 +1171,7 @@ def _window_equations(image, saturated, window, s, support, band, length, sigma,
     margin = int(np.ceil(band + length)) + 6
     cx0, cy0 = max(0, x0 - margin), max(0, y0 - margin)
     cx1, cy1 = min(cols, x1 + margin), min(rows, y1 + margin)
-    crop = image[cy0:cy1, cx0:cx1]
+    crop = image.crop(cy0, cy1, cx0, cx1) if isinstance(image, _Scaled) else image[cy0:cy1, cx0:cx1]
     grid = (s * (crop.shape[0] - 1) + 1, s * (crop.shape[1] - 1) + 1)
     half = support // 2
     if known is None:
@@ -1073,6 +1184,7 @@ def _window_equations(image, saturated, window, s, support, band, length, sigma,
                             length)
         prediction = _TargetPrediction(known, (cx0, cy0), s, grid, edges, band)
         start = 0.5
+    _trim_heap()  # the edge search's temporaries, before the accumulation's
     # observed pixels that may use their whole kernel footprint (eq. (4)'s mask M): the footprint inside the
     # s-grid and the window, away from clipped pixels, and every pixel centre in it near an edge point
     r = half // s
