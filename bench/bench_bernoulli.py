@@ -96,11 +96,11 @@ def in_process(path: Path, channel: str, grid: tuple[int, int]) -> dict:
             ms.append(1000 * (time.perf_counter() - start))
             cpu.append(1000 * (time.process_time() - start_cpu))
         out["window_ms"] = (statistics.median(ms), statistics.fmean(ms), statistics.median(cpu))
-        jobs = [(i, k) for i, p in enumerate(planes) for k in range(len(p.windows))]
+        groups = bernoulli._groups([len(p.windows) for p in planes])
         start = time.perf_counter()
-        bernoulli._run_windows(planes, bands, jobs, "nnls", None)
+        bernoulli._run_windows(planes, bands, groups, "nnls", None)
         out["windows"] = time.perf_counter() - start
-        out["count"] = len(jobs)
+        out["count"] = sum(len(group) for group in groups)
     return out
 
 

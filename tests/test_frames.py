@@ -208,3 +208,18 @@ def test_cells_in_float32_are_the_float64_raster(supersample):
     narrow = target.cells(noise, supersample, dtype=np.float32)
     assert wide.dtype == np.float64 and narrow.dtype == np.float32
     assert np.array_equal(narrow, wide.astype(np.float32))
+
+
+def test_the_same_bits_for_any_number_of_workers(small_raw):
+    """A window's band is read from the part kept for the same window of the previous plane, in the same
+    process; the groups (`bernoulli._groups`) fix which, so the workers' scheduling never shows in the PSFs
+    (a single window: two groups of two planes, on both cores)."""
+    from psfd.estimator import bernoulli, raw
+
+    frames = raw.load_frames(small_raw, "all")
+    assert bernoulli._groups([1, 1, 1, 1]) == [[(0, 0), (1, 0)], [(2, 0), (3, 0)]]
+    assert bernoulli._groups([2, 2, 1]) == [[(0, 0), (1, 0), (2, 0)], [(0, 1), (1, 1)]]
+    for grid in ((1, 1), (3, 2)):
+        one = bernoulli.estimate_frames(frames, grid=grid, workers=1)
+        for _ in range(2):
+            _same(bernoulli.estimate_frames(frames, grid=grid, workers=2), one)

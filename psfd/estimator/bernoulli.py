@@ -397,6 +397,11 @@ class PatternBand:
         coeffs = self.coeffs[: same.shape[0], : same.shape[1]]
         return np.ascontiguousarray(resample.dct_synthesise(coeffs, self.shape, same, cross)[r0:r1, c0:c1])
 
+    def forget(self) -> None:
+        """Drop the kept parts: what is read next starts from the reference band."""
+        self._kept.clear()
+        self._kept_bytes = 0
+
     def _keep(self, box: tuple[int, int, int, int], rows: tuple[np.ndarray, ...], part: np.ndarray) -> None:
         """Keep a part read for later windows, the oldest dropped past `KEPT_BYTES`."""
         self._kept.append((box, rows, part))
@@ -1112,17 +1117,31 @@ def _estimate_frames(frames, noise, s, support, solver, grid, recentre, tps, wor
                                             same[0].reference)
         finally:
             corrected.result()  # waited for (its error first: it names the plane) before any other is raised
-    # window-major across the planes: the same window of every plane in turn, in one chunk of `_CHUNK`
-    # jobs when there are four planes. The planes lie half a pixel apart, so those windows' Jacobians and
-    # bands nearly agree, and the worker that solves them one after the other can build on the previous one.
     counts = [len(p.windows) for p in planes]
-    jobs = [(i, k) for k in range(max(counts)) for i in range(len(planes)) if k < counts[i]]
+    groups = _groups(counts)
 
     def record(plane: _TargetPlane, r: dict) -> PSF:
         return _psf(plane, r, s, support, solver, grid, recentre, tps)
 
-    results = dict(zip(jobs, _run_windows(planes, bands, jobs, solver, workers, record)))
+    solved = _run_windows(planes, bands, groups, solver, workers, record)
+    results = {job: psf for group, psfs in zip(groups, solved) for job, psf in zip(group, psfs)}
     return [results[i, k] for i in range(len(planes)) for k in range(counts[i])]  # plane after plane
+
+
+def _groups(counts: list[int]) -> list[list[tuple[int, int]]]:
+    """The (plane, window) jobs in groups that one process solves in turn: the same window of every plane.
+
+    The planes lie half a pixel apart, so those windows' bands nearly agree and
+    each is read from the part kept for the previous one (`PatternBand.read`).
+    A group starts with nothing kept, so every PSF depends on its group only,
+    never on what a worker happened to solve before: the same bits for any
+    number of workers. A single window's planes make two groups (both cores).
+    """
+    groups = [[(i, k) for i in range(len(counts)) if k < counts[i]] for k in range(max(counts))]
+    if len(groups) == 1 and len(groups[0]) > 1:
+        half = (len(groups[0]) + 1) // 2
+        groups = [groups[0][:half], groups[0][half:]]
+    return groups
 
 
 def _detections(frames: list[Frame]):
@@ -1214,37 +1233,34 @@ def _correct(plane: _TargetPlane, noise: np.ndarray, s: int, support: int) -> _T
     return plane
 
 
-# Set in the parent before the workers fork, read by `_solve_job` in them: the
+# Set in the parent before the workers fork, read by `_solve_group` in them: the
 # planes and bands are inherited, never pickled.
 _WORK: tuple = ()
 # s-grid samples of all windows together below which forking workers costs more than it gains
 _MIN_PARALLEL_SAMPLES = 200_000
-# jobs per message to and from a worker when there are many (a 10 x 10 grid on four planes: 100 messages, not 400)
-_CHUNK = 4
 
 
-def _run_windows(planes: list[_TargetPlane], bands: dict, jobs: list[tuple[int, int]], solver: str,
-                 workers: int | None, record: Callable[[_TargetPlane, dict], object] | None = None) -> list:
-    """`estimate_window` of every (plane, window) job, in order, in forked workers when worth it.
+def _run_windows(planes: list[_TargetPlane], bands: dict, groups: list[list[tuple[int, int]]], solver: str,
+                 workers: int | None, record: Callable[[_TargetPlane, dict], object] | None = None) -> list[list]:
+    """`estimate_window` of every (plane, window) job of every group (`_groups`), in order, in forked
+    workers when worth it; a list of results per group.
 
     ``record(plane, result)``, when given, turns each window's result into
     what is returned (a `PSF`) where the window was solved: in a worker, in
-    parallel, and only the record crosses back to the parent.
+    parallel, and only the records cross back to the parent, a group at a time.
     """
     global _WORK
     if workers is None:
-        samples = sum(_area(planes[i].windows[k]) * planes[i].s ** 2 for i, k in jobs)
-        workers = min(usable_cores(), len(jobs)) if samples >= _MIN_PARALLEL_SAMPLES else 1
-    workers = max(1, min(int(workers), len(jobs)))
-    _WORK = (planes, bands, jobs, solver, record)
+        samples = sum(_area(planes[i].windows[k]) * planes[i].s ** 2 for group in groups for i, k in group)
+        workers = min(usable_cores(), len(groups)) if samples >= _MIN_PARALLEL_SAMPLES else 1
+    workers = max(1, min(int(workers), len(groups)))
+    _WORK = (planes, bands, groups, solver, record)
     try:
         if workers == 1 or "fork" not in multiprocessing.get_all_start_methods():
-            return [_solve_job(n) for n in range(len(jobs))]
-        # chunks only where every worker still gets several: four jobs on two workers go one by one
-        chunk = max(1, min(_CHUNK, len(jobs) // (_CHUNK * workers)))
+            return [_solve_group(n) for n in range(len(groups))]
         pool = multiprocessing.get_context("fork").Pool(workers, initializer=worker_signals)
         try:
-            results = pool.map(_solve_job, range(len(jobs)), chunksize=chunk)
+            results = pool.map(_solve_group, range(len(groups)), chunksize=1)
             pool.close()
         except BaseException:
             pool.terminate()
@@ -1256,16 +1272,20 @@ def _run_windows(planes: list[_TargetPlane], bands: dict, jobs: list[tuple[int, 
         _WORK = ()
 
 
-def _solve_job(n: int):
-    planes, bands, jobs, solver, record = _WORK
-    i, k = jobs[n]
-    plane = planes[i]
-    try:
-        result = _window_result(plane, k, bands[plane.factor], solver)
-    except EstimationError as exc:
-        frame = plane.frame
-        raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
-    return result if record is None else record(plane, result)
+def _solve_group(n: int) -> list:
+    planes, bands, groups, solver, record = _WORK
+    for band in bands.values():
+        band.forget()
+    out = []
+    for i, k in groups[n]:
+        plane = planes[i]
+        try:
+            result = _window_result(plane, k, bands[plane.factor], solver)
+        except EstimationError as exc:
+            frame = plane.frame
+            raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
+        out.append(result if record is None else record(plane, result))
+    return out
 
 
 def _area(window: tuple[int, int, int, int]) -> int:
