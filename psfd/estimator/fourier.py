@@ -135,9 +135,10 @@ def _dct_lines(lines: np.ndarray, out: np.ndarray) -> None:
 
 def _idct_lines(c: np.ndarray, out: np.ndarray, start: int = 0) -> None:
     """The inverse orthonormal DCT-II of length n = out.shape[1] of the rows of ``c``, written into ``out``;
-    column j of ``c`` holds coefficient start + j (the others zero): `dct` undone, V_m = exp(i pi m / 2N) (X_m - i X_{N-m}) / 2 for m = 0 .. N/2,
-    then one inverse real DFT. Only the nonzero parts of the half spectrum are computed, straight into
-    OpenCV's packed layout (Re V_0, Re V_1, Im V_1, ..., Re V_N/2 for even N)."""
+    column j of ``c`` holds coefficient start + j (the others zero): `dct` undone,
+    V_m = exp(i pi m / 2N) (X_m - i X_{N-m}) / 2 for m = 0 .. N/2, then one inverse real DFT. Only the
+    nonzero parts of the half spectrum are computed, straight into OpenCV's packed layout (Re V_0, Re V_1,
+    Im V_1, ..., Re V_N/2 for even N)."""
     rows, n = out.shape
     kept = min(c.shape[1], n - start)
     h = n // 2 + 1
