@@ -10,12 +10,22 @@ DCT-II of the sign-alternated samples, reversed. float32 stays float32 (half
 the work, rounding far below sensor noise); anything else is float64. The
 results equal scipy.fft.dct / idct / idst(type=2, norm="ortho") and
 scipy.signal.fftconvolve(mode="same") to float rounding (tests/test_fourier.py).
+
+On large arrays the lines are transformed in two halves on two threads (see
+`_by_lines`): OpenCV's DFT and numpy's array operations release the GIL, and
+scipy.fft's own ``workers=2`` would otherwise be twice as fast.
 """
 
 from __future__ import annotations
 
+import multiprocessing
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
 import cv2
 import numpy as np
+
+from psfd.workers import usable_cores
 
 __all__ = ["convolve_same", "dct", "idct", "idst"]
 
@@ -25,14 +35,66 @@ def _real(x: np.ndarray) -> np.ndarray:
     return x if x.dtype == np.float32 else x.astype(np.float64)
 
 
-def _lines(x: np.ndarray, axis: int) -> tuple[np.ndarray, tuple[int, ...]]:
-    """``x`` with ``axis`` moved last, as a 2-D array of lines (OpenCV transforms rows), and the moved shape."""
+# Lines x samples from which two threads pay: a thread costs ~0.1 ms, a line of 1000 samples ~10 us
+_THREADED_SIZE = 1 << 18
+
+
+def _lines(x: np.ndarray, axis: int) -> np.ndarray:
+    """``x`` with ``axis`` moved last, as a 2-D array of lines (OpenCV transforms rows): a view for 2-D ``x``."""
     moved = np.moveaxis(x, axis, -1)
-    return moved.reshape(int(np.prod(moved.shape[:-1])), moved.shape[-1]), moved.shape
+    return moved.reshape(int(np.prod(moved.shape[:-1])), moved.shape[-1])
 
 
-def _restore(lines: np.ndarray, shape: tuple[int, ...], axis: int) -> np.ndarray:
-    return np.ascontiguousarray(np.moveaxis(lines.reshape(shape[:-1] + (lines.shape[-1],)), -1, axis))
+def _across(lines: np.ndarray) -> bool:
+    """Whether the rows of the 2-D ``lines`` run across memory (the columns of a C-ordered array, as `_lines`
+    gives for axis 0): numpy gathers those an element per cache line, cv2.transpose ~10 times faster."""
+    return lines.strides[0] == lines.itemsize and lines.shape[0] > 1 and lines.shape[1] > 1
+
+
+def _threads(size: int) -> int:
+    """2 for a transform of ``size`` samples that two threads speed up, else 1. Never in a worker process
+    (the estimators' pools already run one per core)."""
+    return 2 if size >= _THREADED_SIZE and multiprocessing.parent_process() is None and usable_cores() >= 2 else 1
+
+
+def _by_lines(transform: Callable[[np.ndarray, np.ndarray], None], x: np.ndarray, axis: int, width: int) -> np.ndarray:
+    """The C-contiguous array of ``transform(lines, out)`` (which writes the transforms, ``width`` long, of the
+    rows of ``lines`` into those of ``out``) along ``axis`` of ``x``.
+
+    With two threads (when `_threads` says so), each half of the lines is transposed (axis 0), transformed
+    and written to its place on its own thread: every row is transformed alone (DFT_ROWS), so the result
+    is that of one thread bit for bit.
+    """
+    lines = _lines(x, axis)
+    shape = list(x.shape)
+    shape[axis] = width
+    result = np.empty(shape, dtype=x.dtype)
+    target = _lines(result, axis)  # a view of result for 2-D arrays (transposed for axis 0), else a copy
+    direct = target.flags.c_contiguous and np.may_share_memory(target, result)
+
+    def part(rows: slice) -> None:
+        source = cv2.transpose(lines[rows].T) if _across(lines[rows]) else lines[rows]
+        if direct:
+            transform(source, target[rows])
+            return
+        out = np.empty((len(source), width), dtype=x.dtype)
+        transform(source, out)
+        if _across(target[rows]):
+            target[rows].T[...] = cv2.transpose(out)
+        else:
+            target[rows] = out
+
+    if _threads(lines.size) < 2 or len(lines) < 2:
+        part(slice(None))
+    else:
+        half = len(lines) // 2
+        with ThreadPoolExecutor(1) as pool:
+            second = pool.submit(part, slice(half, None))
+            part(slice(0, half))
+            second.result()
+    if not np.may_share_memory(target, result):
+        result[...] = np.moveaxis(target.reshape(tuple(np.delete(shape, axis)) + (width,)), -1, axis)
+    return result
 
 
 def dct(x: np.ndarray, keep: int | None = None, axis: int = -1) -> np.ndarray:
@@ -43,10 +105,14 @@ def dct(x: np.ndarray, keep: int | None = None, axis: int = -1) -> np.ndarray:
     X_k = Re(exp(-i pi k / 2N) V_k), scaled by sqrt(1/N) for k = 0 and sqrt(2/N) otherwise.
     """
     x = _real(x)
-    lines, shape = _lines(x, axis)
-    n = lines.shape[1]
-    keep = n if keep is None else max(0, min(int(keep), n))
-    v = np.empty(lines.shape, dtype=x.dtype)
+    n = x.shape[axis]
+    return _by_lines(_dct_lines, x, axis, n if keep is None else max(0, min(int(keep), n)))
+
+
+def _dct_lines(lines: np.ndarray, out: np.ndarray) -> None:
+    """`dct` of the rows of ``lines``, its first out.shape[1] coefficients written into ``out``."""
+    n, keep = lines.shape[1], out.shape[1]
+    v = np.empty(lines.shape, dtype=lines.dtype)
     half = (n + 1) // 2
     v[:, :half] = lines[:, ::2]
     v[:, half:] = lines[:, 1::2][:, ::-1]
@@ -57,24 +123,24 @@ def dct(x: np.ndarray, keep: int | None = None, axis: int = -1) -> np.ndarray:
     re_at = np.maximum(2 * folded - 1, 0)
     im_at = np.where((folded == 0) | (2 * folded == n), -1, 2 * folded)  # -1: no imaginary part
     scale = np.where(k == 0, np.sqrt(1.0 / n), np.sqrt(2.0 / n))
-    cos = (np.cos(0.5 * np.pi * k / n) * scale).astype(x.dtype)
-    sin = (np.sin(0.5 * np.pi * k / n) * scale * np.where(k > n - k, -1.0, 1.0) * (im_at >= 0)).astype(x.dtype)
+    cos = (np.cos(0.5 * np.pi * k / n) * scale).astype(lines.dtype)
+    sin = (np.sin(0.5 * np.pi * k / n) * scale * np.where(k > n - k, -1.0, 1.0) * (im_at >= 0)).astype(lines.dtype)
     if keep > 1 and keep <= n // 2 + (n % 2):  # the usual band: strided views, no gathers
-        out = np.empty((lines.shape[0], keep), dtype=x.dtype)
         out[:, 0] = packed[:, 0] * cos[0]
         out[:, 1:] = packed[:, 1 : 2 * keep - 2 : 2] * cos[1:]
         out[:, 1:] += packed[:, 2 : 2 * keep - 1 : 2] * sin[1:]
     else:
-        out = packed[:, re_at] * cos + packed[:, np.maximum(im_at, 0)] * sin
-    return _restore(out, shape, axis)
+        out[...] = packed[:, re_at] * cos + packed[:, np.maximum(im_at, 0)] * sin
 
 
-def _idct_lines(c: np.ndarray, n: int, start: int = 0) -> np.ndarray:
-    """The inverse orthonormal DCT-II of length ``n`` of the rows of ``c``, whose column j holds coefficient
-    start + j (the others zero): `dct` undone, V_m = exp(i pi m / 2N) (X_m - i X_{N-m}) / 2 for m = 0 .. N/2,
-    then one inverse real DFT. Only the nonzero parts of the half spectrum are computed, straight into
-    OpenCV's packed layout (Re V_0, Re V_1, Im V_1, ..., Re V_N/2 for even N)."""
-    rows, kept = c.shape[0], min(c.shape[1], n - start)
+def _idct_lines(c: np.ndarray, out: np.ndarray, start: int = 0) -> None:
+    """The inverse orthonormal DCT-II of length n = out.shape[1] of the rows of ``c``, written into ``out``;
+    column j of ``c`` holds coefficient start + j (the others zero): `dct` undone,
+    V_m = exp(i pi m / 2N) (X_m - i X_{N-m}) / 2 for m = 0 .. N/2, then one inverse real DFT. Only the
+    nonzero parts of the half spectrum are computed, straight into OpenCV's packed layout (Re V_0, Re V_1,
+    Im V_1, ..., Re V_N/2 for even N)."""
+    rows, n = out.shape
+    kept = min(c.shape[1], n - start)
     h = n // 2 + 1
     m = np.arange(h)
     w = np.where(m == 0, np.sqrt(n), np.sqrt(n / 2.0))  # orthonormal scale and the /2
@@ -89,11 +155,9 @@ def _idct_lines(c: np.ndarray, n: int, start: int = 0) -> np.ndarray:
         b = c[:, n - hi - start : n - lo - start + 1][:, ::-1]
         _add_half_spectrum(packed, lo, b, wsin[lo : hi + 1], -wcos[lo : hi + 1])
     v = cv2.idft(packed, flags=cv2.DFT_ROWS | cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
-    out = np.empty_like(v)
     half = (n + 1) // 2
     out[:, ::2] = v[:, :half]
     out[:, 1::2] = v[:, half:][:, ::-1]
-    return out
 
 
 def _add_half_spectrum(packed: np.ndarray, lo: int, x: np.ndarray, re: np.ndarray, im: np.ndarray) -> None:
@@ -116,9 +180,7 @@ def idct(c: np.ndarray, n: int | None = None, axis: int = -1) -> np.ndarray:
     """The inverse orthonormal DCT-II (a DCT-III) of length ``n`` along ``axis``, the coefficients ``c`` does
     not hold zero: scipy.fft.idct(c, type=2, norm="ortho", n=n, axis=axis)."""
     c = _real(c)
-    lines, shape = _lines(c, axis)
-    n = lines.shape[1] if n is None else int(n)
-    return _restore(_idct_lines(lines, n), shape, axis)
+    return _by_lines(_idct_lines, c, axis, c.shape[axis] if n is None else int(n))
 
 
 def idst(c: np.ndarray, n: int | None = None, axis: int = -1) -> np.ndarray:
@@ -130,12 +192,14 @@ def idst(c: np.ndarray, n: int | None = None, axis: int = -1) -> np.ndarray:
     coefficients reversed (coefficient k at N-1-k), with the signs of the odd samples changed.
     """
     c = _real(c)
-    lines, shape = _lines(c, axis)
-    n = lines.shape[1] if n is None else int(n)
-    kept = min(lines.shape[1], n)
-    out = _idct_lines(lines[:, :kept][:, ::-1], n, start=n - kept)
-    out[:, 1::2] *= -1
-    return _restore(out, shape, axis)
+
+    def lines_idst(lines: np.ndarray, out: np.ndarray) -> None:
+        n = out.shape[1]
+        kept = min(lines.shape[1], n)
+        _idct_lines(lines[:, :kept][:, ::-1], out, start=n - kept)
+        out[:, 1::2] *= -1
+
+    return _by_lines(lines_idst, c, axis, c.shape[axis] if n is None else int(n))
 
 
 def convolve_same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
