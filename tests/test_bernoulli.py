@@ -583,3 +583,65 @@ def test_pattern_band_rasterised_in_float32_is_the_band_of_the_float64_raster():
     jacobian = np.array([[2.7, 0.3], [-0.25, 2.75]])
     band = bernoulli.PatternBand(noise, 4, S, [jacobian * 1.01], jacobian)
     assert np.array_equal(band.base, bernoulli.u_tilde(noise, S, jacobian, 4))
+
+
+def _former_solve(ata, atv, solver):
+    """`bernoulli.solve` before it read the LS solution from L^-1: a Cholesky solve of its own (the
+    third result, L^-1, as `estimate_window` then computed it from L)."""
+    lower = np.linalg.cholesky(ata)
+    h_ls = bernoulli._cholesky_solve(ata, atv)
+    return bernoulli._project(ata, atv, h_ls, solver, h_ls > 0), h_ls, bernoulli._triangular_inverse(lower)
+
+
+def _former_cross_validated(parts, solver, positive, sigma):
+    """`bernoulli.cross_validated` before the halves' sums were taken once per half (twice then: as the half
+    fitted on and as the other's test)."""
+    ata, atv, vtv, count = parts
+    n = ata.shape[1]
+    rss = observations = 0.0
+    for pair in bernoulli._HALVES:
+        for train, test in (pair, pair[::-1]):
+            train, test = list(train), list(test)
+            if count[train].sum() <= n or sigma <= 0:
+                return None
+            q, c = ata[train].sum(axis=0), atv[train].sum(axis=0)
+            try:
+                if solver == "nnls":
+                    h = bernoulli.nnls_normal(q, c, positive)
+                else:
+                    h = bernoulli._project(q, c, bernoulli._cholesky_solve(q, c), solver, positive)
+            except np.linalg.LinAlgError:
+                return None
+            q, c, b = ata[test].sum(axis=0), atv[test].sum(axis=0), vtv[test].sum()
+            rss += max(float(b - 2.0 * h @ c + h @ q @ h), 0.0)
+            observations += float(count[test].sum())
+    return float(np.sqrt(rss / observations) / sigma)
+
+
+@pytest.mark.parametrize("solver", ["nnls", "ls"])
+def test_window_solve_equals_the_former_solves(tmp_path, monkeypatch, solver):
+    """The LS solution read from L^-1 (no second factorisation) and the cross-validation's half sums taken once
+    give every window's PSF within 1e-6 of its noise floor of the former path (a Cholesky solve, sums per
+    fold), the same noise floor and prediction error to 1e-9, on a 3 x 3 grid (small windows: the halves'
+    non-negative fits take several exchanges)."""
+    path = tmp_path / "t.dng"
+    simulate.simulate_target(path, psf=PSFS["f/5.6"](), s=S, seed=3, **GEOMETRY)
+    noise = target.default_noise()
+    (frame, detection), = bernoulli._detections(raw.load_frames(path, "g1"))
+    plane = bernoulli._prepare(frame, detection, noise, S, 4 * S + 1, (3, 3), None)
+    band = bernoulli.PatternBand(noise, plane.factor, S, plane.jacobians, plane.reference)
+    checked = 0
+    for k in range(len(plane.windows)):
+        got = bernoulli._window_result(plane, k, band, solver)
+        with monkeypatch.context() as patch:
+            patch.setattr(bernoulli, "solve", _former_solve)
+            patch.setattr(bernoulli, "cross_validated", _former_cross_validated)
+            old = bernoulli._window_result(plane, k, band, solver)
+        gap = float(np.linalg.norm(got["psf"] - old["psf"]))
+        assert gap < 1e-6 * old["noise_floor"], (k, gap, old["noise_floor"])
+        assert got["noise_floor"] == pytest.approx(old["noise_floor"], rel=1e-9)
+        assert got["residual"] == pytest.approx(old["residual"], rel=1e-9)
+        if old["prediction_error"] is not None:
+            assert got["prediction_error"] == pytest.approx(old["prediction_error"], rel=1e-9)
+            checked += 1
+    assert checked >= 4

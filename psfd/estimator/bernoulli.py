@@ -601,17 +601,22 @@ def solve(
         Solution in the order of the normal equations, not normalised.
     h_ls : ndarray (k^2,)
         Unconstrained solution (for the residual and noise floor).
-    lower : ndarray (k^2, k^2)
-        Cholesky factor L of A^T A = L L^T.
+    inverse_factor : ndarray (k^2, k^2)
+        L^-1, with L the Cholesky factor of A^T A = L L^T (lower triangular).
     """
     if solver not in SOLVERS:
         raise ValueError(f"unknown solver {solver!r}: use one of {', '.join(SOLVERS)}")
     try:
         lower = np.linalg.cholesky(ata)  # LAPACK potrf
-        h_ls = _cholesky_solve(ata, atv)
     except np.linalg.LinAlgError:
         raise EstimationError("the system S_s U h = v is singular: is the target in view?") from None
-    return _project(ata, atv, h_ls, solver, h_ls > 0), h_ls, lower
+    # L^-1 is needed for the noise floor (trace((A^T A)^-1) = ||L^-1||_F^2): the LS solution is two products
+    # with it, h = L^-T (L^-1 A^T v), instead of a second factorisation of A^T A
+    inverse_factor = _triangular_inverse(lower)
+    h_ls = inverse_factor.T @ (inverse_factor @ atv)
+    if not np.isfinite(h_ls).all():
+        raise EstimationError("the system S_s U h = v is singular: is the target in view?")
+    return _project(ata, atv, h_ls, solver, h_ls > 0), h_ls, inverse_factor
 
 
 def _project(ata: np.ndarray, atv: np.ndarray, h_ls: np.ndarray, solver: str, positive: np.ndarray) -> np.ndarray:
@@ -751,7 +756,7 @@ def estimate_window(
     usable = mask[y0:y1, x0:x1]
     parts = normal_equations(u, v[y0:y1, x0:x1], _quadrants(usable), s, support, 4)
     ata, atv, vtv, count = (x.sum(axis=0) for x in parts)
-    h, h_ls, lower = solve(ata, atv, solver)
+    h, h_ls, inverse_factor = solve(ata, atv, solver)
 
     def rss(x: np.ndarray) -> float:  # ||A x - v||^2 from the normal equations
         return max(vtv - 2.0 * float(x @ atv) + float(x @ ata @ x), 0.0)
@@ -759,8 +764,6 @@ def estimate_window(
     sigma = np.sqrt(rss(h_ls) / (count - h_ls.size))
     observed = v[y0:y1, x0:x1][usable]
     _check_pattern_fits(sigma**2, float(np.var(observed)))
-    # trace((A^T A)^-1) = ||L^-1||_F^2
-    inverse_factor = _triangular_inverse(lower)  # L^-1 directly: a third less work than a solve
     mass = float(h.sum())
     if not np.isfinite(mass) or mass <= 0:
         raise EstimationError("the estimated kernel has no positive mass: check the target and exposure")
@@ -768,7 +771,7 @@ def estimate_window(
     return {
         "psf": np.ascontiguousarray(kernel),
         "mass": mass,
-        "noise_floor": float(sigma * np.linalg.norm(inverse_factor)),
+        "noise_floor": float(sigma * np.linalg.norm(inverse_factor)),  # trace((A^T A)^-1) = ||L^-1||_F^2
         "sigma": float(sigma),
         "residual": float(np.sqrt(rss(h) / count)),
         "prediction_error": cross_validated(parts, solver, h > 0, float(sigma)),
@@ -821,13 +824,15 @@ def cross_validated(
     """
     ata, atv, vtv, count = parts
     n = ata.shape[1]
+    if sigma <= 0:
+        return None
     rss = observations = 0.0
     for pair in _HALVES:
-        for train, test in (pair, pair[::-1]):
-            train, test = list(train), list(test)
-            if count[train].sum() <= n or sigma <= 0:
+        # each half's sums once (a pair of quadrants: one addition each): the half fitted on is the other's test
+        halves = [(ata[a] + ata[b], atv[a] + atv[b], vtv[a] + vtv[b], int(count[a] + count[b])) for a, b in pair]
+        for (q, c, _, m), (q_test, c_test, b_test, m_test) in (halves, halves[::-1]):
+            if m <= n:
                 return None
-            q, c = ata[train].sum(axis=0), atv[train].sum(axis=0)
             try:
                 if solver == "nnls":  # started from the whole fit's signs, no LS solve needed
                     h = nnls_normal(q, c, positive)
@@ -835,9 +840,8 @@ def cross_validated(
                     h = _project(q, c, _cholesky_solve(q, c), solver, positive)
             except np.linalg.LinAlgError:
                 return None
-            q, c, b = ata[test].sum(axis=0), atv[test].sum(axis=0), vtv[test].sum()
-            rss += max(float(b - 2.0 * h @ c + h @ q @ h), 0.0)
-            observations += float(count[test].sum())
+            rss += max(float(b_test - 2.0 * h @ c_test + h @ q_test @ h), 0.0)
+            observations += float(m_test)
     return float(np.sqrt(rss / observations) / sigma)
 
 
