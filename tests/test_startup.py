@@ -86,10 +86,12 @@ def small_dng(tmp_path_factory) -> Path:
 @pytest.mark.parametrize("frame", ["pgm", "dng"])
 def test_estimating_a_target_imports_no_scipy_and_no_numpy_ma(frame, small_dng):
     """`psfd estimate target`: scipy (0.5-1 s of start-up) and numpy.ma (35-55 ms) are never loaded,
-    on a single-channel image and on the four planes of a RAW file."""
+    on a single-channel image and on the four planes of a RAW file; multiprocessing only to fork workers."""
     modules = _imported(["estimate", "target", str(DATA / "img_example.pgm" if frame == "pgm" else small_dng)])
     assert "psfd.estimator.bernoulli" in modules
     assert sorted(m for m in modules if m.split(".")[0] == "scipy" or m.split(".")[:2] == ["numpy", "ma"]) == []
+    if frame == "pgm":  # one window, solved in this process: no pool (multiprocessing: 13 ms of imports)
+        assert "multiprocessing" not in modules
 
 
 def test_writing_the_results_imports_no_scipy(tmp_path):

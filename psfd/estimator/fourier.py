@@ -18,14 +18,13 @@ scipy.fft's own ``workers=2`` would otherwise be twice as fast.
 
 from __future__ import annotations
 
-import multiprocessing
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
 
-from psfd.workers import usable_cores
+from psfd.workers import in_worker, usable_cores
 
 __all__ = ["convolve_same", "dct", "idct", "idst"]
 
@@ -54,7 +53,7 @@ def _across(lines: np.ndarray) -> bool:
 def _threads(size: int) -> int:
     """2 for a transform of ``size`` samples that two threads speed up, else 1. Never in a worker process
     (the estimators' pools already run one per core)."""
-    return 2 if size >= _THREADED_SIZE and multiprocessing.parent_process() is None and usable_cores() >= 2 else 1
+    return 2 if size >= _THREADED_SIZE and not in_worker() and usable_cores() >= 2 else 1
 
 
 def _by_lines(transform: Callable[[np.ndarray, np.ndarray], None], x: np.ndarray, axis: int, width: int) -> np.ndarray:
