@@ -26,7 +26,7 @@ the target at the advised scale (one PSF per plane, goal 2.5 s whole process)
 and the target at 1.05 pixel per cell with ``--grid 10x10`` (400 PSFs, goal
 5 s whole process on 2 cores, ~5 ms per window).
 
-BLAS runs on one thread, as `estimate_frames` sets it (threadpoolctl).
+BLAS runs on one thread, as `estimate_frames` sets it (`bernoulli._one_blas_thread`).
 
 Usage: python bench/bench_bernoulli.py [--repeat N] [--keep DIR] [--frames plane,advised,large]
 """
