@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 from typing import Any, Callable, NamedTuple
 
-from psfd.cli import options
+from psfd.cli import options, summary
 from psfd.errors import BadInputError, EstimationError, PsfdError
 from psfd.vocabulary import BERNOULLI, DEFAULT_S, SHARP_EDGE, TWO_PHOTO
 from psfd.workers import usable_cores, worker_signals
@@ -39,7 +39,7 @@ class Estimate(NamedTuple):
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "compare",
-        help="run every applicable method on the same photographs and compare their MTFs",
+        help=summary("compare"),
         description=(
             "Bernoulli-target frames give the Bernoulli and the sharp-edge (from its marks) estimates, "
             "edge-target frames the sharp-edge target estimate, two frames of a textured plane the two-photo "

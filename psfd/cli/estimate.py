@@ -14,13 +14,13 @@ import importlib
 import threading
 from pathlib import Path
 
-from psfd.cli import options
+from psfd.cli import options, summary
 from psfd.errors import BadInputError
 from psfd.vocabulary import ALIASES, BERNOULLI, DEFAULT_SOLVER, SHARP_EDGE, SOLVERS, TWO_PHOTO, check_solver
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("estimate", help="estimate PSFs from photographs on disk")
+    parser = subparsers.add_parser("estimate", help=summary("estimate"))
     commands = parser.add_subparsers(dest="method", metavar="METHOD")
     commands.required = True
     aliases = {method: [word for word, name in ALIASES.items() if name == method] for method in ALIASES.values()}

@@ -12,14 +12,14 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from psfd.cli import options
+from psfd.cli import options, summary
 from psfd.errors import BadInputError, CameraError, PsfdError
 
 SETTINGS = ("aperture", "shutterspeed", "iso", "imageformat", "capturetarget")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    camera = subparsers.add_parser("camera", help="camera information and settings")
+    camera = subparsers.add_parser("camera", help=summary("camera"))
     camera_sub = camera.add_subparsers(dest="camera_command", metavar="ACTION", required=True)
     p = camera_sub.add_parser("info", help="model, serial, lens and the settings with their offered values")
     p.add_argument("--json", action="store_true", help="print JSON")
@@ -31,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     options.add_rig_options(p)
     p.set_defaults(func=camera_set)
 
-    rail = subparsers.add_parser("rail", help="home, move or read the rail")
+    rail = subparsers.add_parser("rail", help=summary("rail"))
     rail_sub = rail.add_subparsers(dest="rail_command", metavar="ACTION", required=True)
     p = rail_sub.add_parser("home", help="run the homing cycle (--simulate: also start the simulated rig afresh)")
     options.add_rig_options(p)
@@ -52,7 +52,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = subparsers.add_parser(
         "record",
-        help="capture at rail positions and apertures, writing a replayable recording",
+        help=summary("record"),
         description="Every request made to the rig is written to DIR/manifest.json in order, with the "
         "frames it produced (sha256) in DIR/frames. With --plan the rig, camera settings and setup, positions "
         "and apertures are the plan's, and `psfd run` of that plan with `recording = \"DIR\"` in its [rig] "

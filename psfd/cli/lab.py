@@ -14,7 +14,7 @@ import signal
 import sys
 from pathlib import Path
 
-from psfd.cli import options
+from psfd.cli import options, summary
 from psfd.daemon import client
 from psfd.errors import BadInputError, Interrupted, ServiceError, path_reason
 from psfd.vocabulary import BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, DEFAULT_SOLVER, TWO_PHOTO
@@ -22,7 +22,7 @@ from psfd.vocabulary import BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, DEFAU
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
-        "capture", help="shoot and estimate one target frame or near/far pair now",
+        "capture", help=summary("capture"),
         description="Shoot one frame of the Bernoulli noise target (or a near/far pair of a textured plane) "
                     "at one aperture and rail position, estimate its PSFs and add them to the catalogue.")
     p.add_argument("--aperture", required=True, help="f-number, e.g. 5.6")
@@ -40,7 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _service_options(p)
     p.set_defaults(func=run_capture)
 
-    p = subparsers.add_parser("run", help="run a measurement plan (TOML) on the rig")
+    p = subparsers.add_parser("run", help=summary("run"))
     p.add_argument("plan", metavar="PLAN")
     how = p.add_mutually_exclusive_group()
     how.add_argument("--resume", action="store_true", help="continue the unfinished run of this plan")
@@ -50,12 +50,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _service_options(p)
     p.set_defaults(func=run_plan_file)
 
-    p = subparsers.add_parser("status", help="what the service is doing, or the latest runs in the catalogue")
+    p = subparsers.add_parser("status", help=summary("status"))
     p.add_argument("--json", action="store_true", help="print the status as JSON")
     _service_options(p)
     p.set_defaults(func=run_status)
 
-    p = subparsers.add_parser("plan", help="work with measurement plans")
+    p = subparsers.add_parser("plan", help=summary("plan"))
     sub = p.add_subparsers(dest="plan_command", metavar="ACTION")
     sub.required = True
     c = sub.add_parser("check", help="list every problem of a plan, one per line")
@@ -67,11 +67,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     c.add_argument("--force", action="store_true", help="replace PLAN if it exists")
     c.set_defaults(func=run_plan_init)
 
-    p = subparsers.add_parser("serve", help="run the service: control socket, job queue, systemd notify")
+    p = subparsers.add_parser("serve", help=summary("serve"))
     _service_options(p)
     p.set_defaults(func=run_serve)
 
-    p = subparsers.add_parser("demo", help="a complete plan on the simulated rig, then the query table and report")
+    p = subparsers.add_parser("demo", help=summary("demo"))
     p.add_argument("--workdir", default="psfd-demo", metavar="DIR", help="working folder (default ./psfd-demo)")
     options.add_runner_options(p)
     options.add_catalogue_option(p, default="DIR/catalogue.sqlite")

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from psfd.cli import options
+from psfd.cli import options, summary
 from psfd.errors import BadInputError, NoMatchError
 from psfd.vocabulary import CHANNELS, METHODS, MONO, method_name
 
@@ -33,28 +33,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     near.add_argument("--near", metavar="X,Y", help="normalised field location: the nearest PSF per aperture")
     near.add_argument("--limit", metavar="N", help="at most this many PSFs")
 
-    about = "list catalogued PSFs (a table, or JSON lines with the arrays)"
+    about = summary("query")
     query = subparsers.add_parser("query", parents=[filters, near], help=about, description=about)
     how = query.add_mutually_exclusive_group()
     how.add_argument("--json", action="store_true", help="one JSON object per line, with the PSF array")
     how.add_argument("--csv", action="store_true", help="CSV, one row per PSF, units in the header (no arrays)")
     query.set_defaults(func=run_query)
 
-    about = "write catalogued PSFs to a new folder, one file each plus index.json"
+    about = summary("export")
     export = subparsers.add_parser("export", parents=[filters, near], help=about, description=about)
     export.add_argument("--format", default="npy", metavar="FORMAT", help=f"{' | '.join(EXPORT_FORMATS)} (default npy)")
     export.add_argument("--out", required=True, help="folder to create (must not exist or be empty)")
     export.add_argument("--force", action="store_true", help="replace --out if it holds an earlier export")
     export.set_defaults(func=run_export)
 
-    about = ("draw the field report: per aperture, every channel's PSFs over the sensor, the sagittal and "
-             "meridional MTF50 at each measured point, and MTF50 against image height")
+    about = summary("report")
     report = subparsers.add_parser("report", parents=[filters], help=about, description=about)
     report.add_argument("--out", default="report.png",
                         help="figure file: .png, or .pdf / .svg for vector output (default report.png)")
     report.set_defaults(func=run_report)
 
-    about = "write the Datasette metadata of the catalogue: every table and column described, with units"
+    about = summary("metadata")
     meta = subparsers.add_parser("metadata", help=about, description=about + " (datasette CATALOGUE -m FILE)")
     options.add_catalogue_option(meta)
     meta.add_argument("--out", metavar="FILE", help="write here instead of printing (e.g. metadata.json)")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from psfd.cli import summary
 from psfd.cli.options import parse_float, parse_int
 from psfd.errors import BadInputError
 from psfd.vocabulary import BERNOULLI, SHARP_EDGE
@@ -13,7 +14,7 @@ from psfd.vocabulary import BERNOULLI, SHARP_EDGE
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "target",
-        help="write the calibration target as a print-ready PDF or a PNG",
+        help=summary("target"),
         description=(
             "Render the Bernoulli noise target (published layout). The noise is saved beside the output "
             "as NAME.ORIGIN.noise.pgm (ORIGIN: seedN, published, or the --noise file's name); give it to "
