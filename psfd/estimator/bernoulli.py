@@ -293,7 +293,10 @@ class PatternBand:
     same part of the raster through a band a few hundred coefficients away
     (the planes see the target half a pixel apart), against tens of thousands
     from the reference: the parts already read are kept (a bounded number, per
-    process) and a window starts from the kept part whose band is closest.
+    process, until `forget`) and a window starts from the kept part whose band
+    is closest. `estimate_frames` solves a window's planes as one group and
+    forgets between groups (`_groups`), so a PSF never depends on what else
+    the same process solved.
 
     Parameters
     ----------
