@@ -41,3 +41,16 @@ def test_the_percentiles_are_numpy_ones(name, q):
 def test_a_percentile_out_of_range_is_refused():
     with pytest.raises(ValueError, match="range"):
         quantiles.percentile(np.arange(5.0), (-1, 50))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_percentiles_of_random_samples_are_numpy_ones(seed):
+    """Random samples (ties, tiny and strided, as pair_register.to_uint8 takes): np.percentile bit for bit."""
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        n = int(rng.integers(1, 3000))
+        values = rng.integers(0, 40, n).astype(np.float64) if seed % 2 else rng.standard_normal(n) * 1e3
+        qs = (0.1, 99.9) if rng.random() < 0.5 else tuple(rng.uniform(0, 100, 2))
+        assert list(quantiles.percentile(values, qs)) == [float(v) for v in np.percentile(values, qs)]
+    plane = rng.random((301, 257))
+    assert list(quantiles.percentile(plane[::3, ::2], (0.1, 99.9))) == list(np.percentile(plane[::3, ::2], (0.1, 99.9)))

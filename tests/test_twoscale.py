@@ -323,19 +323,6 @@ def test_the_real_pair_on_threads_is_the_pair_on_one(data_dir, monkeypatch):
     assert threaded.params == alone.params and threaded.noise_floor == alone.noise_floor
 
 
-@pytest.mark.parametrize("seed", range(4))
-def test_the_stretch_percentiles_are_numpys(seed):
-    """to_uint8's percentiles by one partition equal np.percentile bit for bit (ties, tiny and strided samples)."""
-    rng = np.random.default_rng(seed)
-    for _ in range(200):
-        n = int(rng.integers(1, 3000))
-        values = rng.integers(0, 40, n).astype(np.float64) if seed % 2 else rng.standard_normal(n) * 1e3
-        qs = (0.1, 99.9) if rng.random() < 0.5 else tuple(rng.uniform(0, 100, 2))
-        assert pair_register._percentiles(values, qs) == [float(v) for v in np.percentile(values, qs)]
-    plane = rng.random((301, 257))
-    assert pair_register._percentiles(plane[::3, ::2], (0.1, 99.9)) == list(np.percentile(plane[::3, ::2], (0.1, 99.9)))
-
-
 def test_the_real_pair_loads_neither_scipy_nor_numpy_ma():
     """`psfd estimate pair` imports no scipy (0.2-0.3 s of start-up the method does not need) and no numpy.ma,
     which np.percentile's NaN check imports (0.06 s): the pair's stretch does without it."""

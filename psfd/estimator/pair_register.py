@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from psfd.errors import PairError
+from psfd.estimator import quantiles
 from psfd.workers import usable_cores
 
 __all__ = ["Registration", "bounding_box", "common_region", "concurrently", "features", "log10_nfa", "match",
@@ -111,32 +112,10 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
     image = np.asarray(image, dtype=np.float64)
     # a strided sample gives the same percentiles at a fraction of the cost on large planes
     step = max(1, int(np.sqrt(image.size / 250_000)))
-    lo, hi = _percentiles(image[::step, ::step], (0.1, 99.9))
+    lo, hi = quantiles.percentile(image[::step, ::step], (0.1, 99.9))  # np.percentile's, without numpy.ma
     if hi <= lo:
         return np.zeros(image.shape, dtype=np.uint8)
     return np.clip((image - lo) * (255.0 / (hi - lo)) + 0.5, 0, 255).astype(np.uint8)
-
-
-def _percentiles(values: np.ndarray, qs: tuple[float, ...]) -> list[float]:
-    """``numpy.percentile(values, qs)`` (method "linear"), bit for bit, for values without NaN.
-
-    numpy's own checks its partitioned sample for NaN with ``np.unique``, whose
-    first call imports numpy.ma: 0.06 s of `psfd estimate pair`. The order
-    statistics come from the same partition and are interpolated as numpy does
-    (index q (n - 1), weight on the upper neighbour, from the nearer one).
-    """
-    flat = np.ravel(values)
-    n = flat.size
-    virtual = (n - 1) * np.true_divide(qs, 100)
-    lower = np.floor(virtual).astype(np.intp)
-    upper = np.minimum(lower + 1, n - 1)
-    ordered = np.partition(flat, sorted({*lower.tolist(), *upper.tolist()}))
-    out = []
-    for v, lo, hi in zip(virtual, lower, upper):
-        a, b, gamma = ordered[lo], ordered[hi], v - lo
-        difference = b - a
-        out.append(float(b - difference * (1 - gamma) if gamma >= 0.5 else a + difference * gamma))  # numpy's _lerp
-    return out
 
 
 def concurrently(*calls: Callable[[], Any]) -> list[Any]:
