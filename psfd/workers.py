@@ -1,11 +1,13 @@
-"""Forked worker processes, as the estimators and `psfd compare` start them: how many cores this
-process may use, and the signal set-up every worker shares."""
+"""Work on several cores, as the estimators and `psfd compare` spread it: how many cores this process may
+use, independent calls on threads, and the signal set-up every forked worker shares."""
 
 from __future__ import annotations
 
 import os
 import signal
 import sys
+import threading
+from typing import Any, Callable
 
 
 def usable_cores() -> int:
@@ -27,3 +29,34 @@ def worker_signals() -> None:
     """A worker's initializer: it leaves interrupts to its parent (which ends it) and ends quietly when terminated."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def concurrently(*calls: Callable[[], Any]) -> list[Any]:
+    """The results of independent calls, in order, run on threads beside this one when there are cores for it.
+
+    OpenCV (SIFT, resizing) and numpy's element-wise work release the GIL, so
+    two such calls overlap on two cores. Each call does the same arithmetic as
+    when run alone, so the results do not depend on it. The first exception
+    raised, in the order of the calls, is raised once all have finished.
+    """
+    if len(calls) < 2 or usable_cores() < 2:
+        return [call() for call in calls]
+    results: list[Any] = [None] * len(calls)
+    errors: list[BaseException | None] = [None] * len(calls)
+
+    def run(index: int) -> None:
+        try:
+            results[index] = calls[index]()
+        except BaseException as exc:  # re-raised in the caller's thread below
+            errors[index] = exc
+
+    threads = [threading.Thread(target=run, args=(i,), daemon=True) for i in range(1, len(calls))]
+    for thread in threads:
+        thread.start()
+    run(0)
+    for thread in threads:
+        thread.join()
+    for error in errors:
+        if error is not None:
+            raise error
+    return results

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from psfd.errors import BadInputError, PairError
+from psfd import workers
 from psfd.estimator import kernels, mtf, pair_register, raw, simulate, twoscale
 
 from conftest import DATA
@@ -277,44 +278,15 @@ def test_registration_does_not_depend_on_what_opencv_drew_before(data_dir):
     assert first.inliers == again.inliers
 
 
-def test_concurrently_keeps_the_order_and_raises_the_first_error(monkeypatch):
-    import threading
-    import time
-
-    seen = []
-
-    def slow(value):
-        time.sleep(0.05)
-        seen.append(threading.get_ident())
-        return value
-
-    assert pair_register.concurrently(lambda: slow(1), lambda: slow(2), lambda: 3) == [1, 2, 3]
-    monkeypatch.setattr(pair_register, "usable_cores", lambda: 2)
-    finished = []
-
-    def fails(message):
-        time.sleep(0.02)
-        finished.append(message)
-        raise PairError(message)
-
-    with pytest.raises(PairError, match="first"):
-        pair_register.concurrently(lambda: fails("first"), lambda: fails("second"), lambda: finished.append("ok"))
-    assert sorted(finished) == ["first", "ok", "second"]  # all ended before the error was raised
-    monkeypatch.setattr(pair_register, "usable_cores", lambda: 1)
-    seen.clear()
-    assert pair_register.concurrently(lambda: slow("a"), lambda: slow("b")) == ["a", "b"]
-    assert set(seen) == {threading.get_ident()}  # one core: all on this thread
-
-
 def test_the_real_pair_on_threads_is_the_pair_on_one(data_dir, monkeypatch):
     """SIFT of the two photos and the near photo's Keys sampling on two threads: the registration and the
     PSF of the same work done on one thread, bit for bit."""
     a = raw.load_frame(data_dir / "IMG_0602_v1_CUT.pgm", "mono")
     b = raw.load_frame(data_dir / "IMG_0608_v1.pgm", "mono")
-    monkeypatch.setattr(pair_register, "usable_cores", lambda: 2)
+    monkeypatch.setattr(workers, "usable_cores", lambda: 2)
     threaded_reg = pair_register.register(a.data, b.data)
     [threaded] = twoscale.estimate_pair(a, b, s=3)
-    monkeypatch.setattr(pair_register, "usable_cores", lambda: 1)
+    monkeypatch.setattr(workers, "usable_cores", lambda: 1)
     alone_reg = pair_register.register(a.data, b.data)
     [alone] = twoscale.estimate_pair(a, b, s=3)
     np.testing.assert_array_equal(threaded_reg.to_near, alone_reg.to_near)

@@ -22,7 +22,7 @@ from typing import Any, Callable, NamedTuple
 from psfd.cli import options, summary
 from psfd.errors import BadInputError, EstimationError, PsfdError
 from psfd.vocabulary import BERNOULLI, DEFAULT_S, SHARP_EDGE, TWO_PHOTO
-from psfd.workers import usable_cores, worker_signals
+from psfd.workers import concurrently, usable_cores, worker_signals
 
 
 class Estimate(NamedTuple):
@@ -166,13 +166,11 @@ def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quie
     frame's methods run in this process, with a progress bar on a terminal unless ``quiet``;
     the other frames' and the pair's run beside them in a forked worker (`_Beside`), without one.
     """
-    from psfd.estimator import pair_register
-
     # what each frame shows decides the methods: the frames are searched for the targets at once, unless
     # the searches' temporaries together would pass the memory bound (some 40 bytes per pixel each)
     searches = [lambda f=frame: _kind(f) for frame in frames]
     together = sum(_size(frame) for frame in frames) <= SEARCH_TOGETHER_PIXELS
-    kinds = pair_register.concurrently(*searches) if together else [search() for search in searches]
+    kinds = concurrently(*searches) if together else [search() for search in searches]
     plain = [frame for frame, kind in zip(frames, kinds) if kind == PLAIN_FRAME]
     main = max(range(len(frames)), key=lambda i: _size(frames[i]))
     # the worker draws no bar: two processes redrawing one terminal line would garble it

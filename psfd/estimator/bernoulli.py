@@ -22,7 +22,6 @@ well conditioned because the target u is Bernoulli(0.5) white noise
 from __future__ import annotations
 
 import contextlib
-from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
 import cv2
@@ -34,7 +33,7 @@ from psfd.estimator import detect, geometry, kernels, quantiles, radiometry, res
 from psfd.estimator.kernels import PSF
 from psfd.estimator.raw import Frame
 from psfd.vocabulary import BERNOULLI, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, check_sizes, check_solver
-from psfd.workers import usable_cores, worker_signals
+from psfd.workers import concurrently, usable_cores, worker_signals
 
 __all__ = [
     "PatternBand", "WindowBand", "band_reach", "cross_validated", "estimate_frames", "estimate_plane",
@@ -1110,19 +1109,18 @@ def _openblas_threads(libraries, threads: int):
 
 def _estimate_frames(frames, noise, s, support, solver, grid, recentre, tps, workers) -> list[PSF]:
     planes = [_locate(frame, detection, s, support, grid, tps) for frame, detection in _detections(frames)]
-    # The light and response-curve correction of the planes (numpy, most of it without the GIL) runs on a
-    # second thread while this one band-limits the pattern (DCTs): the band needs only the windows'
-    # Jacobians, which the located planes already have.
-    with ThreadPoolExecutor(1) as pool:
-        corrected = pool.submit(lambda: [_correct(plane, noise, s, support) for plane in planes])
-        try:
-            bands = {}
-            for factor in sorted({p.factor for p in planes}):
-                same = [p for p in planes if p.factor == factor]
-                bands[factor] = PatternBand(noise, factor, s, [j for p in same for j in p.jacobians],
-                                            same[0].reference)
-        finally:
-            corrected.result()  # waited for (its error first: it names the plane) before any other is raised
+    # The light and response-curve correction of the planes (numpy, most of it without the GIL) runs beside
+    # the band-limiting of the pattern (DCTs): the band needs only the windows' Jacobians, which the located
+    # planes already have. A correction's error is raised first: it names the plane.
+
+    def pattern_bands() -> dict[int, PatternBand]:
+        bands = {}
+        for factor in sorted({p.factor for p in planes}):
+            same = [p for p in planes if p.factor == factor]
+            bands[factor] = PatternBand(noise, factor, s, [j for p in same for j in p.jacobians], same[0].reference)
+        return bands
+
+    _, bands = concurrently(lambda: [_correct(plane, noise, s, support) for plane in planes], pattern_bands)
     counts = [len(p.windows) for p in planes]
     groups = _groups(counts)
 

@@ -19,12 +19,11 @@ scipy.fft's own ``workers=2`` would otherwise be twice as fast.
 from __future__ import annotations
 
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
 
-from psfd.workers import in_worker, usable_cores
+from psfd.workers import concurrently, in_worker, usable_cores
 
 __all__ = ["convolve_same", "dct", "idct", "idst"]
 
@@ -87,10 +86,7 @@ def _by_lines(transform: Callable[[np.ndarray, np.ndarray], None], x: np.ndarray
         part(slice(None))
     else:
         half = len(lines) // 2
-        with ThreadPoolExecutor(1) as pool:
-            second = pool.submit(part, slice(half, None))
-            part(slice(0, half))
-            second.result()
+        concurrently(lambda: part(slice(0, half)), lambda: part(slice(half, None)))
     if not np.may_share_memory(target, result):
         result[...] = np.moveaxis(target.reshape(tuple(np.delete(shape, axis)) + (width,)), -1, axis)
     return result

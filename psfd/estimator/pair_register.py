@@ -12,19 +12,17 @@ Coordinates are (x, y) with pixel centres at integers, as everywhere in psfd.
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 from math import lgamma, log
-from typing import Any, Callable
 
 import cv2
 import numpy as np
 
 from psfd.errors import PairError
 from psfd.estimator import quantiles
-from psfd.workers import usable_cores
+from psfd.workers import concurrently
 
-__all__ = ["Registration", "bounding_box", "common_region", "concurrently", "features", "log10_nfa", "match",
+__all__ = ["Registration", "bounding_box", "common_region", "features", "log10_nfa", "match",
            "register", "to_uint8"]
 
 RATIO = 0.8  # Lowe's ratio test (IJCV 2004, sec. 7.1)
@@ -116,37 +114,6 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
     if hi <= lo:
         return np.zeros(image.shape, dtype=np.uint8)
     return np.clip((image - lo) * (255.0 / (hi - lo)) + 0.5, 0, 255).astype(np.uint8)
-
-
-def concurrently(*calls: Callable[[], Any]) -> list[Any]:
-    """The results of independent calls, in order, run on threads beside this one when there are cores for it.
-
-    OpenCV (SIFT, resizing) and numpy's element-wise work release the GIL, so
-    two such calls overlap on two cores. Each call does the same arithmetic as
-    when run alone, so the results do not depend on it. The first exception
-    raised, in the order of the calls, is raised once all have finished.
-    """
-    if len(calls) < 2 or usable_cores() < 2:
-        return [call() for call in calls]
-    results: list[Any] = [None] * len(calls)
-    errors: list[BaseException | None] = [None] * len(calls)
-
-    def run(index: int) -> None:
-        try:
-            results[index] = calls[index]()
-        except BaseException as exc:  # re-raised in the caller's thread below
-            errors[index] = exc
-
-    threads = [threading.Thread(target=run, args=(i,), daemon=True) for i in range(1, len(calls))]
-    for thread in threads:
-        thread.start()
-    run(0)
-    for thread in threads:
-        thread.join()
-    for error in errors:
-        if error is not None:
-            raise error
-    return results
 
 
 def _factor(shape: tuple[int, int]) -> float:

@@ -30,6 +30,7 @@ from psfd.estimator import fourier, pair_register, resample
 from psfd.estimator.kernels import PSF, clip_negatives, core_centroid, field_of_window, normalise, split_grid
 from psfd.estimator.raw import Frame
 from psfd.estimator.resample import keys_bicubic
+from psfd.workers import concurrently
 
 __all__ = [
     "band_limited", "estimate_pair", "observation_mask", "psf_from_kernel", "resample_near", "solve_kernel",
@@ -286,7 +287,7 @@ def resample_near(
     # in single precision like the band (half the memory traffic), the samples then in double for the sums
     # every sample on its own: the two halves of the rows on two threads give the same values (0.3 s of the real pair)
     half = bx.shape[0] // 2
-    upsampled = np.concatenate(pair_register.concurrently(
+    upsampled = np.concatenate(concurrently(
         lambda: keys_bicubic(band, bx[:half], by[:half], a=-0.5, fill=np.nan),
         lambda: keys_bicubic(band, bx[half:], by[half:], a=-0.5, fill=np.nan))).astype(np.float64)
     valid = np.isfinite(upsampled)
