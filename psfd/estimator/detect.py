@@ -375,6 +375,8 @@ class _Neighbours:
     in its cell or one of the 8 around it, the distances of those candidates are compared exactly.
     """
 
+    AROUND = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]  # a point's cell and the 8 next to it
+
     def __init__(self, points: np.ndarray) -> None:
         self.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
 
@@ -413,8 +415,7 @@ class _Neighbours:
         in lexicographic order."""
         if len(self.points) < 2 or not r > 0:
             return np.empty((0, 2), dtype=np.intp)
-        around = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
-        i, j = self._candidates(r * (1 + 1e-9), self.points, around)
+        i, j = self._candidates(r * (1 + 1e-9), self.points, self.AROUND)
         keep = i < j
         i, j = i[keep], j[keep]
         d = self.points[i] - self.points[j]
@@ -431,8 +432,7 @@ class _Neighbours:
         idx = np.full((len(xy), k), len(self.points), dtype=np.intp)
         if len(self.points) == 0 or len(xy) == 0:
             return dist, idx
-        around = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
-        q, j = self._candidates(bound * (1 + 1e-9), xy, around)
+        q, j = self._candidates(bound * (1 + 1e-9), xy, self.AROUND)
         d = np.hypot(xy[q, 0] - self.points[j, 0], xy[q, 1] - self.points[j, 1])
         keep = d < bound
         q, j, d = q[keep], j[keep], d[keep]

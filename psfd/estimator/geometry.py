@@ -196,6 +196,7 @@ def f_quantile(q: float, d1: int, d2: int) -> float:
     y = 0.5 * (lo + hi)
     return d2 * (1.0 - y) / (d1 * y) if upper else d2 * y / (d1 * (1.0 - y))
 
+
 class RadialHomography:
     """Homography followed by radial lens distortion about an unknown centre.
 
