@@ -137,7 +137,7 @@ def main() -> None:
             command = [sys.executable, "-m", "psfd", "estimate", "target", str(path), *extra]
             runs = [whole.run(command, env, str(folder)) for _ in range(args.repeat)]
             if any(r.code for r in runs):
-                sys.exit(f"{' '.join(command)} failed")
+                sys.exit(f"{' '.join(command)} failed:\n{next(r.error for r in runs if r.code)}")
             wall, cpu = statistics.median(r.wall for r in runs), statistics.median(r.cpu for r in runs)
             median_ms, mean_ms, cpu_ms = steps["window_ms"]
             print(f"{name:>8} {wall:8.2f} {cpu:6.2f} {ref:6.2f} {wall / ref:6.2f} | {steps['load']:5.2f} "

@@ -33,8 +33,10 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import whole  # noqa: E402
 
 C_PLANE_SECONDS = 2.1  # published C program, whole process, one 1953x1301 plane on this kind of machine
 SENSOR = (4000, 6000)
@@ -57,17 +59,10 @@ def make_frame(path: Path, pixels_per_cell: float) -> None:
 
 def timed(command: list[str], env: dict, cwd: Path) -> tuple[float, float]:
     """Wall seconds and peak resident memory (MB, the largest of the process and the workers it waited for)."""
-    start = time.perf_counter()
-    # stderr kept aside: what the command warns about is not timed on a terminal
-    with tempfile.TemporaryFile("w+") as err:
-        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err, text=True, env=env, cwd=cwd)
-        _, status, usage = os.wait4(proc.pid, 0)
-        seconds = time.perf_counter() - start
-        proc.returncode = os.waitstatus_to_exitcode(status)
-        if proc.returncode:
-            err.seek(0)
-            sys.exit(f"{' '.join(command)} failed:\n{err.read()[-2000:]}")
-    return seconds, usage.ru_maxrss / 1024  # Linux: kilobytes
+    done = whole.run(command, env, str(cwd))
+    if done.code:
+        sys.exit(f"{' '.join(command)} failed:\n{done.error}")
+    return done.wall, done.peak_mib
 
 
 def checkout_env(checkout: Path) -> dict:

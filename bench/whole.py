@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 import statistics
 import subprocess
+import tempfile
 from dataclasses import dataclass
 
 
@@ -25,17 +26,23 @@ class Run:
     cpu: float  # user + system seconds
     peak_mib: float  # peak resident memory of the process
     code: int  # exit status
+    error: str = ""  # the end of what a failed run wrote on stderr
 
 
 def run(argv: list[str], env: dict[str, str] | None = None, cwd: str | None = None) -> Run:
     """Start ``argv``, wait for it, and return its wall and CPU time and peak memory."""
-    start = _now()
-    proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, env=env, cwd=cwd)
-    _, status, usage = os.wait4(proc.pid, 0)
-    wall = _now() - start
-    proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: tell Popen
-    return Run(wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024.0, proc.returncode)
+    with tempfile.TemporaryFile("w+") as err:  # kept aside: a warning on a terminal is no part of the time
+        start = _now()
+        proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err, env=env,
+                                cwd=cwd, text=True)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = _now() - start
+        proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: tell Popen
+        error = ""
+        if proc.returncode:
+            err.seek(0)
+            error = err.read()[-2000:]
+    return Run(wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024.0, proc.returncode, error)
 
 
 def _now() -> float:
