@@ -645,3 +645,70 @@ def test_window_solve_equals_the_former_solves(tmp_path, monkeypatch, solver):
             assert got["prediction_error"] == pytest.approx(old["prediction_error"], rel=1e-9)
             checked += 1
     assert checked >= 4
+
+
+def _former_nnls_normal(q, c, passive=None):
+    """`bernoulli.nnls_normal` before its exchanges gathered Q's free rows once (Q_FF by two takes of Q, and
+    y = Q h - c from all of Q): the reference its minimiser must equal bit for bit."""
+    n = q.shape[0]
+    free = np.zeros(n, dtype=bool) if passive is None else np.asarray(passive, dtype=bool).copy()
+    tol = 1e-10 * max(float(np.abs(c).max()), 1e-300)
+
+    def kkt(free):
+        h = np.zeros(n)
+        if free.any():
+            h[free] = bernoulli._cholesky_solve(q, c, np.flatnonzero(free))
+        y = q @ h - c
+        y[free] = 0.0
+        return h, y
+
+    h, y = kkt(free)
+    best, trials = n + 1, 3
+    for _ in range(10 * n):
+        wrong = (free & (h < 0)) | (~free & (y < -tol))
+        count = int(wrong.sum())
+        if count == 0:
+            return np.maximum(h, 0.0)
+        if count < best:
+            best, trials = count, 3
+            free ^= wrong
+        elif trials > 0:
+            trials -= 1
+            free ^= wrong
+        else:
+            last = int(np.flatnonzero(wrong)[-1])
+            free[last] = ~free[last]
+        h, y = kkt(free)
+    raise AssertionError("no minimiser found")
+
+
+@pytest.fixture(scope="module")
+def photo_systems() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The non-negative systems of the real photograph on a 3 x 3 grid (windows of ~800 observations for 289
+    unknowns, as on a 24 MP frame's 10 x 10 grid): each window's whole fit and its four cross-validation halves,
+    as `estimate_target` solves them, with their starts."""
+    systems = []
+    solve = bernoulli.nnls_normal
+
+    def recorded(q, c, passive=None):
+        systems.append((q, c, passive))
+        return solve(q, c, passive)
+
+    frame = raw.load_frame(Path(__file__).parent / "data" / "img_example.pgm", "g1")
+    patch = pytest.MonkeyPatch()
+    patch.setattr(bernoulli, "nnls_normal", recorded)
+    try:
+        bernoulli.estimate_target(frame, grid=(3, 3))
+    finally:
+        patch.undo()
+    assert len(systems) == 45
+    return systems
+
+
+def test_nnls_equals_the_former_exchanges_bit_for_bit(photo_systems):
+    """The exchanges' bookkeeping (gathers, multipliers) changes no bit of the minimiser: it is the last exact
+    solve of the free block, and every step takes the same free set as before."""
+    for q, c, passive in photo_systems:
+        assert np.array_equal(bernoulli.nnls_normal(q, c, passive), _former_nnls_normal(q, c, passive))
+    q, c, _ = photo_systems[0]
+    assert np.array_equal(bernoulli.nnls_normal(q, c), _former_nnls_normal(q, c))  # started from nothing

@@ -648,20 +648,12 @@ def nnls_normal(q: np.ndarray, c: np.ndarray, passive: np.ndarray | None = None)
     n = q.shape[0]
     free = np.zeros(n, dtype=bool) if passive is None else np.asarray(passive, dtype=bool).copy()
     tol = 1e-10 * max(float(np.abs(c).max()), 1e-300)
-
-    def kkt(free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        h = np.zeros(n)
-        if free.any():
-            h[free] = _cholesky_solve(q, c, np.flatnonzero(free))
-        y = q @ h - c
-        y[free] = 0.0
-        return h, y
-
-    h, y = kkt(free)
+    h, y = _kkt(q, c, free)
     best, trials = n + 1, 3
     for _ in range(10 * n):
-        wrong = (free & (h < 0)) | (~free & (y < -tol))
-        count = int(wrong.sum())
+        # y is 0 on the free set, so y < -tol only flags bound variables
+        wrong = (free & (h < 0)) | (y < -tol)
+        count = int(np.count_nonzero(wrong))
         if count == 0:
             return np.maximum(h, 0.0)
         if count < best:
@@ -673,12 +665,31 @@ def nnls_normal(q: np.ndarray, c: np.ndarray, passive: np.ndarray | None = None)
         else:
             last = int(np.flatnonzero(wrong)[-1])
             free[last] = ~free[last]
-        h, y = kkt(free)
+        h, y = _kkt(q, c, free)
     # not reached in exact arithmetic (Murty's rule terminates); the slow solver as a safeguard
     from scipy import linalg, optimize  # 0.3-0.5 s of imports: only here
 
     lower = linalg.cholesky(q, lower=True, check_finite=False)
     return optimize.nnls(lower.T, linalg.solve_triangular(lower, c, lower=True), maxiter=50 * n)[0]
+
+
+def _kkt(q: np.ndarray, c: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """h with h_F = Q_FF^-1 c_F on the free set F and 0 elsewhere, and the multipliers y = Q h - c (0 on F).
+
+    The rows Q_F. are gathered once: their columns F are the block to solve, and
+    with Q symmetric Q h = Q_F.^T h_F, |F| / n of the product with all of Q.
+    """
+    h = np.zeros(q.shape[0])
+    idx = np.flatnonzero(free)
+    if idx.size == 0:
+        return h, -c
+    rows = q.take(idx, axis=0)
+    h_free = _cholesky_solve(rows.take(idx, axis=1), c.take(idx))
+    h[idx] = h_free
+    y = h_free @ rows
+    y -= c
+    y[idx] = 0.0
+    return h, y
 
 
 def _cholesky_solve(q: np.ndarray, c: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
