@@ -712,3 +712,28 @@ def test_nnls_equals_the_former_exchanges_bit_for_bit(photo_systems):
         assert np.array_equal(bernoulli.nnls_normal(q, c, passive), _former_nnls_normal(q, c, passive))
     q, c, _ = photo_systems[0]
     assert np.array_equal(bernoulli.nnls_normal(q, c), _former_nnls_normal(q, c))  # started from nothing
+
+
+def _former_triangular_inverse(lower):
+    """`bernoulli._triangular_inverse` before it wrote the halves in place and stacked the diagonal blocks."""
+    n = lower.shape[0]
+    if n <= 32:
+        return np.linalg.inv(lower)
+    k = n // 2
+    out = np.zeros_like(lower)
+    a_inv, c_inv = _former_triangular_inverse(lower[:k, :k]), _former_triangular_inverse(lower[k:, k:])
+    out[:k, :k], out[k:, k:] = a_inv, c_inv
+    out[k:, :k] = -(c_inv @ lower[k:, :k]) @ a_inv
+    return out
+
+
+def test_triangular_inverse_equals_the_former_recursion_bit_for_bit(photo_systems):
+    """The same products and the same LAPACK inversions of the same diagonal blocks, so the same bits: on the
+    Cholesky factors of the photo's windows and halves, and at sizes where the halving stops early or goes deep."""
+    factors = [np.linalg.cholesky(q) for q, _, _ in photo_systems[::5]]
+    rng = np.random.default_rng(11)
+    for n in (1, 5, 32, 33, 100, 625):
+        a = rng.standard_normal((4 * n + 3, n))
+        factors.append(np.linalg.cholesky(a.T @ a))
+    for lower in factors:
+        assert np.array_equal(bernoulli._triangular_inverse(lower), _former_triangular_inverse(lower))
