@@ -683,26 +683,77 @@ def _former_nnls_normal(q, c, passive=None):
 
 
 @pytest.fixture(scope="module")
-def photo_systems() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The non-negative systems of the real photograph on a 3 x 3 grid (windows of ~800 observations for 289
-    unknowns, as on a 24 MP frame's 10 x 10 grid): each window's whole fit and its four cross-validation halves,
-    as `estimate_target` solves them, with their starts."""
-    systems = []
-    solve = bernoulli.nnls_normal
+def photo_records() -> tuple[list, list]:
+    """What `estimate_target` solves on the real photograph on a 3 x 3 grid (windows of ~800 observations for
+    289 unknowns, as on a 24 MP frame's 10 x 10 grid): the normal equations' inputs of each window, and the
+    non-negative systems (each window's whole fit and its four cross-validation halves) with their starts."""
+    systems, equations = [], []
+    solve, normal = bernoulli.nnls_normal, bernoulli.normal_equations
 
-    def recorded(q, c, passive=None):
+    def recorded_solve(q, c, passive=None):
         systems.append((q, c, passive))
         return solve(q, c, passive)
 
+    def recorded_normal(*args):
+        equations.append(args)
+        return normal(*args)
+
     frame = raw.load_frame(Path(__file__).parent / "data" / "img_example.pgm", "g1")
     patch = pytest.MonkeyPatch()
-    patch.setattr(bernoulli, "nnls_normal", recorded)
+    patch.setattr(bernoulli, "nnls_normal", recorded_solve)
+    patch.setattr(bernoulli, "normal_equations", recorded_normal)
     try:
         bernoulli.estimate_target(frame, grid=(3, 3))
     finally:
         patch.undo()
-    assert len(systems) == 45
-    return systems
+    assert len(systems) == 45 and len(equations) == 9
+    return systems, equations
+
+
+@pytest.fixture(scope="module")
+def photo_systems(photo_records) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    return photo_records[0]
+
+
+def _former_normal_equations(u, v, labels, s, support, parts=1):
+    """`bernoulli.normal_equations` before it skipped the row-by-row test of finite patches when all of u~_D is
+    finite and added the mean's terms without two temporaries."""
+    finite = np.isfinite(u)
+    c = float(u[finite].mean()) if finite.any() else 0.0
+    centred = np.where(finite, u - c, np.nan).astype(np.float32)
+    windows = np.lib.stride_tricks.sliding_window_view(centred, (support, support))[::s, ::s]
+    n = support * support
+    ata, atv, vtv, count = np.empty((parts, n, n)), np.empty((parts, n)), np.empty(parts), np.empty(parts, np.int64)
+    for p in range(parts):
+        a = windows[labels == p].reshape(-1, n)
+        b = v[labels == p]
+        keep = np.all(np.isfinite(a), axis=1) & np.isfinite(b)
+        if not keep.all():
+            a, b = a[keep], b[keep]
+        col = a.sum(axis=0, dtype=np.float64)
+        ata[p] = a.T @ a
+        ata[p] += c * (col[:, None] + col[None, :]) + c * c * len(b)
+        atv[p] = b @ a.astype(np.float64) + c * float(b.sum())
+        vtv[p] = float(b @ b)
+        count[p] = len(b)
+    return ata, atv, vtv, count
+
+
+def test_normal_equations_equal_the_former_products_bit_for_bit(photo_records):
+    """On the photo's windows (all of u~_D finite) and with samples outside the raster (NaN: their rows dropped)."""
+    equations = list(photo_records[1])
+    u, v, labels, s, support, parts = equations[0]
+    holed = u.copy()
+    m, n = np.argwhere(labels == 2)[10]
+    holed[s * m + 3, s * n + 5] = np.nan  # in the patches of a few rows of part 2 and their neighbours
+    v = v.copy()
+    v[np.nonzero(labels == 1)[0][3], np.nonzero(labels == 1)[1][3]] = np.nan
+    equations.append((holed, v, labels, s, support, parts))
+    for args in equations:
+        for ours, former in zip(bernoulli.normal_equations(*args), _former_normal_equations(*args)):
+            assert np.array_equal(ours, former)
+    dropped = bernoulli.normal_equations(*equations[0])[3] - bernoulli.normal_equations(*equations[-1])[3]
+    assert dropped[1] >= 1 and dropped[2] > 1  # the holes dropped rows of the parts they fall in
 
 
 def test_nnls_equals_the_former_exchanges_bit_for_bit(photo_systems):

@@ -531,8 +531,9 @@ def normal_equations(
     flips the solution back to convolution order.
     """
     finite = np.isfinite(u)
-    c = float(u[finite].mean()) if finite.any() else 0.0
-    centred = np.where(finite, u - c, np.nan).astype(np.float32)
+    whole = bool(finite.all())  # the usual case: no patch to test row by row
+    c = float(u.mean() if whole else u[finite].mean()) if finite.any() else 0.0
+    centred = (u - c if whole else np.where(finite, u - c, np.nan)).astype(np.float32)
     windows = sliding_window_view(centred, (support, support))[::s, ::s]
     n = support * support
     ata = np.empty((parts, n, n))
@@ -540,14 +541,17 @@ def normal_equations(
     vtv = np.empty(parts)
     count = np.empty(parts, dtype=np.int64)
     for p in range(parts):
-        a = windows[labels == p].reshape(-1, n)
-        b = v[labels == p]
-        keep = np.all(np.isfinite(a), axis=1) & np.isfinite(b)
+        mine = labels == p
+        a = windows[mine].reshape(-1, n)
+        b = v[mine]
+        keep = np.isfinite(b) if whole else np.all(np.isfinite(a), axis=1) & np.isfinite(b)
         if not keep.all():
             a, b = a[keep], b[keep]
         col = a.sum(axis=0, dtype=np.float64)
-        ata[p] = _gram(a)
-        ata[p] += c * (col[:, None] + col[None, :]) + c * c * len(b)
+        mean_terms = np.add.outer(col, col)
+        mean_terms *= c
+        mean_terms += c * c * len(b)
+        np.add(_gram(a), mean_terms, out=ata[p])  # the float32 product widened as it is added
         atv[p] = b @ a.astype(np.float64) + c * float(b.sum())
         vtv[p] = float(b @ b)
         count[p] = len(b)
