@@ -393,7 +393,7 @@ class PatternBand:
         # a synthesis of the whole raster by FFTs, measured ~4x slower per rows x cols x log2(rows x cols)
         if cost < 4 * rows * cols * np.log2(rows * cols):
             part = resample.dct_runs_part(self.coeffs, runs, self.shape, slice(r0, r1), slice(c0, c1), self.bases)
-            return (crop + part).astype(np.float32)
+            return crop + part  # both float32
         same, cross = s_band(self.shape, self.factor, self.s, jacobian)
         coeffs = self.coeffs[: same.shape[0], : same.shape[1]]
         return np.ascontiguousarray(resample.dct_synthesise(coeffs, self.shape, same, cross)[r0:r1, c0:c1])
