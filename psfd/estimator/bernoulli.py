@@ -386,13 +386,14 @@ class PatternBand:
         cropped when that costs less."""
         r0, r1, c0, c1 = box
         rows, cols = self.shape
-        cost = resample.band_part_cost(runs, r1 - r0, c1 - c0, self.coeffs.shape)
+        cover, cost = resample.band_part_cover(runs, r1 - r0, c1 - c0, self.coeffs.shape)
         if not cost:
             return crop
         # the difference costs `band_part_cost` multiply-adds on the crop, the window's own band
         # a synthesis of the whole raster by FFTs, measured ~4x slower per rows x cols x log2(rows x cols)
         if cost < 4 * rows * cols * np.log2(rows * cols):
-            part = resample.dct_runs_part(self.coeffs, runs, self.shape, slice(r0, r1), slice(c0, c1), self.bases)
+            part = resample.dct_runs_part(self.coeffs, runs, self.shape, slice(r0, r1), slice(c0, c1), self.bases,
+                                          cover)
             return crop + part  # both float32
         same, cross = s_band(self.shape, self.factor, self.s, jacobian)
         coeffs = self.coeffs[: same.shape[0], : same.shape[1]]

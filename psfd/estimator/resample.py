@@ -14,7 +14,7 @@ import numpy as np
 from psfd.estimator import fourier
 
 __all__ = [
-    "band_part_cost", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_runs_part",
+    "band_part_cost", "band_part_cover", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_runs_part",
     "dct_synthesise", "erode", "keys_bicubic", "keys_grid", "keys_upsample", "keys_weights",
 ]
 
@@ -120,7 +120,7 @@ def dct_synthesise(
 
 def dct_runs_part(
     coeffs: np.ndarray, runs: tuple[np.ndarray, ...], size: tuple[int, int], rows: slice, cols: slice,
-    bases: dict | None = None,
+    bases: dict | None = None, cover: np.ndarray | None = None,
 ) -> np.ndarray:
     """The image of runs of DCT coefficients on ``rows`` x ``cols`` of the grid: `dct_synthesise` of a sparse band.
 
@@ -139,7 +139,8 @@ def dct_runs_part(
     so the runs are split between the two to keep R + C small (`_cover`).
     Products and their sums in float32 (the band is read in float32,
     `u_tilde`), and so is the image returned. ``bases`` (`dct_bases` of the
-    grid) saves tabulating the basis functions on every call.
+    grid) saves tabulating the basis functions on every call, ``cover``
+    (`band_part_cover` of the same runs and crop) choosing the covers again.
     """
     out_r, out_c = int(size[0]), int(size[1])
     n_r = np.arange(out_r)[rows].size
@@ -159,7 +160,7 @@ def dct_runs_part(
         rows = cols = slice(None)
     # (frequency, sample) tables: the frequencies a product needs are rows, read without a gather of columns
     tables = {wave: (bases[wave, 0][:, rows], bases[wave, 1][:, cols]) for wave in weights}
-    by_row = _cover(row, start, stop, coeffs.shape, (n_r, n_c))[0]
+    by_row = _cover(row, start, stop, coeffs.shape, (n_r, n_c))[0] if cover is None else np.asarray(cover)
     # the runs in dense tiles (`_tiles`): runs lo .. hi - 1, rows r0 .. r1 - 1, columns c0 .. c1 - 1
     lo, hi = _tiles(row, start, stop, by_row, (n_r, n_c))
     turned = by_row[lo]
@@ -344,11 +345,19 @@ def _cover(row: np.ndarray, start: np.ndarray, stop: np.ndarray, shape: tuple[in
 def band_part_cost(runs: tuple[np.ndarray, ...], rows: int, cols: int, shape: tuple[int, int]) -> float:
     """Multiply-adds of `dct_runs_part` of ``runs`` of a ``shape`` box of coefficients on ``rows`` x ``cols``
     (both parts)."""
+    return band_part_cover(runs, rows, cols, shape)[1]
+
+
+def band_part_cover(runs: tuple[np.ndarray, ...], rows: int, cols: int,
+                    shape: tuple[int, int]) -> tuple[np.ndarray, float]:
+    """`band_part_cost`, and which of the (non-empty) runs `dct_runs_part` synthesises through their rows: its
+    ``cover`` argument, for a call on the same runs and crop size that costs that."""
     row, start, stop = (np.asarray(x) for x in runs[:3])
     keep = stop > start
     if not keep.any():
-        return 0.0
-    return 2.0 * _cover(row[keep], start[keep], stop[keep], shape, (rows, cols))[1]
+        return np.zeros(0, dtype=bool), 0.0
+    by_row, cost = _cover(row[keep], start[keep], stop[keep], shape, (rows, cols))
+    return by_row, 2.0 * cost
 
 
 def dct_bases(size: tuple[int, int], keep: tuple[int, int]) -> dict:
