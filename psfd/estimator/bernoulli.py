@@ -141,16 +141,24 @@ def _s_band_rows(shape, factor, s, jacobian):
     f_x = np.arange(box_c) * (factor / (2.0 * cols))
     (a, b), (c, d) = jacobian
     half = s / 2
-    out = []
+    # xi = J^T f; strict inequality as the rectangular truncation keeps indices below s/2: for each sign and
+    # each of the two inequalities, the first column inside (lower end) and the first past it (upper end),
+    # all eight searches corrected together (`_first`)
+    xs, betas, guesses = [], [], []
     for sign in (1.0, -1.0):
-        # xi = J^T f; strict inequality as the rectangular truncation keeps indices below s/2
-        lo, hi = np.zeros(box_r, dtype=np.intp), np.full(box_r, box_c, dtype=np.intp)
         for alpha, beta in ((a, c * sign * f_y), (b, d * sign * f_y)):
             if alpha < 0:  # |x + beta| = |-x - beta| exactly in floating point: make the sum increasing
                 alpha, beta = -alpha, -beta
             x = alpha * f_x
-            lo = np.maximum(lo, _first(x, beta, lambda v: v > -half, np.searchsorted(x, -half - beta, "right")))
-            hi = np.minimum(hi, _first(x, beta, lambda v: v >= half, np.searchsorted(x, half - beta, "left")))
+            xs += [x, x]
+            betas += [beta, beta]
+            guesses += [np.searchsorted(x, -half - beta, "right"), np.searchsorted(x, half - beta, "left")]
+    lower = np.array([True, False] * 4)[:, None]  # the tests v > -half (lower ends) and v >= half (upper ends)
+    ends = _first(np.array(xs), np.array(betas), lambda v: np.where(lower, v > -half, v >= half), np.array(guesses))
+    out = []
+    for k in (0, 4):  # sign +1, then -1: the two inequalities' lower ends at k, k + 2, upper ends at k + 1, k + 3
+        lo = np.maximum(ends[k], ends[k + 2])
+        hi = np.minimum(ends[k + 1], ends[k + 3])
         out.append((lo, np.maximum(hi, lo)))
     return out[0], out[1]
 
@@ -169,12 +177,15 @@ def _first(x: np.ndarray, beta: np.ndarray, test: Callable[[np.ndarray], np.ndar
 
     ``guess`` is that index in exact arithmetic (a binary search of x): the
     rounded sum can move the answer by a step, so it is corrected against
-    ``test`` itself until the test is false before it and true at it.
+    ``test`` itself until the test is false before it and true at it. Several
+    searches at once: ``x`` (searches, len), ``beta`` and ``guess`` (searches,
+    rows), ``test`` elementwise on (searches, rows).
     """
     j = np.asarray(guess, dtype=np.intp).copy()
+    n = x.shape[-1]
     while True:
-        back = (j > 0) & test(x[np.maximum(j - 1, 0)] + beta)
-        ahead = ~back & (j < x.size) & ~test(x[np.minimum(j, x.size - 1)] + beta)
+        back = (j > 0) & test(np.take_along_axis(x, np.maximum(j - 1, 0), axis=-1) + beta)
+        ahead = ~back & (j < n) & ~test(np.take_along_axis(x, np.minimum(j, n - 1), axis=-1) + beta)
         if not (back.any() or ahead.any()):
             return j
         j += ahead.astype(np.intp) - back.astype(np.intp)
