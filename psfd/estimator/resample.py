@@ -492,24 +492,33 @@ def keys_bicubic(
     x0 = np.floor(x)
     y0 = np.floor(y)
     inside = (x0 >= 1) & (x0 <= cols - 3) & (y0 >= 1) & (y0 <= rows - 3)
-    out = np.full(x.shape, fill, dtype=dtype)
     if not inside.any():
-        return out
-    xi = x0[inside].astype(np.intp)
-    yi = y0[inside].astype(np.intp)
-    wx = keys_weights((x[inside] - xi).astype(dtype), a)
-    wy = keys_weights((y[inside] - yi).astype(dtype), a)
-    # Flat indices into the raveled image: np.take on 1-D is much faster than 2-D fancy indexing.
-    base = yi * cols + xi
+        return np.full(x.shape, fill, dtype=dtype)
+    every = bool(inside.all())  # the usual case: no copies of the samples inside
+    xi = (x0 if every else x0[inside]).astype(np.intp)
+    yi = (y0 if every else y0[inside]).astype(np.intp)
+    wx = _keys_taps(((x if every else x[inside]) - xi).astype(dtype), a)
+    wy = _keys_taps(((y if every else y[inside]) - yi).astype(dtype), a)
+    # Flat indices into the raveled image: np.take on 1-D is much faster than 2-D fancy indexing. Every tap
+    # reads the image from its offset on, at the index of the top-left tap: no index array per tap.
+    corner = (yi - 1) * cols + (xi - 1)
     acc = np.zeros(xi.shape, dtype=dtype)
     for j in range(4):
-        row = base + (j - 1) * cols
-        line = wx[:, 0] * np.take(flat, row - 1)
+        line = wx[0] * np.take(flat[j * cols:], corner)
         for i in range(1, 4):
-            line += wx[:, i] * np.take(flat, row + (i - 1))
-        acc += wy[:, j] * line
+            line += wx[i] * np.take(flat[j * cols + i:], corner)
+        acc += wy[j] * line
+    if every:
+        return acc
+    out = np.full(x.shape, fill, dtype=dtype)
     out[inside] = acc
     return out
+
+
+def _keys_taps(t: np.ndarray, a: float) -> tuple[np.ndarray, ...]:
+    """`keys_weights` as four arrays of the shape of ``t``, one per tap (the same expressions, contiguous)."""
+    u = 1 - t
+    return (a * t * u * u, ((a + 2) * t - (a + 3)) * t * t + 1, ((a + 2) * u - (a + 3)) * u * u + 1, a * u * t * t)
 
 
 def erode(mask: np.ndarray, radius: int) -> np.ndarray:
