@@ -436,18 +436,22 @@ def keys_upsample(values: np.ndarray, s: int, start: tuple[int, int], shape: tup
     lens distortion) is reproduced to far below its own precision.
     """
     out = np.asarray(values, dtype=np.float64)
+    w = keys_weights(np.arange(s) / s)  # (phase, tap)
     for axis in (0, 1):
         n = out.shape[axis] - 3
-        w = keys_weights(np.arange(s) / s)  # (phase, tap)
-        taps = [np.take(out, np.arange(k, k + n), axis=axis) for k in range(4)]
+        # tap k of every output sample is a shifted view of the input: its products summed in place
         if axis == 0:
-            up = sum(taps[k][:, None, :] * w[None, :, k, None] for k in range(4)).reshape(n * s, -1)
+            up = out[0:n, None, :] * w[None, :, 0, None]
+            for k in range(1, 4):
+                up += out[k: k + n, None, :] * w[None, :, k, None]
             first = start[0] % s
-            out = up[first : first + shape[0]]
+            out = up.reshape(n * s, -1)[first: first + shape[0]]
         else:
-            up = sum(taps[k][:, :, None] * w[None, None, :, k] for k in range(4)).reshape(-1, n * s)
+            up = out[:, 0:n, None] * w[None, None, :, 0]
+            for k in range(1, 4):
+                up += out[:, k: k + n, None] * w[None, None, :, k]
             first = start[1] % s
-            out = up[:, first : first + shape[1]]
+            out = up.reshape(-1, n * s)[:, first: first + shape[1]]
     return out
 
 
