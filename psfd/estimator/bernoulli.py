@@ -470,12 +470,15 @@ class WindowBand:
             return np.full(x.shape, np.nan, dtype=np.float32)
         # the crop holds every 4 x 4 neighbourhood that lies in the raster (`keys_bicubic` reads
         # taps -1 .. 2 and leaves NaN where they leave its image, which is the raster at its edges)
-        r0 = int(np.clip(np.floor(y[finite].min()) - 1, 0, rows))
-        r1 = int(np.clip(np.floor(y[finite].max()) + 3, r0, rows))
-        c0 = int(np.clip(np.floor(x[finite].min()) - 1, 0, cols))
-        c1 = int(np.clip(np.floor(x[finite].max()) + 3, c0, cols))
+        at_x, at_y = (x, y) if finite.all() else (x[finite], y[finite])  # no copies in the usual case
+        r0 = int(np.clip(np.floor(at_y.min()) - 1, 0, rows))
+        r1 = int(np.clip(np.floor(at_y.max()) + 3, r0, rows))
+        c0 = int(np.clip(np.floor(at_x.min()) - 1, 0, cols))
+        c1 = int(np.clip(np.floor(at_x.max()) + 3, c0, cols))
         crop = band.read(self.jacobian, (r0, r1, c0, c1))
-        return resample.keys_bicubic(crop, x - c0, y - r0, a=-0.5)
+        x -= c0  # x and y are this call's own arrays
+        y -= r0
+        return resample.keys_bicubic(crop, x, y, a=-0.5)
 
 
 def noise_mask(shape: tuple[int, int], to_pattern: Map, s: int, support: int) -> np.ndarray:
