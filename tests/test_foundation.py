@@ -137,6 +137,18 @@ def test_keys_weights_sum_to_one():
     np.testing.assert_allclose(resample.keys_weights(t).sum(axis=-1), 1.0, atol=1e-12)
 
 
+
+@pytest.mark.parametrize("s", [2, 4, 5])
+def test_keys_upsample_reproduces_quadratics_on_the_fine_grid(s):
+    # Keys (1981), a = -0.5: a quadratic sampled on the integers is interpolated exactly at every i / s, j / s
+    start, shape = (2 * s + 1, 3 * s - 1), (4 * s + 3, 5 * s + 2)
+    gy = resample.keys_grid(start[0], shape[0], s).astype(float)
+    gx = resample.keys_grid(start[1], shape[1], s).astype(float)
+    quad = lambda x, y: 0.02 * x**2 - 0.03 * x * y + 0.01 * y**2 + 0.4 * x - 0.2 * y + 1.5  # noqa: E731
+    values = quad(*np.meshgrid(gx, gy))
+    y, x = np.mgrid[start[0]: start[0] + shape[0], start[1]: start[1] + shape[1]] / s
+    np.testing.assert_allclose(resample.keys_upsample(values, s, start, shape), quad(x, y), rtol=0, atol=1e-12)
+
 def test_dct_lowpass_keeps_low_and_removes_high_frequencies():
     n = 64
     x = np.arange(n)

@@ -141,16 +141,24 @@ def _s_band_rows(shape, factor, s, jacobian):
     f_x = np.arange(box_c) * (factor / (2.0 * cols))
     (a, b), (c, d) = jacobian
     half = s / 2
-    out = []
+    # xi = J^T f; strict inequality as the rectangular truncation keeps indices below s/2: for each sign and
+    # each of the two inequalities, the first column inside (lower end) and the first past it (upper end),
+    # all eight searches corrected together (`_first`)
+    xs, betas, guesses = [], [], []
     for sign in (1.0, -1.0):
-        # xi = J^T f; strict inequality as the rectangular truncation keeps indices below s/2
-        lo, hi = np.zeros(box_r, dtype=np.intp), np.full(box_r, box_c, dtype=np.intp)
         for alpha, beta in ((a, c * sign * f_y), (b, d * sign * f_y)):
             if alpha < 0:  # |x + beta| = |-x - beta| exactly in floating point: make the sum increasing
                 alpha, beta = -alpha, -beta
             x = alpha * f_x
-            lo = np.maximum(lo, _first(x, beta, lambda v: v > -half, np.searchsorted(x, -half - beta, "right")))
-            hi = np.minimum(hi, _first(x, beta, lambda v: v >= half, np.searchsorted(x, half - beta, "left")))
+            xs += [x, x]
+            betas += [beta, beta]
+            guesses += [np.searchsorted(x, -half - beta, "right"), np.searchsorted(x, half - beta, "left")]
+    lower = np.array([True, False] * 4)[:, None]  # the tests v > -half (lower ends) and v >= half (upper ends)
+    ends = _first(np.array(xs), np.array(betas), lambda v: np.where(lower, v > -half, v >= half), np.array(guesses))
+    out = []
+    for k in (0, 4):  # sign +1, then -1: the two inequalities' lower ends at k, k + 2, upper ends at k + 1, k + 3
+        lo = np.maximum(ends[k], ends[k + 2])
+        hi = np.minimum(ends[k + 1], ends[k + 3])
         out.append((lo, np.maximum(hi, lo)))
     return out[0], out[1]
 
@@ -169,12 +177,15 @@ def _first(x: np.ndarray, beta: np.ndarray, test: Callable[[np.ndarray], np.ndar
 
     ``guess`` is that index in exact arithmetic (a binary search of x): the
     rounded sum can move the answer by a step, so it is corrected against
-    ``test`` itself until the test is false before it and true at it.
+    ``test`` itself until the test is false before it and true at it. Several
+    searches at once: ``x`` (searches, len), ``beta`` and ``guess`` (searches,
+    rows), ``test`` elementwise on (searches, rows).
     """
     j = np.asarray(guess, dtype=np.intp).copy()
+    n = x.shape[-1]
     while True:
-        back = (j > 0) & test(x[np.maximum(j - 1, 0)] + beta)
-        ahead = ~back & (j < x.size) & ~test(x[np.minimum(j, x.size - 1)] + beta)
+        back = (j > 0) & test(np.take_along_axis(x, np.maximum(j - 1, 0), axis=-1) + beta)
+        ahead = ~back & (j < n) & ~test(np.take_along_axis(x, np.minimum(j, n - 1), axis=-1) + beta)
         if not (back.any() or ahead.any()):
             return j
         j += ahead.astype(np.intp) - back.astype(np.intp)
@@ -386,14 +397,15 @@ class PatternBand:
         cropped when that costs less."""
         r0, r1, c0, c1 = box
         rows, cols = self.shape
-        cost = resample.band_part_cost(runs, r1 - r0, c1 - c0, self.coeffs.shape)
+        cover, cost = resample.band_part_cover(runs, r1 - r0, c1 - c0, self.coeffs.shape)
         if not cost:
             return crop
         # the difference costs `band_part_cost` multiply-adds on the crop, the window's own band
         # a synthesis of the whole raster by FFTs, measured ~4x slower per rows x cols x log2(rows x cols)
         if cost < 4 * rows * cols * np.log2(rows * cols):
-            part = resample.dct_runs_part(self.coeffs, runs, self.shape, slice(r0, r1), slice(c0, c1), self.bases)
-            return (crop + part).astype(np.float32)
+            part = resample.dct_runs_part(self.coeffs, runs, self.shape, slice(r0, r1), slice(c0, c1), self.bases,
+                                          cover)
+            return crop + part  # both float32
         same, cross = s_band(self.shape, self.factor, self.s, jacobian)
         coeffs = self.coeffs[: same.shape[0], : same.shape[1]]
         return np.ascontiguousarray(resample.dct_synthesise(coeffs, self.shape, same, cross)[r0:r1, c0:c1])
@@ -458,12 +470,15 @@ class WindowBand:
             return np.full(x.shape, np.nan, dtype=np.float32)
         # the crop holds every 4 x 4 neighbourhood that lies in the raster (`keys_bicubic` reads
         # taps -1 .. 2 and leaves NaN where they leave its image, which is the raster at its edges)
-        r0 = int(np.clip(np.floor(y[finite].min()) - 1, 0, rows))
-        r1 = int(np.clip(np.floor(y[finite].max()) + 3, r0, rows))
-        c0 = int(np.clip(np.floor(x[finite].min()) - 1, 0, cols))
-        c1 = int(np.clip(np.floor(x[finite].max()) + 3, c0, cols))
+        at_x, at_y = (x, y) if finite.all() else (x[finite], y[finite])  # no copies in the usual case
+        r0 = int(np.clip(np.floor(at_y.min()) - 1, 0, rows))
+        r1 = int(np.clip(np.floor(at_y.max()) + 3, r0, rows))
+        c0 = int(np.clip(np.floor(at_x.min()) - 1, 0, cols))
+        c1 = int(np.clip(np.floor(at_x.max()) + 3, c0, cols))
         crop = band.read(self.jacobian, (r0, r1, c0, c1))
-        return resample.keys_bicubic(crop, x - c0, y - r0, a=-0.5)
+        x -= c0  # x and y are this call's own arrays
+        y -= r0
+        return resample.keys_bicubic(crop, x, y, a=-0.5)
 
 
 def noise_mask(shape: tuple[int, int], to_pattern: Map, s: int, support: int) -> np.ndarray:

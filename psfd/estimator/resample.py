@@ -14,7 +14,7 @@ import numpy as np
 from psfd.estimator import fourier
 
 __all__ = [
-    "band_part_cost", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_runs_part",
+    "band_part_cost", "band_part_cover", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_runs_part",
     "dct_synthesise", "erode", "keys_bicubic", "keys_grid", "keys_upsample", "keys_weights",
 ]
 
@@ -120,7 +120,7 @@ def dct_synthesise(
 
 def dct_runs_part(
     coeffs: np.ndarray, runs: tuple[np.ndarray, ...], size: tuple[int, int], rows: slice, cols: slice,
-    bases: dict | None = None,
+    bases: dict | None = None, cover: np.ndarray | None = None,
 ) -> np.ndarray:
     """The image of runs of DCT coefficients on ``rows`` x ``cols`` of the grid: `dct_synthesise` of a sparse band.
 
@@ -138,61 +138,66 @@ def dct_runs_part(
     B_cols[:, C]^T); the dense products cost rows x cols x (|R| + |C|),
     so the runs are split between the two to keep R + C small (`_cover`).
     Products and their sums in float32 (the band is read in float32,
-    `u_tilde`), the image returned in float64. ``bases`` (`dct_bases` of the
-    grid) saves tabulating the basis functions on every call.
+    `u_tilde`), and so is the image returned. ``bases`` (`dct_bases` of the
+    grid) saves tabulating the basis functions on every call, ``cover``
+    (`band_part_cover` of the same runs and crop) choosing the covers again.
     """
     out_r, out_c = int(size[0]), int(size[1])
     n_r = np.arange(out_r)[rows].size
     n_c = np.arange(out_c)[cols].size
-    out = np.zeros((n_r, n_c))
     row, start, stop, cos_w, sin_w = (np.asarray(x) for x in runs)
     keep = stop > start
-    row, start, stop, cos_w, sin_w = row[keep], start[keep], stop[keep], cos_w[keep], sin_w[keep]
-    if row.size == 0:
-        return out
-    length = stop - start
-    first = np.cumsum(length) - length  # where each run's coefficients begin in i, j
-    i = np.repeat(row, length)
-    j = np.arange(i.size) - np.repeat(first - start, length)
-    value = coeffs[i, j].astype(np.float32)
-    # sin(0) = 0 on the first row and column
-    sine = np.where((i == 0) | (j == 0), 0.0, np.repeat(sin_w, length)).astype(np.float32)
-    waves = [(wave, weights) for wave, weights in (("cos", value * np.repeat(cos_w, length).astype(np.float32)),
-                                                   ("sin", value * sine)) if np.any(weights)]
+    row, start, stop = row[keep], start[keep], stop[keep]
+    weights = {"cos": cos_w[keep].astype(np.float32), "sin": sin_w[keep].astype(np.float32)}
+    weights["sin"][row == 0] = 0.0  # sin(0) = 0 on the first row (and column, below)
+    weights = {wave: w for wave, w in weights.items() if np.any(w)}
+    if row.size == 0 or not weights:
+        return np.zeros((n_r, n_c), dtype=np.float32)
     if bases is None:
         bases = {}
         for axis, (n, at) in enumerate(((out_r, np.arange(out_r)[rows]), (out_c, np.arange(out_c)[cols]))):
             bases["cos", axis], bases["sin", axis] = _bases(n, coeffs.shape[axis], at)
         rows = cols = slice(None)
     # (frequency, sample) tables: the frequencies a product needs are rows, read without a gather of columns
-    tables = {wave: (bases[wave, 0][:, rows], bases[wave, 1][:, cols]) for wave, _ in waves}
-    by_row = _cover(row, start, stop, coeffs.shape, (n_r, n_c))[0]
-    # the runs in dense tiles (`_tiles`): each tile's rows r0 .. r1 - 1, columns c0 .. c1 - 1 and entries
-    # e0 .. e1 - 1 of i, j
+    tables = {wave: (bases[wave, 0][:, rows], bases[wave, 1][:, cols]) for wave in weights}
+    by_row = _cover(row, start, stop, coeffs.shape, (n_r, n_c))[0] if cover is None else np.asarray(cover)
+    # the runs in dense tiles (`_tiles`): runs lo .. hi - 1, rows r0 .. r1 - 1, columns c0 .. c1 - 1
     lo, hi = _tiles(row, start, stop, by_row, (n_r, n_c))
     turned = by_row[lo]
     r0, r1 = row[lo], row[hi - 1] + 1
     c0, c1 = np.minimum.reduceat(start, lo), np.maximum.reduceat(stop, lo)
-    e0, e1 = first[lo], first[hi - 1] + length[hi - 1]
+    count = np.add.reduceat(stop - start, lo)  # coefficients per tile
     # a tile of few coefficients, or mostly empty (scattered coefficients along an edge, as between
     # two nearly equal bands), costs less gathered: its basis functions times their weights, summed
     # per row (column) of D
-    scattered = (e1 - e0 < 32) | ((r1 - r0) * (c1 - c0) > 40 * (e1 - e0))
+    scattered = (count < 32) | ((r1 - r0) * (c1 - c0) > 40 * count)
     # the accumulators span the rows (columns) of the tiles that reach the image through them; through the
     # rows: N = D B_cols^T, then B_rows[:, R] N[R]; through the columns, kept transposed: M^T = D^T B_rows^T,
     # then M^T[C]^T B_cols[:, C]^T
     row_span = (int(r0[turned].min()), int(r1[turned].max())) if turned.any() else (0, 0)
     col_span = (int(c0[~turned].min()), int(c1[~turned].max())) if (~turned).any() else (0, 0)
-    through_rows = {wave: np.zeros((row_span[1] - row_span[0], n_c), dtype=np.float32) for wave, _ in waves}
-    through_cols = {wave: np.zeros((col_span[1] - col_span[0], n_r), dtype=np.float32) for wave, _ in waves}
+    through_rows = {wave: np.zeros((row_span[1] - row_span[0], n_c), dtype=np.float32) for wave in weights}
+    through_cols = {wave: np.zeros((col_span[1] - col_span[0], n_r), dtype=np.float32) for wave in weights}
     used_rows = np.zeros(row_span[1] - row_span[0], dtype=bool)
     used_cols = np.zeros(col_span[1] - col_span[0], dtype=bool)
     for t in np.flatnonzero(~scattered).tolist():
-        a0, a1, b0, b1, f0, f1 = int(r0[t]), int(r1[t]), int(c0[t]), int(c1[t]), int(e0[t]), int(e1[t])
-        at = (i[f0:f1] - a0, j[f0:f1] - b0)
-        for wave, weights in waves:
-            tile = np.zeros((a1 - a0, b1 - b0), dtype=np.float32)
-            tile[at] = weights[f0:f1]
+        # the tile is the box of coefficients times the weights of its runs (one run per row) where they lie
+        a0, a1, b0, b1, f0, f1 = int(r0[t]), int(r1[t]), int(c0[t]), int(c1[t]), int(lo[t]), int(hi[t])
+        at = np.arange(b0, b1)
+        inside = (at >= start[f0:f1, None]) & (at < stop[f0:f1, None])
+        if f1 - f0 == a1 - a0:  # a run in every row of the box
+            held = (coeffs[a0:a1, b0:b1] * inside).astype(np.float32, copy=False)
+            scale = {wave: w[f0:f1, None] for wave, w in weights.items()}
+        else:
+            held = np.zeros((a1 - a0, b1 - b0), dtype=np.float32)
+            held[row[f0:f1] - a0] = coeffs[row[f0:f1], b0:b1] * inside
+            scale = {wave: np.zeros((a1 - a0, 1), dtype=np.float32) for wave in weights}
+            for wave, w in weights.items():
+                scale[wave][row[f0:f1] - a0, 0] = w[f0:f1]
+        for wave in weights:
+            tile = held * scale[wave]
+            if wave == "sin" and b0 == 0:
+                tile[:, 0] = 0.0
             table_r, table_c = tables[wave]
             if turned[t]:
                 through_rows[wave][a0 - row_span[0]: a1 - row_span[0]] += tile @ table_c[b0:b1]
@@ -202,24 +207,31 @@ def dct_runs_part(
             used_rows[a0 - row_span[0]: a1 - row_span[0]] = True
         else:
             used_cols[b0 - col_span[0]: b1 - col_span[0]] = True
-    tile_of = np.repeat(np.arange(lo.size), e1 - e0)  # the tile of each entry of i, j
+    tile_of = np.repeat(np.arange(lo.size), hi - lo)  # the tile of each run
     for way in (False, True):
-        entries = np.flatnonzero((scattered & (turned == way))[tile_of])
-        if not entries.size:
-            continue
-        kept, summed = (i, j) if way else (j, i)  # D's index kept (columns by columns), the one summed over
-        order = entries[np.argsort(kept[entries], kind="stable")]
-        index, first_of, counts = np.unique(kept[order], return_index=True, return_counts=True)
-        offset = row_span[0] if way else col_span[0]
-        (used_rows if way else used_cols)[index - offset] = True
-        for wave, weights in waves:
-            terms = tables[wave][1 if way else 0][summed[order]]
-            terms *= weights[order, None]
-            _add_groups((through_rows if way else through_cols)[wave], index - offset, terms, first_of, counts)
+        run = np.flatnonzero((scattered & (turned == way))[tile_of])
+        if run.size:
+            # the runs of the scattered tiles, coefficient by coefficient
+            length = stop[run] - start[run]
+            which = np.repeat(run, length)
+            j = np.arange(which.size) + np.repeat(start[run] - (np.cumsum(length) - length), length)
+            i = row[which]
+            kept, summed = (i, j) if way else (j, i)  # D's index kept (columns by columns), the one summed over
+            offset = row_span[0] if way else col_span[0]
+            index, order, position = _group_order(kept)
+            (used_rows if way else used_cols)[index - offset] = True
+            value = coeffs[i[order], j[order]].astype(np.float32)
+            for wave, w in weights.items():
+                scale = value * w[which[order]]
+                if wave == "sin":
+                    scale[j[order] == 0] = 0.0
+                terms = tables[wave][1 if way else 0][summed[order]]
+                terms *= scale[:, None]
+                _add_positions((through_rows if way else through_cols)[wave], index - offset, terms, position)
     # both parts through both covers as one product: B_rows[:, R] N[R] + M[:, C] B_cols[:, C]^T stacked along
     # the summed index (the same multiply-adds as four products, at the cost of one call)
     left, right = [], []
-    for wave, _ in waves:
+    for wave in weights:
         table_r, table_c = tables[wave]
         if used_cols.any():
             left.append(through_cols[wave][used_cols])
@@ -227,24 +239,44 @@ def dct_runs_part(
         if used_rows.any():
             left.append(table_r[row_span[0]: row_span[1]][used_rows])
             right.append(through_rows[wave][used_rows])
-    if left:
-        out += np.concatenate(left).T @ np.concatenate(right)
-    return out
+    if not left:
+        return np.zeros((n_r, n_c), dtype=np.float32)
+    return np.concatenate(left).T @ np.concatenate(right)
 
 
-def _add_groups(out: np.ndarray, index: np.ndarray, terms: np.ndarray, first: np.ndarray, counts: np.ndarray) -> None:
-    """out[index[g]] += the sum of the rows first[g] .. first[g] + counts[g] - 1 of ``terms``, for every group g.
+def _group_order(kept: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The entries of `dct_runs_part`'s scattered coefficients ordered for `_add_positions`: the distinct values of
+    ``kept`` (its groups), most entries first, and the order of the entries: the first entry of every group, then
+    the second of every group that has one, ... (so that each pass adds a block of consecutive rows to the first
+    groups); ``position`` holds where each pass begins, and ends."""
+    by_kept = np.argsort(kept, kind="stable")
+    value = kept[by_kept]
+    new = np.r_[True, value[1:] != value[:-1]]
+    first = np.flatnonzero(new)
+    counts = np.diff(np.r_[first, value.size])
+    group = np.cumsum(new) - 1  # of each entry, in the order by_kept
+    place = np.arange(value.size) - first[group]  # its place within its group
+    by_count = np.argsort(-counts, kind="stable")
+    rank = np.empty(counts.size, dtype=np.intp)
+    rank[by_count] = np.arange(counts.size)
+    order = by_kept[np.argsort(place * counts.size + rank[group])]
+    position = np.r_[0, np.cumsum(np.bincount(place))]
+    return value[first][by_count], order, position
 
-    Between two close bands most groups hold one or two rows: adding the groups' first rows, then their
-    second rows, ... costs a few indexed additions, 5-10x less than np.add.reduceat along axis 0 (which
-    pays per group); long groups go to reduceat.
+
+def _add_positions(out: np.ndarray, index: np.ndarray, terms: np.ndarray, position: np.ndarray) -> None:
+    """out[index[g]] += the sum of the terms of group g, with ``terms`` in `_group_order`'s order.
+
+    Between two close bands most groups hold one or two entries: the groups' sums are built by a few
+    additions of consecutive rows (pass p adds the p-th entry of the groups that have one, which are the
+    first groups), then added to ``out`` at once; np.add.at or np.add.reduceat along axis 0 pay per entry or
+    per group, 5-10x more. ``terms`` is overwritten.
     """
-    if counts.max() > 8:
-        out[index] += np.add.reduceat(terms, first, axis=0)
-        return
-    for p in range(int(counts.max())):
-        some = counts > p
-        out[index[some]] += terms[first[some] + p]
+    sums = terms[position[0]: position[1]]
+    for p in range(1, position.size - 1):
+        block = terms[position[p]: position[p + 1]]
+        sums[: block.shape[0]] += block
+    out[index] += sums
 
 
 def _tiles(row: np.ndarray, start: np.ndarray, stop: np.ndarray, by_row: np.ndarray,
@@ -313,11 +345,19 @@ def _cover(row: np.ndarray, start: np.ndarray, stop: np.ndarray, shape: tuple[in
 def band_part_cost(runs: tuple[np.ndarray, ...], rows: int, cols: int, shape: tuple[int, int]) -> float:
     """Multiply-adds of `dct_runs_part` of ``runs`` of a ``shape`` box of coefficients on ``rows`` x ``cols``
     (both parts)."""
+    return band_part_cover(runs, rows, cols, shape)[1]
+
+
+def band_part_cover(runs: tuple[np.ndarray, ...], rows: int, cols: int,
+                    shape: tuple[int, int]) -> tuple[np.ndarray, float]:
+    """`band_part_cost`, and which of the (non-empty) runs `dct_runs_part` synthesises through their rows: its
+    ``cover`` argument, for a call on the same runs and crop size that costs that."""
     row, start, stop = (np.asarray(x) for x in runs[:3])
     keep = stop > start
     if not keep.any():
-        return 0.0
-    return 2.0 * _cover(row[keep], start[keep], stop[keep], shape, (rows, cols))[1]
+        return np.zeros(0, dtype=bool), 0.0
+    by_row, cost = _cover(row[keep], start[keep], stop[keep], shape, (rows, cols))
+    return by_row, 2.0 * cost
 
 
 def dct_bases(size: tuple[int, int], keep: tuple[int, int]) -> dict:
@@ -396,18 +436,22 @@ def keys_upsample(values: np.ndarray, s: int, start: tuple[int, int], shape: tup
     lens distortion) is reproduced to far below its own precision.
     """
     out = np.asarray(values, dtype=np.float64)
+    w = keys_weights(np.arange(s) / s)  # (phase, tap)
     for axis in (0, 1):
         n = out.shape[axis] - 3
-        w = keys_weights(np.arange(s) / s)  # (phase, tap)
-        taps = [np.take(out, np.arange(k, k + n), axis=axis) for k in range(4)]
+        # tap k of every output sample is a shifted view of the input: its products summed in place
         if axis == 0:
-            up = sum(taps[k][:, None, :] * w[None, :, k, None] for k in range(4)).reshape(n * s, -1)
+            up = out[0:n, None, :] * w[None, :, 0, None]
+            for k in range(1, 4):
+                up += out[k: k + n, None, :] * w[None, :, k, None]
             first = start[0] % s
-            out = up[first : first + shape[0]]
+            out = up.reshape(n * s, -1)[first: first + shape[0]]
         else:
-            up = sum(taps[k][:, :, None] * w[None, None, :, k] for k in range(4)).reshape(-1, n * s)
+            up = out[:, 0:n, None] * w[None, None, :, 0]
+            for k in range(1, 4):
+                up += out[:, k: k + n, None] * w[None, None, :, k]
             first = start[1] % s
-            out = up[:, first : first + shape[1]]
+            out = up.reshape(-1, n * s)[:, first: first + shape[1]]
     return out
 
 
@@ -452,24 +496,33 @@ def keys_bicubic(
     x0 = np.floor(x)
     y0 = np.floor(y)
     inside = (x0 >= 1) & (x0 <= cols - 3) & (y0 >= 1) & (y0 <= rows - 3)
-    out = np.full(x.shape, fill, dtype=dtype)
     if not inside.any():
-        return out
-    xi = x0[inside].astype(np.intp)
-    yi = y0[inside].astype(np.intp)
-    wx = keys_weights((x[inside] - xi).astype(dtype), a)
-    wy = keys_weights((y[inside] - yi).astype(dtype), a)
-    # Flat indices into the raveled image: np.take on 1-D is much faster than 2-D fancy indexing.
-    base = yi * cols + xi
+        return np.full(x.shape, fill, dtype=dtype)
+    every = bool(inside.all())  # the usual case: no copies of the samples inside
+    xi = (x0 if every else x0[inside]).astype(np.intp)
+    yi = (y0 if every else y0[inside]).astype(np.intp)
+    wx = _keys_taps(((x if every else x[inside]) - xi).astype(dtype), a)
+    wy = _keys_taps(((y if every else y[inside]) - yi).astype(dtype), a)
+    # Flat indices into the raveled image: np.take on 1-D is much faster than 2-D fancy indexing. Every tap
+    # reads the image from its offset on, at the index of the top-left tap: no index array per tap.
+    corner = (yi - 1) * cols + (xi - 1)
     acc = np.zeros(xi.shape, dtype=dtype)
     for j in range(4):
-        row = base + (j - 1) * cols
-        line = wx[:, 0] * np.take(flat, row - 1)
+        line = wx[0] * np.take(flat[j * cols:], corner)
         for i in range(1, 4):
-            line += wx[:, i] * np.take(flat, row + (i - 1))
-        acc += wy[:, j] * line
+            line += wx[i] * np.take(flat[j * cols + i:], corner)
+        acc += wy[j] * line
+    if every:
+        return acc
+    out = np.full(x.shape, fill, dtype=dtype)
     out[inside] = acc
     return out
+
+
+def _keys_taps(t: np.ndarray, a: float) -> tuple[np.ndarray, ...]:
+    """`keys_weights` as four arrays of the shape of ``t``, one per tap (the same expressions, contiguous)."""
+    u = 1 - t
+    return (a * t * u * u, ((a + 2) * t - (a + 3)) * t * t + 1, ((a + 2) * u - (a + 3)) * u * u + 1, a * u * t * t)
 
 
 def erode(mask: np.ndarray, radius: int) -> np.ndarray:
