@@ -23,6 +23,8 @@ from psfd.estimator import gamma, mtf, sharpedge, simulate
 from psfd.estimator.kernels import PSF
 from psfd.estimator.mtf import HIGH, LOW, band_errors
 
+from conftest import DATA
+
 S = 4
 SUPPORT = 17
 WINDOW = 80  # observed pixels per side, the thesis's gamma window
@@ -222,18 +224,39 @@ def test_a_failed_comparison_figure_leaves_no_output_folder(tmp_path, monkeypatc
     assert list(tmp_path.iterdir()) == []
 
 
-def test_compare_of_the_real_pair_is_each_method_run_alone(data_dir, monkeypatch):
-    """The largest frame's methods here, the other frame's and the pair's in the forked worker: the estimates,
-    and their order, of each method run alone in this process (the two-photo estimate, then the sharp-edge
-    estimate of each photo), bit for bit; the frame done here shows its progress, up to the end."""
+@pytest.fixture(scope="module")
+def real_pair_alone():
+    """The real pair's frames and each method run alone in this process: the two-photo estimate, then the
+    sharp-edge estimate of each photo (its PSFs, or why it could not run)."""
+    from psfd.estimator import raw, twoscale
+    from psfd.vocabulary import DEFAULT_S, SHARP_EDGE, TWO_PHOTO
+
+    far = raw.load_frame(DATA / "IMG_0602_v1_CUT.pgm", "g1")
+    near = raw.load_frame(DATA / "IMG_0608_v1.pgm", "g1")
+    [pair] = twoscale.estimate_pair(far, near, s=DEFAULT_S[TWO_PHOTO])
+    alone = [("two-photo IMG_0602_v1_CUT.pgm+IMG_0608_v1.pgm", pair)]
+    for frame in (far, near):
+        label = f"sharp-edge w=2 {Path(frame.source).name}"
+        try:
+            alone += [(label, psf) for psf in sharpedge.estimate_edges(frame, s=DEFAULT_S[SHARP_EDGE])]
+        except PsfdError as exc:
+            alone.append((label, str(exc)))
+    return far, near, alone
+
+
+@pytest.mark.parametrize("schedule", ["forked", "forked, one search at a time", "one core"])
+def test_compare_of_the_real_pair_is_each_method_run_alone(real_pair_alone, monkeypatch, schedule):
+    """The largest frame searched and its methods run here, the other frame searched and its methods and the
+    pair's run in the forked worker (which waits for this frame's kind before the pair, and before its own
+    search when the searches' memory would not fit together); or, on one core, all in this process: the
+    estimates, and their order, of each method run alone in this process, bit for bit; the frame done here
+    shows its progress, up to the end."""
     import contextlib
 
     from psfd.cli import compare, output
-    from psfd.estimator import raw, twoscale
     from psfd.vocabulary import BERNOULLI, DEFAULT_S, SHARP_EDGE, TWO_PHOTO
 
-    far = raw.load_frame(data_dir / "IMG_0602_v1_CUT.pgm", "g1")
-    near = raw.load_frame(data_dir / "IMG_0608_v1.pgm", "g1")
+    far, near, alone = real_pair_alone
     sizes = {m: {"s": DEFAULT_S[m], "support": None, "grid": (1, 1)} for m in (BERNOULLI, TWO_PHOTO, SHARP_EDGE)}
     bars = {}
 
@@ -243,15 +266,11 @@ def test_compare_of_the_real_pair_is_each_method_run_alone(data_dir, monkeypatch
         yield None if quiet else bars[label].append
 
     monkeypatch.setattr(output, "progress_bar", recorded)
+    if schedule == "forked, one search at a time":
+        monkeypatch.setattr(compare, "SEARCH_TOGETHER_PIXELS", 0)
+    if schedule == "one core":
+        monkeypatch.setattr(compare, "usable_cores", lambda: 1)
     found = compare.run_methods([far, near], sizes, [2.0], quiet=0)
-    [pair] = twoscale.estimate_pair(far, near, s=DEFAULT_S[TWO_PHOTO])
-    alone = [("two-photo IMG_0602_v1_CUT.pgm+IMG_0608_v1.pgm", pair)]
-    for frame in (far, near):
-        label = f"sharp-edge w=2 {Path(frame.source).name}"
-        try:
-            alone += [(label, psf) for psf in sharpedge.estimate_edges(frame, s=DEFAULT_S[SHARP_EDGE])]
-        except PsfdError as exc:
-            alone.append((label, str(exc)))
     assert [e.label for e in found] == [label for label, _ in alone]
     for estimate, (_, expected) in zip(found, alone):
         if isinstance(expected, str):
@@ -261,3 +280,52 @@ def test_compare_of_the_real_pair_is_each_method_run_alone(data_dir, monkeypatch
             assert estimate.psf.params == expected.params
     near_bar = bars["sharp-edge w=2 IMG_0608_v1.pgm"]  # the largest frame: done in this process, with its bar
     assert near_bar and near_bar[-1] == pytest.approx(1.0) and near_bar == sorted(near_bar)
+
+
+def test_a_frames_kind_does_not_depend_on_what_its_thread_drew_before(monkeypatch):
+    """The board search's k-d tree draws from OpenCV's per-thread generator, and from some states it labels
+    this board's corners otherwise (another of the board's symmetries) or misses it: the kind's search starts
+    from the state of a fresh thread whatever the thread drew before, so either process may search a frame."""
+    import threading
+
+    from psfd.cli import compare
+    from test_sharpedge import S as EDGE_S, SUPPORT as EDGE_SUPPORT, edge_frame
+
+    frame = edge_frame(simulate.gaussian_psf(0.6, 0.5, theta=0.4, s=EDGE_S, support=EDGE_SUPPORT), px_per_square=14,
+                       angle=20, seed=1, distortion=0.02)
+    views = []
+    locate = sharpedge.locate_target
+    monkeypatch.setattr(sharpedge, "locate_target", lambda image: views.append(locate(image)) or views[-1])
+    fresh = threading.Thread(target=compare._has_edge_target, args=(frame,))
+    fresh.start()
+    fresh.join()
+    cv2.setRNGSeed(1)  # a search straight from this state labels the corners otherwise
+    assert compare._has_edge_target(frame)
+    assert len(views) == 2
+    np.testing.assert_array_equal(views[1].homography, views[0].homography)
+    cv2.setRNGSeed(1)
+    assert not np.array_equal(locate(frame.data / frame.white).homography, views[0].homography)
+
+
+def test_the_worker_waiting_for_a_message_ends_when_the_parent_sends_none():
+    """`_Message` in a forked worker: the value sent, or EOFError once the sender's end is closed unsent
+    (the worker closed its own copy of it), rather than a worker waiting for ever."""
+    import multiprocessing
+
+    from psfd.cli import compare
+
+    for send in (True, False):
+        message = compare._Message(True)
+        compare._BESIDE = message.receive
+        try:
+            with multiprocessing.get_context("fork").Pool(1) as pool:
+                pending = pool.apply_async(compare._run_beside)
+                if send:
+                    message.send("plain")
+                    assert pending.get(timeout=30) == "plain"
+                else:
+                    message.pipe[1].close()
+                    with pytest.raises(EOFError):
+                        pending.get(timeout=30)
+        finally:
+            compare._BESIDE = None

@@ -279,6 +279,31 @@ def test_tiled_prediction_gives_the_dense_normal_equations(smooth_frame, form):
     assert btb == pytest.approx(d_btb, rel=tol)
 
 
+@pytest.mark.parametrize("form", ["blind", "edge target", "Bernoulli marks"])
+def test_tiles_predicted_on_two_threads_give_the_one_thread_equations(smooth_frame, form, monkeypatch):
+    """The tiles' predictions on two threads, taken into the equations in the tiles' order: the sums of one
+    thread, bit for bit (few tiles ahead, so that the threads finish tiles out of order many times)."""
+    from psfd import workers
+    from psfd.estimator import raw
+
+    frame = smooth_frame if form != "Bernoulli marks" else raw.load_frame(DATA / "img_example.pgm", "g1")
+    image = np.asarray(frame.data, dtype=np.float64) / float(frame.white)
+    known = None if form == "blind" else sharpedge.locate_pattern(image, frame.saturated)
+    rows, cols = frame.data.shape
+    kernel_radius = (SUPPORT // 2) / S
+    args = (image, frame.saturated, (0, 0, cols, rows), S, SUPPORT, 2 * kernel_radius,
+            int(np.ceil(2 * kernel_radius)) + 2, sharpedge.noise_sigma(image), known)
+    tiles = sharpedge._tiles
+    monkeypatch.setattr(sharpedge, "_tiles", lambda rows, cols, size=24: tiles(rows, cols, size))  # many tiles
+    monkeypatch.setattr(workers, "usable_cores", lambda: 2)
+    two = sharpedge._window_equations(*args)
+    monkeypatch.setattr(workers, "usable_cores", lambda: 1)
+    one = sharpedge._window_equations(*args)
+    assert one[3] == two[3] > SUPPORT * SUPPORT
+    for a, b in zip(one[:3], two[:3]):
+        np.testing.assert_array_equal(a, b)
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_the_threshold_percentile_is_numpys_without_holding_every_value(seed):
     """detect_edges' 99.5th percentile of the gradient magnitude, from the tiles' values keeping only

@@ -131,8 +131,14 @@ def _has_bernoulli(frame) -> bool:
 
 
 def _has_edge_target(frame) -> bool:
+    import cv2
+
     from psfd.estimator import sharpedge
 
+    # the sector-based search's k-d tree draws from OpenCV's per-thread generator: each frame's search starts
+    # from the state a fresh thread starts with (seed 0 stands for it), as it did when every search had a
+    # fresh process or thread, so what a frame shows does not depend on the thread or process searching it
+    cv2.setRNGSeed(0)
     try:
         sharpedge.locate_target(frame.data / frame.white)
     except PsfdError:
@@ -162,33 +168,66 @@ def _size(frame) -> int:
 def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quiet: int = 1) -> list[Estimate]:
     """Every method that applies to the frames (see the module docstring), in a stable order.
 
-    ``sizes`` holds each method's ``s`` and ``support`` (`psfd.cli.options.sizes`). The largest
-    frame's methods run in this process, with a progress bar on a terminal unless ``quiet``;
-    the other frames' and the pair's run beside them in a forked worker (`_Beside`), without one.
+    ``sizes`` holds each method's ``s`` and ``support`` (`psfd.cli.options.sizes`). What each frame
+    shows (`_kind`) decides its methods. The largest frame is searched and its methods run in this
+    process, with a progress bar on a terminal unless ``quiet``; the other frames are searched and
+    their methods and the pair's run beside it in a forked worker (`_Beside`), without one: each
+    frame's methods start as soon as its own search ends (the largest frame's sharp-edge estimate,
+    the longest of a comparison, no longer waits for the other frames' searches).
     """
-    # what each frame shows decides the methods: the frames are searched for the targets at once, unless
-    # the searches' temporaries together would pass the memory bound (some 40 bytes per pixel each)
-    searches = [lambda f=frame: _kind(f) for frame in frames]
-    together = sum(_size(frame) for frame in frames) <= SEARCH_TOGETHER_PIXELS
-    kinds = concurrently(*searches) if together else [search() for search in searches]
-    plain = [frame for frame, kind in zip(frames, kinds) if kind == PLAIN_FRAME]
     main = max(range(len(frames)), key=lambda i: _size(frames[i]))
+    others = [i for i in range(len(frames)) if i != main]
+    if not others:
+        kinds = {main: _kind(frames[main])}
+        return _in_order(kinds, {main: _frame_methods(frames[main], kinds[main], sizes, weights, quiet)})
+    # the frames are searched for the targets at once, unless the searches' temporaries together would pass
+    # the memory bound (some 40 bytes per pixel each): then the others wait for this frame's search
+    together = sum(_size(frame) for frame in frames) <= SEARCH_TOGETHER_PIXELS
+    # the searches' and the methods' modules, loaded once before the fork rather than in both processes
+    from psfd.cli import output  # noqa: F401
+    from psfd.estimator import detect, sharpedge, twoscale  # noqa: F401
+
+    told = _Message(_forks())  # this frame's kind, for the worker: the pair needs it
     # the worker draws no bar: two processes redrawing one terminal line would garble it
-    beside_calls = [(i, lambda f=frames[i], k=kinds[i]: _frame_methods(f, k, sizes, weights, 1))
-                    for i in range(len(frames)) if i != main]
-    if len(plain) == 2:
-        beside_calls.append((len(frames), lambda: _pair(*plain, sizes)))  # its results' key: after the frames'
-    beside = _Beside(lambda: [(i, call()) for i, call in beside_calls]) if beside_calls else None
+    beside = _Beside(lambda: _beside_main(frames, main, told.receive, together, sizes, weights))
     try:
+        kinds = {main: _kind(frames[main])}
+        told.send(kinds[main])
         results = {main: _frame_methods(frames[main], kinds[main], sizes, weights, quiet)}
     except BaseException:
-        if beside is not None:
-            beside.cancel()
+        beside.cancel()
         raise
-    if beside is not None:
-        results.update(beside.result())
-    targets = [e for i, kind in enumerate(kinds) if kind != PLAIN_FRAME for e in results[i]]
-    blind = [e for i, kind in enumerate(kinds) if kind == PLAIN_FRAME for e in results[i]]
+    other_kinds, other_results = beside.result()
+    kinds.update(other_kinds)
+    results.update(other_results)
+    return _in_order(kinds, results)
+
+
+def _beside_main(frames: list, main: int, main_kind: Callable[[], str], together: bool,
+                 sizes: dict[str, dict], weights: list[float]) -> tuple[dict[int, str], dict[int, list]]:
+    """The work beside the largest frame's (``main``): the other frames' kinds and methods, then the pair's.
+
+    ``main_kind`` returns the largest frame's kind, waiting for it if need be. Returns the other
+    frames' kinds and results by frame index; the pair's results under the index ``len(frames)``.
+    """
+    others = [i for i in range(len(frames)) if i != main]
+    if not together:
+        main_kind()  # this frame's search has ended: the memory of its temporaries is free
+    searches = [lambda f=frames[i]: _kind(f) for i in others]
+    kinds = dict(zip(others, concurrently(*searches) if together else [search() for search in searches]))
+    results = {i: _frame_methods(frames[i], kinds[i], sizes, weights, 1) for i in others}
+    every = {**kinds, main: main_kind()}
+    plain = [frames[i] for i in range(len(frames)) if every[i] == PLAIN_FRAME]
+    if len(plain) == 2:
+        results[len(frames)] = _pair(*plain, sizes)
+    return kinds, results
+
+
+def _in_order(kinds: dict[int, str], results: dict[int, list]) -> list[Estimate]:
+    """The estimates in the table's order: the targets' frames' by frame, the pair's, the plain frames'."""
+    frames = sorted(kinds)
+    targets = [e for i in frames if kinds[i] != PLAIN_FRAME for e in results[i]]
+    blind = [e for i in frames if kinds[i] == PLAIN_FRAME for e in results[i]]
     return targets + results.get(len(frames), []) + blind
 
 
@@ -240,24 +279,31 @@ def _run_beside() -> Any:
     return _BESIDE()
 
 
+def _forks() -> bool:
+    """Whether a `_Beside` call runs in a forked worker: with two cores or more, where fork exists."""
+    import multiprocessing  # only here: `psfd --help` loads this module too
+
+    return usable_cores() >= 2 and "fork" in multiprocessing.get_all_start_methods()
+
+
 class _Beside:
     """A call run in a forked worker while this process goes on with other work.
 
     The frames of a comparison are independent, and so is the two-photo estimate
     of a pair (SIFT, resampling): on two cores they overlap. With one core, or
-    no fork, the call runs here at once. The worker receives nothing pickled (it
-    inherits the frames by the fork) and sends back what the call returns, as
-    `psfd.estimator.bernoulli` does for its windows. The call catches the
-    failures the photographs cause (`_attempt`); anything else is raised here.
+    no fork, the call runs here when its result is asked for. The worker receives
+    nothing pickled (it inherits the frames by the fork) and sends back what the
+    call returns, as `psfd.estimator.bernoulli` does for its windows. The call
+    catches the failures the photographs cause (`_attempt`); anything else is raised here.
     """
 
     def __init__(self, call: Callable[[], Any]) -> None:
         global _BESIDE
-        import multiprocessing  # only here: `psfd --help` loads this module too
+        import multiprocessing
 
         self.pool = self.pending = None
-        if usable_cores() < 2 or "fork" not in multiprocessing.get_all_start_methods():
-            self.done = call()
+        if not _forks():
+            self.call = call
             return
         _BESIDE = call
         try:
@@ -269,7 +315,7 @@ class _Beside:
     def result(self) -> Any:
         """What the call returned, waiting for the worker if it still runs."""
         if self.pool is None:
-            return self.done
+            return self.call()
         try:
             done = self.pending.get()
             self.pool.close()
@@ -284,6 +330,38 @@ class _Beside:
         if self.pool is not None:
             self.pool.terminate()
             self.pool.join()
+
+
+class _Message:
+    """One value sent once from this process to a `_Beside` call, which may wait for it.
+
+    In a forked worker, a pipe made before the fork: the worker closes its copy of the sending
+    end before it waits, so that it ends (EOFError) rather than waits for ever if this process
+    dies before it sends. Without a worker the call runs after the value was sent.
+    """
+
+    def __init__(self, forked: bool) -> None:
+        self.pipe = None
+        if forked:
+            import multiprocessing
+
+            self.pipe = multiprocessing.get_context("fork").Pipe(duplex=False)  # (receiving, sending)
+
+    def send(self, value: Any) -> None:
+        if self.pipe is None:
+            self.value = value
+        else:
+            self.pipe[1].send(value)
+            self.pipe[1].close()
+
+    def receive(self) -> Any:
+        """The value sent, waiting for it; in the worker, the same value on every call."""
+        if self.pipe is None or hasattr(self, "value"):
+            return self.value
+        if not self.pipe[1].closed:
+            self.pipe[1].close()
+        self.value = self.pipe[0].recv()
+        return self.value
 
 
 # ---------------------------------------------------------------- table, figure and files

@@ -25,6 +25,7 @@ predicting every sample of the s-grid.
 
 from __future__ import annotations
 
+import copy
 import os
 from dataclasses import dataclass, fields
 from typing import Callable
@@ -457,8 +458,9 @@ class _BlindPrediction:
         self.reach = float(np.hypot(band, 1.0))
         self.tree = cKDTree(np.column_stack([edges.x, edges.y])) if len(edges) else None
 
-    def focus(self, box: tuple[int, int, int, int]) -> None:
-        """Nothing to prepare per block (see `_TargetPrediction.focus`)."""
+    def focus(self, box: tuple[int, int, int, int]) -> "_BlindPrediction":
+        """The prediction over this block of samples: itself, it prepares nothing per block (see `_accumulate`)."""
+        return self
 
     def predict(self, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(predicted, sharp) at samples (i, j), i.e. at pixel (j / s, i / s)."""
@@ -556,57 +558,98 @@ def _accumulate(crop: np.ndarray, candidates: np.ndarray, prediction, s: int, su
     ``candidates`` (pixels that may qualify, their footprints inside the
     s-grid), from a coarse lattice of samples to every sample: a candidate is
     dropped as soon as one sample of its footprint is not predicted, so the
-    s-grid is never built whole.
+    s-grid is never built whole. The tiles' predictions are independent: with
+    two cores the next tiles are predicted on a second thread (the k-d tree's
+    search and OpenCV release the GIL) while the equations take in the tiles
+    in their order, the same sums in the same order as on one thread.
 
     Returns
     -------
     ata, atb, btb, and the number of pixels used.
     """
-    half = support // 2
-    grid = (s * (crop.shape[0] - 1) + 1, s * (crop.shape[1] - 1) + 1)
     n = support * support
-    levels = _levels(s)
     ata, atb, btb, used = np.zeros((n, n)), np.zeros(n), 0.0, 0
     done = 0
-    for y0, y1, x0, x1 in tiles:
-        cy, cx = np.nonzero(candidates[y0:y1, x0:x1])
-        if cy.size:
-            cy, cx = cy + y0, cx + x0
-            # the block of samples the tile's footprints cover, and each candidate's footprint corner in it
-            bi0, bj0 = max(0, s * y0 - half), max(0, s * x0 - half)
-            bi1, bj1 = min(grid[0], s * (y1 - 1) + half + 1), min(grid[1], s * (x1 - 1) + half + 1)
-            ci, cj = s * cy - half - bi0, s * cx - half - bj0
-            prediction.focus((bi0, bi1, bj0, bj1))
-            queried = np.zeros((bi1 - bi0, bj1 - bj0), bool)
-            known = np.zeros_like(queried)
-            sharp = np.zeros(queried.shape)
-            alive = np.ones(cy.size, bool)
-            for step in levels:
-                if not alive.any():
-                    break
-                corners = np.zeros_like(queried)
-                corners[ci[alive], cj[alive]] = True
-                # the samples of this level's lattice (multiples of step) in the footprints, not yet asked:
-                # looked for on the lattice alone, in the same raster order
-                i0, j0 = -bi0 % step, -bj0 % step
-                lattice = (slice(i0, None, step), slice(j0, None, step))
-                need = _box_any(corners, support, forward=False)[lattice]
-                need &= ~queried[lattice]
-                li, lj = np.nonzero(need)
-                ii, jj = li * step + i0, lj * step + j0
-                known[ii, jj], sharp[ii, jj] = prediction.predict(ii + bi0, jj + bj0)
-                queried[ii, jj] = True
-                alive &= ~_box_any(queried & ~known, support, forward=True)[ci, cj]
-            if alive.any():
-                patches = sliding_window_view(sharp, (support, support))
-                btb += _gram(patches, ci[alive], cj[alive], crop[cy[alive], cx[alive]], support, ata, atb)
-                used += int(alive.sum())
+    for footprints in _tile_predictions(crop, candidates, prediction, s, support, tiles):
+        if footprints is not None:
+            sharp, ci, cj, observed = footprints
+            btb += _gram(sliding_window_view(sharp, (support, support)), ci, cj, observed, support, ata, atb)
+            used += ci.size
         if progress is not None:
             progress()
         done += 1
         if done % TRIM_EVERY == 0:
             _trim_heap()
     return ata, atb, btb, used
+
+
+TILES_AHEAD = 4  # tiles handed to the two threads ahead of the equations: their temporaries stay few
+
+
+def _tile_predictions(crop, candidates, prediction, s, support, tiles):
+    """Each tile's `_tile_footprints`, in the tiles' order; two tiles at a time on two threads where there are two cores."""
+    from psfd.workers import usable_cores
+
+    call = lambda tile: _tile_footprints(crop, candidates, prediction, s, support, tile)  # noqa: E731
+    if usable_cores() < 2 or len(tiles) < 2:
+        yield from map(call, tiles)
+        return
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as pool:
+        pending = deque(pool.submit(call, tile) for tile in tiles[:TILES_AHEAD])
+        for tile in tiles[TILES_AHEAD:]:
+            done = pending.popleft().result()
+            pending.append(pool.submit(call, tile))
+            yield done
+        while pending:
+            yield pending.popleft().result()
+
+
+def _tile_footprints(crop, candidates, prediction, s, support, tile):
+    """The predicted block of one tile and its candidates whose whole footprint is predicted, or None.
+
+    Returns
+    -------
+    (sharp, ci, cj, observed): the block of s-grid samples, each kept candidate's footprint corner in it,
+    and its observed value.
+    """
+    y0, y1, x0, x1 = tile
+    cy, cx = np.nonzero(candidates[y0:y1, x0:x1])
+    if not cy.size:
+        return None
+    half = support // 2
+    grid = (s * (crop.shape[0] - 1) + 1, s * (crop.shape[1] - 1) + 1)
+    cy, cx = cy + y0, cx + x0
+    # the block of samples the tile's footprints cover, and each candidate's footprint corner in it
+    bi0, bj0 = max(0, s * y0 - half), max(0, s * x0 - half)
+    bi1, bj1 = min(grid[0], s * (y1 - 1) + half + 1), min(grid[1], s * (x1 - 1) + half + 1)
+    ci, cj = s * cy - half - bi0, s * cx - half - bj0
+    block = prediction.focus((bi0, bi1, bj0, bj1))
+    queried = np.zeros((bi1 - bi0, bj1 - bj0), bool)
+    known = np.zeros_like(queried)
+    sharp = np.zeros(queried.shape)
+    alive = np.ones(cy.size, bool)
+    for step in _levels(s):
+        if not alive.any():
+            break
+        corners = np.zeros_like(queried)
+        corners[ci[alive], cj[alive]] = True
+        # the samples of this level's lattice (multiples of step) in the footprints, not yet asked:
+        # looked for on the lattice alone, in the same raster order
+        i0, j0 = -bi0 % step, -bj0 % step
+        lattice = (slice(i0, None, step), slice(j0, None, step))
+        need = _box_any(corners, support, forward=False)[lattice]
+        need &= ~queried[lattice]
+        li, lj = np.nonzero(need)
+        ii, jj = li * step + i0, lj * step + j0
+        known[ii, jj], sharp[ii, jj] = block.predict(ii + bi0, jj + bj0)
+        queried[ii, jj] = True
+        alive &= ~_box_any(queried & ~known, support, forward=True)[ci, cj]
+    if not alive.any():
+        return None
+    return sharp, ci[alive], cj[alive], crop[cy[alive], cx[alive]]
 
 
 # --------------------------------------------------------------------------- PSF (sec. 5)
@@ -1033,9 +1076,14 @@ class _TargetPrediction:
         self.tree = cKDTree(np.column_stack([edges.x, edges.y])) if len(edges) else None
         self.block: _PatternBlock | None = None
 
-    def focus(self, box: tuple[int, int, int, int]) -> None:
-        """Evaluate the pattern over this block of samples from now on (see `_accumulate`)."""
-        self.block = _PatternBlock(self.known, self.origin, self.s, self.grid, box)
+    def focus(self, box: tuple[int, int, int, int]) -> "_TargetPrediction":
+        """The prediction over this block of samples (see `_accumulate`): a copy that evaluates the pattern there.
+
+        A copy, not this one changed: two tiles may be predicted at once.
+        """
+        focused = copy.copy(self)
+        focused.block = _PatternBlock(self.known, self.origin, self.s, self.grid, box)
+        return focused
 
     def predict(self, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(predicted, sharp) at samples (i, j) of the focused block."""
