@@ -668,7 +668,7 @@ class _FormerPartBand(bernoulli.PatternBand):
 
     def _corrected(self, crop, jacobian, runs, box):
         r0, r1, c0, c1 = box
-        cost = resample.band_part_cost(runs, r1 - r0, c1 - c0, self.coeffs.shape)
+        cost = resample.band_part_cover(runs, r1 - r0, c1 - c0, self.coeffs.shape)[1]
         if not cost or cost >= 4 * self.shape[0] * self.shape[1] * np.log2(self.shape[0] * self.shape[1]):
             return super()._corrected(crop, jacobian, runs, box)  # nothing to add, or the band synthesised whole
         part = _former_dct_runs_part(self.coeffs, runs, self.shape, slice(r0, r1), slice(c0, c1), self.bases)

@@ -400,7 +400,7 @@ class PatternBand:
         cover, cost = resample.band_part_cover(runs, r1 - r0, c1 - c0, self.coeffs.shape)
         if not cost:
             return crop
-        # the difference costs `band_part_cost` multiply-adds on the crop, the window's own band
+        # the difference costs `band_part_cover`'s multiply-adds on the crop, the window's own band
         # a synthesis of the whole raster by FFTs, measured ~4x slower per rows x cols x log2(rows x cols)
         if cost < 4 * rows * cols * np.log2(rows * cols):
             part = resample.dct_runs_part(self.coeffs, runs, self.shape, slice(r0, r1), slice(c0, c1), self.bases,

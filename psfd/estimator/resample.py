@@ -14,7 +14,7 @@ import numpy as np
 from psfd.estimator import fourier
 
 __all__ = [
-    "band_part_cost", "band_part_cover", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_runs_part",
+    "band_part_cover", "dct_bases", "dct_coefficients", "dct_lowpass", "dct_runs_part",
     "dct_synthesise", "erode", "keys_bicubic", "keys_grid", "keys_upsample", "keys_weights",
 ]
 
@@ -342,16 +342,11 @@ def _cover(row: np.ndarray, start: np.ndarray, stop: np.ndarray, shape: tuple[in
     return by_row, cost
 
 
-def band_part_cost(runs: tuple[np.ndarray, ...], rows: int, cols: int, shape: tuple[int, int]) -> float:
-    """Multiply-adds of `dct_runs_part` of ``runs`` of a ``shape`` box of coefficients on ``rows`` x ``cols``
-    (both parts)."""
-    return band_part_cover(runs, rows, cols, shape)[1]
-
-
 def band_part_cover(runs: tuple[np.ndarray, ...], rows: int, cols: int,
                     shape: tuple[int, int]) -> tuple[np.ndarray, float]:
-    """`band_part_cost`, and which of the (non-empty) runs `dct_runs_part` synthesises through their rows: its
-    ``cover`` argument, for a call on the same runs and crop size that costs that."""
+    """Which of the (non-empty) runs `dct_runs_part` synthesises through their rows (its ``cover`` argument,
+    for a call on the same runs and crop size), and the multiply-adds of that call: ``runs`` of a ``shape``
+    box of coefficients on ``rows`` x ``cols`` (both parts)."""
     row, start, stop = (np.asarray(x) for x in runs[:3])
     keep = stop > start
     if not keep.any():
