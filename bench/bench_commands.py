@@ -94,25 +94,12 @@ def simulated_raw24(folder: Path) -> Path:
 
 
 def wall_raw24(folder: Path) -> Path:
-    """A 6000 x 4000 RGGB DNG whose four planes are the real wall photo, mirrored into 3000 x 2000 (14 bits).
+    """A 6000 x 4000 RGGB DNG whose four planes are the real wall photo (`scenes.wall_raw24` of tests/, the
+    frame of the slow memory test): the sharp-edge cases' 24-megapixel frame."""
+    sys.path.insert(0, str(TREE / "tests"))
+    import scenes
 
-    The sharp-edge cases' 24-megapixel frame: real edges, at the real photo's density.
-    """
-    import cv2
-    import numpy as np
-
-    from psfd.estimator import raw
-
-    wall = cv2.imread(str(NEAR), cv2.IMREAD_UNCHANGED).astype(np.uint16) * 64
-    row = np.hstack([wall, wall[:, ::-1]])[:, :3000]
-    plane = np.vstack([row, row[::-1]])[:2000]
-    mosaic = np.empty((4000, 6000), np.uint16)
-    for dy in (0, 1):
-        for dx in (0, 1):
-            mosaic[dy::2, dx::2] = plane
-    dng = folder / "wall_24mp.dng"
-    raw.write_dng(dng, mosaic, white=16383)
-    return dng
+    return scenes.wall_raw24(folder / "wall_24mp.dng")
 
 
 def make(function: str, folder: Path, *args: int) -> Path:

@@ -14,6 +14,9 @@ noise, quantised and clipped, either as an RGGB mosaic written as a real DNG
 Coordinates: pixel (row i, column j) covers [j - 0.5, j + 0.5) x [i - 0.5,
 i + 0.5); a homography maps pattern cells (x right, y down, 0..320) to pixels
 of the rendered grid (photosites of the full sensor for a mosaic).
+
+Also a 24-megapixel RAW without a target (`wall_raw24`): the real wall photo in
+every Bayer plane, for the memory bounds of the sharp-edge and compare commands.
 """
 
 from __future__ import annotations
@@ -466,6 +469,21 @@ def crop_frame(frame: raw.Frame, box: tuple[int, int, int, int]) -> raw.Frame:
     return raw.Frame(data=frame.data[y0:y1, x0:x1].copy(), channel=frame.channel, white=frame.white,
                      saturated=frame.saturated[y0:y1, x0:x1].copy(), source=frame.source,
                      offset=frame.offset, sensor_shape=frame.sensor_shape, from_mosaic=frame.from_mosaic)
+
+
+def wall_raw24(path: Path) -> Path:
+    """A 6000 x 4000 RGGB DNG at ``path`` whose four planes are the real wall photo (tests/data/IMG_0608_v1.pgm),
+    mirrored into 3000 x 2000, 14 bits: real edges at the real photo's density."""
+    near = Path(__file__).parent / "data" / "IMG_0608_v1.pgm"
+    wall = cv2.imread(str(near), cv2.IMREAD_UNCHANGED).astype(np.uint16) * 64
+    row = np.hstack([wall, wall[:, ::-1]])[:, :3000]
+    plane = np.vstack([row, row[::-1]])[:2000]
+    mosaic = np.empty((4000, 6000), np.uint16)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            mosaic[dy::2, dx::2] = plane
+    raw.write_dng(path, mosaic, white=16383)
+    return path
 
 
 def _apply(h: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -417,17 +417,9 @@ def test_edges_of_a_24_megapixel_raw_stay_under_500_mb(tmp_path):
     import subprocess
     import sys
 
-    from psfd.estimator import raw
+    import scenes
 
-    wall = cv2.imread(str(DATA / "IMG_0608_v1.pgm"), cv2.IMREAD_UNCHANGED).astype(np.uint16) * 64
-    row = np.hstack([wall, wall[:, ::-1]])[:, :3000]
-    plane = np.vstack([row, row[::-1]])[:2000]
-    mosaic = np.empty((4000, 6000), np.uint16)
-    for dy in (0, 1):
-        for dx in (0, 1):
-            mosaic[dy::2, dx::2] = plane
-    raw.write_dng(tmp_path / "wall.dng", mosaic, white=16383)
-    del wall, row, plane, mosaic
+    scenes.wall_raw24(tmp_path / "wall.dng")
     probe = ("import resource, subprocess, sys\n"
              "done = subprocess.run([sys.executable, '-m', 'psfd', 'estimate', 'edges', sys.argv[1], '-q', '--json'],"
              " capture_output=True, text=True)\n"
