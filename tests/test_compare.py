@@ -296,16 +296,56 @@ def test_a_frames_kind_does_not_depend_on_what_its_thread_drew_before(monkeypatc
     views = []
     locate = sharpedge.locate_target
     monkeypatch.setattr(sharpedge, "locate_target", lambda image: views.append(locate(image)) or views[-1])
-    fresh = threading.Thread(target=compare._has_edge_target, args=(frame,))
+    fresh = threading.Thread(target=compare._edge_target, args=(frame,))
     fresh.start()
     fresh.join()
     cv2.setRNGSeed(1)  # a search straight from this state labels the corners otherwise
-    assert compare._has_edge_target(frame)
+    assert compare._edge_target(frame) is not None
     assert len(views) == 2
     np.testing.assert_array_equal(views[1].homography, views[0].homography)
     cv2.setRNGSeed(1)
     assert not np.array_equal(locate(frame.data / frame.white).homography, views[0].homography)
 
+
+
+@pytest.mark.parametrize("scene", ["bernoulli", "edge target"])
+def test_compare_searches_each_frame_once(tmp_path, sharp_truth, monkeypatch, scene):
+    """A frame's target is searched once, for its kind: its methods take what that search found (the Bernoulli
+    detection, the edge target's located corners) rather than search again (three more searches of a Bernoulli
+    frame, two of them for a board it does not show; a second board search from another generator state), and
+    give what each method gives alone on the target so located, bit for bit."""
+    from psfd.cli import compare
+    from psfd.estimator import bernoulli, detect, raw
+
+    path = tmp_path / "frame.dng"
+    if scene == "bernoulli":
+        simulate.simulate_target(path, psf=sharp_truth, s=S, pixels_per_cell=0.25, rotation_deg=5,
+                                 sensor=(480, 640), seed=2)
+    else:
+        edge_scene_dng(path, sharp_truth)
+    frame = raw.load_frame(path, "g1")
+    searches = {"find_target": 0, "locate_target": 0}
+    for module, name in ((detect, "find_target"), (sharpedge, "locate_target")):
+        def counted(*args, name=name, search=getattr(module, name), **kwargs):
+            searches[name] += 1
+            return search(*args, **kwargs)
+
+        monkeypatch.setattr(module, name, counted)
+    sizes = {method: {"s": S, "support": None} for method in ("bernoulli", "two-photo", "sharp-edge")}
+    found = compare.run_methods([frame], sizes, [2.0])
+    monkeypatch.undo()
+    if scene == "bernoulli":
+        assert searches == {"find_target": 1, "locate_target": 0}
+        alone = bernoulli.estimate_target(frame, s=S) + sharpedge.estimate_edges(frame, s=S, target_form=True)
+        assert [e.label for e in found] == ["bernoulli frame.dng", "sharp-edge target w=2 frame.dng"]
+    else:
+        assert searches == {"find_target": 1, "locate_target": 1}  # the Bernoulli target first, then the board
+        cv2.setRNGSeed(0)  # the state the kind's search starts from
+        alone = sharpedge.estimate_edges(frame, s=S, pattern=sharpedge.edge_target_in(frame))
+        assert [e.label for e in found] == ["sharp-edge target w=2 frame.dng"]
+    for estimate, expected in zip(found, alone, strict=True):
+        np.testing.assert_array_equal(estimate.psf.psf, expected.psf)
+        assert estimate.psf.params == expected.params
 
 def test_the_worker_waiting_for_a_message_ends_when_the_parent_sends_none():
     """`_Message` in a forked worker: the value sent, or EOFError once the sender's end is closed unsent

@@ -264,8 +264,7 @@ def test_tiled_prediction_gives_the_dense_normal_equations(smooth_frame, form):
     from psfd.estimator import raw
 
     frame = smooth_frame if form != "Bernoulli marks" else raw.load_frame(DATA / "img_example.pgm", "g1")
-    known = None if form == "blind" else sharpedge.locate_pattern(
-        np.asarray(frame.data, dtype=np.float64) / float(frame.white), frame.saturated)
+    known = None if form == "blind" else sharpedge.locate_pattern(frame)
     rows, cols = frame.data.shape
     window = (cols // 5, rows // 6, cols - cols // 4, rows - rows // 7)  # margins cut on all four sides
     (ata, atb, btb, used, edges), (d_ata, d_atb, d_btb, d_used, d_edges) = _equations_both_ways(frame, window, known)
@@ -288,7 +287,7 @@ def test_tiles_predicted_on_two_threads_give_the_one_thread_equations(smooth_fra
 
     frame = smooth_frame if form != "Bernoulli marks" else raw.load_frame(DATA / "img_example.pgm", "g1")
     image = np.asarray(frame.data, dtype=np.float64) / float(frame.white)
-    known = None if form == "blind" else sharpedge.locate_pattern(image, frame.saturated)
+    known = None if form == "blind" else sharpedge.locate_pattern(frame)
     rows, cols = frame.data.shape
     kernel_radius = (SUPPORT // 2) / S
     args = (image, frame.saturated, (0, 0, cols, rows), S, SUPPORT, 2 * kernel_radius,

@@ -120,17 +120,18 @@ def _attempt(label: str, call: Callable[[], list]) -> list[Estimate]:
         return [Estimate(label, None, str(exc))]
 
 
-def _has_bernoulli(frame) -> bool:
+def _bernoulli_target(frame):
+    """The Bernoulli target's detection in a frame (`psfd.estimator.detect.find_target`), or None."""
     from psfd.estimator import detect
 
     try:
-        detect.find_target(frame.data, frame.saturated)
+        return detect.find_target(frame.data, frame.saturated)
     except PsfdError:
-        return False
-    return True
+        return None
 
 
-def _has_edge_target(frame) -> bool:
+def _edge_target(frame):
+    """The edge target located in a frame (`psfd.estimator.sharpedge.edge_target_in`), or None."""
     import cv2
 
     from psfd.estimator import sharpedge
@@ -140,10 +141,9 @@ def _has_edge_target(frame) -> bool:
     # fresh process or thread, so what a frame shows does not depend on the thread or process searching it
     cv2.setRNGSeed(0)
     try:
-        sharpedge.locate_target(frame.data / frame.white)
+        return sharpedge.edge_target_in(frame)
     except PsfdError:
-        return False
-    return True
+        return None
 
 
 BERNOULLI_FRAME, EDGE_TARGET_FRAME, PLAIN_FRAME = "bernoulli", "edge target", "plain"
@@ -152,11 +152,21 @@ BERNOULLI_FRAME, EDGE_TARGET_FRAME, PLAIN_FRAME = "bernoulli", "edge target", "p
 SEARCH_TOGETHER_PIXELS = 6_000_000
 
 
-def _kind(frame) -> str:
+class _Found(NamedTuple):
+    """What a frame shows (`_search`), and where: the Bernoulli target's detection or the edge target's located
+    pattern, which the frame's methods take rather than search again."""
+
+    kind: str
+    target: Any = None
+
+
+def _search(frame) -> _Found:
     """What a frame shows: the Bernoulli target, the edge target, or neither (a textured plane)."""
-    if _has_bernoulli(frame):
-        return BERNOULLI_FRAME
-    return EDGE_TARGET_FRAME if _has_edge_target(frame) else PLAIN_FRAME
+    detection = _bernoulli_target(frame)
+    if detection is not None:
+        return _Found(BERNOULLI_FRAME, detection)
+    pattern = _edge_target(frame)
+    return _Found(PLAIN_FRAME) if pattern is None else _Found(EDGE_TARGET_FRAME, pattern)
 
 
 def _size(frame) -> int:
@@ -169,7 +179,7 @@ def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quie
     """Every method that applies to the frames (see the module docstring), in a stable order.
 
     ``sizes`` holds each method's ``s`` and ``support`` (`psfd.cli.options.sizes`). What each frame
-    shows (`_kind`) decides its methods. The largest frame is searched and its methods run in this
+    shows (`_search`) decides its methods. The largest frame is searched and its methods run in this
     process, with a progress bar on a terminal unless ``quiet``; the other frames are searched and
     their methods and the pair's run beside it in a forked worker (`_Beside`), without one: each
     frame's methods start as soon as its own search ends (the largest frame's sharp-edge estimate,
@@ -178,8 +188,8 @@ def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quie
     main = max(range(len(frames)), key=lambda i: _size(frames[i]))
     others = [i for i in range(len(frames)) if i != main]
     if not others:
-        kinds = {main: _kind(frames[main])}
-        return _in_order(kinds, {main: _frame_methods(frames[main], kinds[main], sizes, weights, quiet)})
+        found = _search(frames[main])
+        return _in_order({main: found.kind}, {main: _frame_methods(frames[main], found, sizes, weights, quiet)})
     # the frames are searched for the targets at once, unless the searches' temporaries together would pass
     # the memory bound (some 40 bytes per pixel each): then the others wait for this frame's search
     together = sum(_size(frame) for frame in frames) <= SEARCH_TOGETHER_PIXELS
@@ -191,9 +201,10 @@ def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quie
     # the worker draws no bar: two processes redrawing one terminal line would garble it
     beside = _Beside(lambda: _beside_main(frames, main, told.receive, together, sizes, weights))
     try:
-        kinds = {main: _kind(frames[main])}
-        told.send(kinds[main])
-        results = {main: _frame_methods(frames[main], kinds[main], sizes, weights, quiet)}
+        found = _search(frames[main])
+        told.send(found.kind)
+        kinds = {main: found.kind}
+        results = {main: _frame_methods(frames[main], found, sizes, weights, quiet)}
     except BaseException:
         beside.cancel()
         raise
@@ -213,9 +224,10 @@ def _beside_main(frames: list, main: int, main_kind: Callable[[], str], together
     others = [i for i in range(len(frames)) if i != main]
     if not together:
         main_kind()  # this frame's search has ended: the memory of its temporaries is free
-    searches = [lambda f=frames[i]: _kind(f) for i in others]
-    kinds = dict(zip(others, concurrently(*searches) if together else [search() for search in searches]))
-    results = {i: _frame_methods(frames[i], kinds[i], sizes, weights, 1) for i in others}
+    searches = [lambda f=frames[i]: _search(f) for i in others]
+    found = dict(zip(others, concurrently(*searches) if together else [search() for search in searches]))
+    results = {i: _frame_methods(frames[i], found[i], sizes, weights, 1) for i in others}
+    kinds = {i: f.kind for i, f in found.items()}
     every = {**kinds, main: main_kind()}
     plain = [frames[i] for i in range(len(frames)) if every[i] == PLAIN_FRAME]
     if len(plain) == 2:
@@ -231,36 +243,39 @@ def _in_order(kinds: dict[int, str], results: dict[int, list]) -> list[Estimate]
     return targets + results.get(len(frames), []) + blind
 
 
-def _frame_methods(frame, kind: str, sizes: dict[str, dict], weights: list[float], quiet: int) -> list[Estimate]:
-    """The estimates of one frame that shows ``kind`` (`_kind`): its target's methods, or the blind sharp-edge."""
-    if kind == BERNOULLI_FRAME:
-        from psfd.estimator import bernoulli
+def _frame_methods(frame, found: _Found, sizes: dict[str, dict], weights: list[float],
+                   quiet: int) -> list[Estimate]:
+    """The estimates of one frame as `_search` ``found`` it: its target's methods, or the blind sharp-edge."""
+    if found.kind == BERNOULLI_FRAME:
+        from psfd.estimator import bernoulli, sharpedge
 
-        found = _attempt(f"bernoulli {Path(frame.source).name}",
-                         lambda: bernoulli.estimate_target(frame, **_method_size(sizes, BERNOULLI)))
+        estimates = _attempt(f"bernoulli {Path(frame.source).name}",
+                             lambda: bernoulli.estimate_target(frame, detection=found.target,
+                                                               **_method_size(sizes, BERNOULLI)))
         # its marks: the noise cells are no isolated step edges
-        return found + _edges(frame, True, sizes, weights, quiet)
-    return _edges(frame, kind == EDGE_TARGET_FRAME, sizes, weights, quiet)
+        return estimates + _edges(frame, sharpedge.bernoulli_pattern(found.target), sizes, weights, quiet)
+    return _edges(frame, found.target, sizes, weights, quiet)
 
 
 def _method_size(sizes: dict[str, dict], method: str) -> dict:
     return {key: sizes[method][key] for key in ("s", "support")}
 
 
-def _edges(frame, target_form: bool, sizes: dict[str, dict], weights: list[float], quiet: int) -> list[Estimate]:
-    """The sharp-edge estimates of a frame, one per weight, each with its progress bar."""
+def _edges(frame, pattern, sizes: dict[str, dict], weights: list[float], quiet: int) -> list[Estimate]:
+    """The sharp-edge estimates of a frame, one per weight, each with its progress bar: of the target form
+    when the frame shows a located ``pattern`` (`psfd.estimator.sharpedge.KnownPattern`), else blind."""
     from psfd.cli.output import progress_bar
     from psfd.estimator import sharpedge
 
-    kind = "sharp-edge target" if target_form else "sharp-edge"
-    found = []
+    kind = "sharp-edge target" if pattern is not None else "sharp-edge"
+    estimates = []
     for w in weights:
         label = f"{kind} w={w:g} {Path(frame.source).name}"
         with progress_bar(label, quiet) as progress:
-            found += _attempt(label, lambda: sharpedge.estimate_edges(frame, weight=w, target_form=target_form,
-                                                                      progress=progress,
-                                                                      **_method_size(sizes, SHARP_EDGE)))
-    return found
+            estimates += _attempt(label, lambda: sharpedge.estimate_edges(frame, weight=w, pattern=pattern,
+                                                                          progress=progress,
+                                                                          **_method_size(sizes, SHARP_EDGE)))
+    return estimates
 
 
 def _pair(a, b, sizes: dict[str, dict]) -> list[Estimate]:

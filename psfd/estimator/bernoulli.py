@@ -1000,6 +1000,7 @@ def estimate_target(
     grid: tuple[int, int] = (1, 1),
     recentre: bool = True,
     tps: float | None = None,
+    detection: detect.Detection | None = None,
 ) -> list[PSF]:
     """Sub-pixel PSFs from one photograph of the Bernoulli target (IJCV 2012, sec. 4, Fig. 7).
 
@@ -1029,6 +1030,8 @@ def estimate_target(
         (10 in Delbracio PhD thesis 2013, App. A.2) on top of a homography,
         instead of the default homography plus radial distortion
         (`geometry.target_maps` says why the default differs).
+    detection : detect.Detection, optional
+        The target already found in this frame (`detect.find_target`): not searched again.
 
     Returns
     -------
@@ -1045,7 +1048,8 @@ def estimate_target(
     EstimationError
         The system cannot be solved (target too small, no positive mass).
     """
-    return estimate_frames([frame], noise, s, support, solver, grid, recentre, tps)
+    return estimate_frames([frame], noise, s, support, solver, grid, recentre, tps,
+                           detections=None if detection is None else [detection])
 
 
 def estimate_frames(
@@ -1058,6 +1062,7 @@ def estimate_frames(
     recentre: bool = True,
     tps: float | None = None,
     workers: int | None = None,
+    detections: list[detect.Detection | None] | None = None,
 ) -> list[PSF]:
     """`estimate_target` on several planes: the target detected once per photograph, the windows shared by workers.
 
@@ -1076,6 +1081,9 @@ def estimate_frames(
     workers : int, optional
         Processes solving the windows; by default the cores this process may
         use, and none for a single window or little work.
+    detections : list, optional
+        Per frame, the target already found in it (`detect.find_target`) or None: a frame with one is not
+        searched again.
     noise, s, support, solver, grid, recentre, tps
         See `estimate_target`.
 
@@ -1086,7 +1094,7 @@ def estimate_frames(
     support = _check_arguments(s, support, solver, grid)
     noise = _check_noise(noise)
     with _one_blas_thread():
-        return _estimate_frames(frames, noise, s, support, solver, grid, recentre, tps, workers)
+        return _estimate_frames(frames, noise, s, support, solver, grid, recentre, tps, workers, detections)
 
 
 def _one_blas_thread():
@@ -1159,8 +1167,8 @@ def _openblas_threads(libraries, threads: int):
             set_threads(n)
 
 
-def _estimate_frames(frames, noise, s, support, solver, grid, recentre, tps, workers) -> list[PSF]:
-    planes = [_locate(frame, detection, s, support, grid, tps) for frame, detection in _detections(frames)]
+def _estimate_frames(frames, noise, s, support, solver, grid, recentre, tps, workers, known=None) -> list[PSF]:
+    planes = [_locate(frame, detection, s, support, grid, tps) for frame, detection in _detections(frames, known)]
     # The light and response-curve correction of the planes (numpy, most of it without the GIL) runs beside
     # the band-limiting of the pattern (DCTs): the band needs only the windows' Jacobians, which the located
     # planes already have. A correction's error is raised first: it names the plane.
@@ -1200,33 +1208,40 @@ def _groups(counts: list[int]) -> list[list[tuple[int, int]]]:
     return groups
 
 
-def _detections(frames: list[Frame]):
-    """(frame, detection) for every frame: one search per photograph, refined on its other planes."""
+def _detections(frames: list[Frame], known: list[detect.Detection | None] | None = None):
+    """(frame, detection) for every frame: one search per photograph, refined on its other planes; a frame's
+    ``known`` detection (if not None) is taken as it is."""
     found: dict[str, tuple[Frame, detect.Detection]] = {}
     order = sorted(range(len(frames)), key=lambda i: frames[i].channel != "g1")  # search on g1 when there
-    detections: dict[int, detect.Detection] = {}
+    detections = {i: d for i, d in enumerate(known or []) if d is not None}
     for i in order:
         frame = frames[i]
-        image = np.asarray(frame.data)
         clipped = float(np.mean(frame.saturated)) if frame.saturated.size else 0.0
         if clipped > OVEREXPOSED:  # the cause, named before the detection it defeats fails
             raise SaturatedError(f"{frame.source} ({frame.channel}): {clipped:.0%} of the frame is saturated; "
                                  "lower the exposure")
-        try:
-            if frame.from_mosaic and frame.source in found:
-                first, detection = found[frame.source]
-                try:
-                    detections[i] = detect.refine_target(
-                        image, detection, frame.saturated, detect.plane_shift(first.offset, frame.offset))
-                    continue
-                except EstimationError:  # a mark lost on this plane: search it on its own
-                    pass
-            detections[i] = detect.find_target(image, frame.saturated)
-        except EstimationError as exc:  # say which of several frames and planes could not be used
-            raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
+        if i not in detections:
+            detections[i] = _search(frame, found)
         if frame.from_mosaic:
             found.setdefault(frame.source, (frame, detections[i]))
     return [(frames[i], detections[i]) for i in range(len(frames))]
+
+
+def _search(frame: Frame, found: dict[str, tuple[Frame, detect.Detection]]) -> detect.Detection:
+    """The target in one plane: refined from another plane of the same photograph when one was searched
+    (``found``, by source), else searched."""
+    image = np.asarray(frame.data)
+    try:
+        if frame.from_mosaic and frame.source in found:
+            first, detection = found[frame.source]
+            try:
+                return detect.refine_target(image, detection, frame.saturated,
+                                            detect.plane_shift(first.offset, frame.offset))
+            except EstimationError:  # a mark lost on this plane: search it on its own
+                pass
+        return detect.find_target(image, frame.saturated)
+    except EstimationError as exc:  # say which of several frames and planes could not be used
+        raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
 
 
 class _TargetPlane(_Plane):

@@ -44,8 +44,8 @@ from psfd.estimator.raw import Frame
 
 __all__ = [
     "SQUARES", "Edgels", "KnownPattern", "TargetView", "bernoulli_marks", "bernoulli_pattern", "detect_edges",
-    "edge_levels", "edge_pattern", "edge_target", "estimate_edges", "gradient_operator", "locate_pattern",
-    "locate_target", "noise_sigma", "solve_kernel"
+    "edge_levels", "edge_pattern", "edge_target", "edge_target_in", "estimate_edges", "gradient_operator",
+    "locate_pattern", "locate_target", "noise_sigma", "solve_kernel"
 ]
 
 TILE = 2  # squares per tile side of the edge target
@@ -887,30 +887,44 @@ def _on_ring(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return on_target & ~((x >= lo) & (x < hi) & (y >= lo) & (y < hi))
 
 
-def locate_pattern(image: np.ndarray, saturated: np.ndarray | None = None) -> KnownPattern:
-    """The printed pattern of the target form: the edge target, or else the marks of the Bernoulli target.
+def locate_pattern(frame: Frame) -> KnownPattern:
+    """The printed pattern of the target form in a frame: the edge target, or else the marks of the Bernoulli target.
 
     The Bernoulli target's black and white squares and X-corner hourglasses
     are step edges of known geometry too, registered by the detection's
     map (`geometry.target_maps`); their edges only run at 0, 90 and about +-63 degrees,
-    which the orientation test (sec. 5.2) reports.
+    which the orientation test (sec. 5.2) reports. The Bernoulli target is
+    searched on the plane as `psfd.estimator.bernoulli` searches it, so that
+    both methods see a frame through the same registration (a search of the
+    plane over its white level can end some 0.002 cells away: the search's
+    sub-pixel refinement stops at its tolerance).
 
     Raises
     ------
     TargetNotFoundError
     """
     try:
-        view = locate_target(image)
-        return KnownPattern(view.to_pattern, _edge_print, _on_print, "edge target")
+        return edge_target_in(frame)
     except TargetNotFoundError:
         pass
     from psfd.estimator import detect  # the Bernoulli pipeline's registration steps
 
     try:
-        detection = detect.find_target(image, saturated)
+        detection = detect.find_target(frame.data, frame.saturated)
     except TargetNotFoundError:
         raise TargetNotFoundError("no edge target and no Bernoulli target found in the frame") from None
     return bernoulli_pattern(detection)
+
+
+def edge_target_in(frame: Frame) -> KnownPattern:
+    """The edge target located in a frame (`locate_target` on the plane over its white level) as a located pattern.
+
+    Raises
+    ------
+    TargetNotFoundError
+    """
+    view = locate_target(_Scaled(frame.data, frame.white)[:, :])
+    return KnownPattern(view.to_pattern, _edge_print, _on_print, "edge target")
 
 
 def bernoulli_pattern(detection) -> KnownPattern:
@@ -1164,8 +1178,8 @@ def estimate_edges(
     radius = max(kernel_radius, 1.0) if radius is None else radius
     band = radius + kernel_radius
     length = int(np.ceil(2 * kernel_radius)) + 2  # march far enough to leave the blurred ramp
-    # the target's search needs the whole plane at once: divided for it alone
-    known = pattern if pattern is not None else locate_pattern(image[:, :], frame.saturated) if target_form else None
+    # the board search reads the whole plane over its white level at once: divided for it alone (`edge_target_in`)
+    known = pattern if pattern is not None else locate_pattern(frame) if target_form else None
     rows, cols = image.shape
     windows = split_grid((0, 0, cols, rows), grid)
     out = []
