@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import scipy.fft
 import scipy.signal
-from scipy import linalg, special
+from scipy import linalg, ndimage, special
 from scipy.spatial import cKDTree
 
 from psfd.estimator import bernoulli, detect, fourier, geometry, quantiles, radiometry, raw, simulate
@@ -151,3 +151,90 @@ def test_the_gram_matrix_is_the_symmetric_rank_update():
     assert ours.dtype == np.float32 and np.array_equal(ours, ours.T)
     # float32 sums of 20000 products of unit-variance terms: rounding ~1e-7 relative of ~2e4 on the diagonal
     np.testing.assert_allclose(ours, _scipy_gram(a), rtol=0, atol=5e-3)
+
+
+# ---------------------------------------------------------------- the sharp-edge path without scipy
+
+
+class _KDTreePoints:
+    """`sharpedge._NearestPoints` by scipy.spatial.cKDTree, as the blind prediction queried it before."""
+
+    def __init__(self, x, y):
+        self.tree = cKDTree(np.column_stack([x, y]))
+
+    def query(self, x, y, bound):
+        distance, index = self.tree.query(np.column_stack([x, y]), distance_upper_bound=bound)
+        return np.isfinite(distance), index
+
+
+SHARP_EDGE_REFERENCE = [
+    ("_gaussian_filter", lambda image, sd: ndimage.gaussian_filter(image, sd)),
+    ("_bilinear", lambda image, y, x, nearest=False: ndimage.map_coordinates(
+        image, [y, x], order=1, mode="nearest" if nearest else "constant")),
+    ("_dilate", lambda mask, iterations: ndimage.binary_dilation(mask, iterations=iterations)),
+    ("_NearestPoints", _KDTreePoints),
+]
+
+
+@pytest.mark.parametrize("shape", [(40, 50), (7, 9), (3, 200), (301, 280)])
+def test_the_sharp_edge_filters_are_scipys_bit_for_bit(shape):
+    from psfd.estimator import sharpedge
+
+    rng = np.random.default_rng(shape[0])
+    image = rng.normal(size=shape) * 100
+    for dtype in (np.float64, np.float32):
+        for sd in (0.7, 1.0, 1.6, 4.0):  # kernels wider than the small images: reflected more than once
+            expected = ndimage.gaussian_filter(image.astype(dtype), sd)
+            got = sharpedge._gaussian_filter(image.astype(dtype), sd)
+            assert got.dtype == expected.dtype
+            np.testing.assert_array_equal(got, expected)
+    # inside, on the last row and column, just outside and far outside
+    y = np.r_[rng.uniform(-2, shape[0] + 1, 4000), np.arange(shape[0]), -1e-9, shape[0] - 1 + 1e-9]
+    x = np.r_[rng.uniform(-2, shape[1] + 1, 4000), np.full(shape[0], shape[1] - 1.0), 0.0, 0.0]
+    for mode in ("constant", "nearest"):
+        np.testing.assert_array_equal(sharpedge._bilinear(image, y, x, nearest=mode == "nearest"),
+                                      ndimage.map_coordinates(image, [y, x], order=1, mode=mode))
+    mask = rng.random(shape) > 0.97
+    for iterations in (1, 2, 5):
+        np.testing.assert_array_equal(sharpedge._dilate(mask, iterations),
+                                      ndimage.binary_dilation(mask, iterations=iterations))
+
+
+def test_the_nearest_edge_points_are_the_k_d_trees():
+    """Around the edge points of the real photograph, at every s-grid sample of a crop: the same point found
+    (or none within the bound) as by the k-d tree, wherever the nearest is not an exact tie."""
+    from psfd.estimator import sharpedge
+
+    frame = raw.load_frame(DATA / "IMG_0608_v1.pgm", "g1")
+    crop = frame.data[300:600, 700:1100] / frame.white
+    edges = sharpedge.detect_edges(crop, noise=sharpedge.noise_sigma(crop))
+    assert len(edges) > 1000
+    y, x = np.mgrid[0:300:0.25, 0:400:0.25]
+    y, x = y.ravel(), x.ravel()
+    tree = cKDTree(np.column_stack([edges.x, edges.y]))
+    for bound in (2.0, 6.7):
+        found, index = sharpedge._NearestPoints(edges.x, edges.y).query(x, y, bound)
+        distance, expected = tree.query(np.column_stack([x, y]), k=2, distance_upper_bound=bound)
+        np.testing.assert_array_equal(found, np.isfinite(distance[:, 0]))
+        untied = found & (distance[:, 0] < distance[:, 1])
+        assert untied.sum() > 0.99 * found.sum() > 10_000
+        np.testing.assert_array_equal(index[untied], expected[untied, 0])
+
+
+@pytest.mark.parametrize("photo, target_form", [("IMG_0608_v1.pgm", False), ("img_example.pgm", True)])
+def test_the_sharp_edge_estimate_is_the_scipy_paths(photo, target_form, monkeypatch):
+    """The whole sharp-edge estimate of a real photograph without scipy's filters and k-d tree: within 1e-3 of
+    its noise floor of the scipy path's (the target form keeps the k-d tree: the same bits)."""
+    from psfd.estimator import sharpedge
+
+    frame = raw.load_frame(DATA / photo, "g1")
+    with bernoulli._one_blas_thread():
+        [new] = sharpedge.estimate_edges(frame, target_form=target_form)
+        with monkeypatch.context() as patch:
+            for name, function in SHARP_EDGE_REFERENCE:
+                patch.setattr(sharpedge, name, function)
+            [old] = sharpedge.estimate_edges(frame, target_form=target_form)
+    assert np.abs(new.psf - old.psf).max() <= 1e-3 * old.noise_floor
+    assert new.noise_floor == pytest.approx(old.noise_floor, rel=1e-6)
+    if target_form:
+        np.testing.assert_array_equal(new.psf, old.psf)

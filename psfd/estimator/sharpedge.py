@@ -33,8 +33,6 @@ from typing import Callable
 import cv2
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
-from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from psfd.errors import BadInputError, EstimationError, TargetNotFoundError
 from psfd.vocabulary import DEFAULT_S, SHARP_EDGE, check_sizes
@@ -234,9 +232,118 @@ def _tiles(rows: tuple[int, int], cols: tuple[int, int], size: int = TILE_PX):
             yield y0, min(y0 + size, rows[1]), x0, min(x0 + size, cols[1])
 
 
+# --------------------------------------------------------------------------- filters without scipy
+# scipy.ndimage and scipy.spatial cost 0.5-0.65 s of imports, a fifth of `psfd estimate edges` on a
+# 2.5-megapixel frame: the few of their functions this module needs are written here with numpy and
+# OpenCV, and give the same bits (tests/test_scipy_reference.py).
+
+
 def _gauss_radius(sd: float) -> int:
-    """Half-width of scipy.ndimage.gaussian_filter's kernel (its default truncate is 4)."""
+    """Half-width of the Gaussian kernel of `_gaussian_filter` (scipy.ndimage.gaussian_filter's: truncated at 4 sd)."""
     return int(4.0 * sd + 0.5)
+
+
+def _gaussian_filter(image: np.ndarray, sd: float) -> np.ndarray:
+    """scipy.ndimage.gaussian_filter(image, sd) (mode "reflect"), bit for bit: the same normalised kernel, and the
+    same arithmetic, axis by axis in float64, each pass stored in the image's type: the centre tap, then each pair
+    of taps at +-j summed first, from the outermost in."""
+    radius = _gauss_radius(sd)
+    x = np.arange(-radius, radius + 1)
+    weights = np.exp(-0.5 / (sd * sd) * x**2)
+    weights /= weights.sum()
+    image = np.asarray(image)
+    out = image
+    for axis in range(image.ndim):
+        line = np.moveaxis(out.astype(np.float64), axis, 0)
+        n = line.shape[0]
+        # "reflect" repeats the edge sample (d c b a | a b c d), numpy's "symmetric"
+        padded = np.pad(line, [(radius, radius)] + [(0, 0)] * (line.ndim - 1), mode="symmetric")
+        summed = padded[radius : radius + n] * weights[radius]
+        for j in range(radius, 0, -1):
+            summed += (padded[radius - j : radius - j + n] + padded[radius + j : radius + j + n]) * weights[radius - j]
+        out = np.moveaxis(summed, 0, axis).astype(image.dtype, copy=False)
+    return out
+
+
+def _bilinear(image: np.ndarray, y: np.ndarray, x: np.ndarray, nearest: bool = False) -> np.ndarray:
+    """scipy.ndimage.map_coordinates(image, [y, x], order=1) bit for bit: mode "constant" (0 outside the rows
+    0 .. rows - 1 and columns 0 .. cols - 1), or "nearest" (the edge samples repeated). Each of the four
+    neighbours times its row weight, then its column weight, summed in row-major order."""
+    rows, cols = image.shape
+    y0, x0 = np.floor(y), np.floor(x)
+    ty, tx = y - y0, x - x0
+    row_weights, col_weights = (1.0 - ty, ty), (1.0 - tx, tx)
+    y0, x0 = y0.astype(np.intp), x0.astype(np.intp)
+    # out of the image a neighbour reads its edge sample: the value for "nearest", zero weight or dropped below
+    ys = (np.clip(y0, 0, rows - 1), np.clip(y0 + 1, 0, rows - 1))
+    xs = (np.clip(x0, 0, cols - 1), np.clip(x0 + 1, 0, cols - 1))
+    out = np.zeros(np.shape(y))
+    for a in (0, 1):
+        for b in (0, 1):
+            out += image[ys[a], xs[b]] * row_weights[a] * col_weights[b]
+    if nearest:
+        return out
+    return np.where((y >= 0) & (y <= rows - 1) & (x >= 0) & (x <= cols - 1), out, 0.0)
+
+
+def _dilate(mask: np.ndarray, iterations: int) -> np.ndarray:
+    """scipy.ndimage.binary_dilation(mask, iterations=iterations): that many dilations by the 4-neighbour cross
+    are one by the diamond of that radius, nothing entering from outside the image."""
+    r = int(iterations)
+    y, x = np.mgrid[-r : r + 1, -r : r + 1]
+    diamond = (np.abs(y) + np.abs(x) <= r).astype(np.uint8)
+    return cv2.dilate(mask.astype(np.uint8), diamond, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+
+
+class _NearestPoints:
+    """The nearest of a set of points (x, y) within a distance, as scipy.spatial.cKDTree.query with
+    ``distance_upper_bound`` finds it.
+
+    OpenCV's exact single k-d tree (FLANN, no approximation) works in float32: the two nearest it finds
+    are ranked again by their float64 distances, which agreed with cKDTree on all of 9 million queries
+    around the edge points of a real photograph (the first alone missed 25 near ties). Exact ties may be
+    broken otherwise than by cKDTree: blind edge points lie where the photograph puts them, and ties
+    are rare (the real photograph's PSF moved by 1e-14), unlike the target form's (`_TreePoints`). It
+    releases the GIL as the k-d tree did, for `_accumulate`'s second thread.
+    """
+
+    def __init__(self, x: np.ndarray, y: np.ndarray) -> None:
+        self.x, self.y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+        points = np.column_stack([self.x, self.y]).astype(np.float32)
+        self.index = cv2.flann_Index(points, {"algorithm": 4, "leaf_max_size": 10})  # FLANN_INDEX_KDTREE_SINGLE
+
+    def query(self, x: np.ndarray, y: np.ndarray, bound: float) -> tuple[np.ndarray, np.ndarray]:
+        """(found, index): whether a point lies closer than ``bound`` to each (x, y), and the nearest's index
+        (meaningful where found)."""
+        x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+        k = min(2, self.x.size)
+        candidates, _ = self.index.knnSearch(np.column_stack([x, y]).astype(np.float32), k, params={"eps": 0.0})
+        dx = x[:, None] - self.x[candidates]
+        dy = y[:, None] - self.y[candidates]
+        d2 = dx * dx + dy * dy
+        best = np.argmin(d2, axis=1)
+        at = np.arange(x.size)
+        return d2[at, best] < bound * bound, candidates[at, best]
+
+
+class _TreePoints:
+    """`_NearestPoints` by scipy.spatial.cKDTree itself, for the target form (`_TargetPrediction`).
+
+    There the edge points and the samples come from the same s-grid, and one
+    query in ten is an exact tie between two edge points: which one is taken
+    decides the sample's levels, and another rule than the k-d tree's moved a
+    PSF of the example photo by 0.024. So the target form keeps the k-d tree
+    (and its 0.4 s import, here only).
+    """
+
+    def __init__(self, x: np.ndarray, y: np.ndarray) -> None:
+        from scipy.spatial import cKDTree
+
+        self.tree = cKDTree(np.column_stack([x, y]))
+
+    def query(self, x: np.ndarray, y: np.ndarray, bound: float) -> tuple[np.ndarray, np.ndarray]:
+        distance, index = self.tree.query(np.column_stack([x, y]), distance_upper_bound=bound)
+        return np.isfinite(distance), index
 
 
 def _edge_maps(image: np.ndarray, tile: tuple[int, int, int, int], sigma: float, halo: int, dog: bool = True):
@@ -249,8 +356,8 @@ def _edge_maps(image: np.ndarray, tile: tuple[int, int, int, int], sigma: float,
     y0, y1, x0, x1 = tile
     oy, ox = max(0, y0 - halo), max(0, x0 - halo)
     region = image[oy : min(image.shape[0], y1 + halo), ox : min(image.shape[1], x1 + halo)]
-    g1 = ndimage.gaussian_filter(region, sigma)
-    difference = g1 - ndimage.gaussian_filter(region, DOG_RATIO * sigma) if dog else None
+    g1 = _gaussian_filter(region, sigma)
+    difference = g1 - _gaussian_filter(region, DOG_RATIO * sigma) if dog else None
     gy, gx = np.gradient(g1)
     return (oy, ox), difference, gx, gy, np.hypot(gx, gy)
 
@@ -339,12 +446,12 @@ def detect_edges(image: np.ndarray, sigma: float = 1.0, threshold: float | None 
         nx, ny = gx[ly, lx] / m, gy[ly, lx] / m
         d0 = dog[ly, lx]
         # image coordinates moved by whole pixels into the region: exactly, so the interpolation weights are the same
-        d1 = ndimage.map_coordinates(dog, [(py + ny) - oy, (px + nx) - ox], order=1)
+        d1 = _bilinear(dog, (py + ny) - oy, (px + nx) - ox)
         hit = d1 >= 0
         t = d0[hit] / (d0[hit] - d1[hit])
         x = px[hit] + t * nx[hit]
         y = py[hit] + t * ny[hit]
-        strength = ndimage.map_coordinates(mag, [y - oy, x - ox], order=1)
+        strength = _bilinear(mag, y - oy, x - ox)
         keep = strength >= threshold
         parts.append((py[hit][keep] * cols + px[hit][keep], x[keep], y[keep], nx[hit][keep], ny[hit][keep],
                       strength[keep]))
@@ -432,8 +539,8 @@ def _strip_levels(image, x, y, nx, ny, steps) -> tuple[np.ndarray, np.ndarray]:
     if y0:
         by -= y0
         dy -= y0
-    bright = ndimage.map_coordinates(strip, [by, bx], order=1, mode="nearest")
-    dark = ndimage.map_coordinates(strip, [dy, dx], order=1, mode="nearest")
+    bright = _bilinear(strip, by, bx, nearest=True)
+    dark = _bilinear(strip, dy, dx, nearest=True)
     hi = _plateau_max(bright)
     return _plateau_min(dark, hi - dark[:, 0]), hi
 
@@ -456,7 +563,7 @@ class _BlindPrediction:
         self.edges, self.s, self.band = edges, s, band
         # a predicted sample lies within band along the normal and 1 pixel along the edge of an edge point
         self.reach = float(np.hypot(band, 1.0))
-        self.tree = cKDTree(np.column_stack([edges.x, edges.y])) if len(edges) else None
+        self.tree = _NearestPoints(edges.x, edges.y) if len(edges) else None
 
     def focus(self, box: tuple[int, int, int, int]) -> "_BlindPrediction":
         """The prediction over this block of samples: itself, it prepares nothing per block (see `_accumulate`)."""
@@ -470,10 +577,7 @@ class _BlindPrediction:
             return known, sharp
         e, s, band = self.edges, self.s, self.band
         px, py = j / s, i / s
-        # one thread: a query per block of a tile is small, and starting threads for each cost more
-        # than the search (7 of 14 s of a 2.5-megapixel frame on a loaded 2-core machine)
-        dist, idx = self.tree.query(np.column_stack([px, py]), distance_upper_bound=band * np.sqrt(2) + 1.0)
-        found = np.isfinite(dist)
+        found, idx = self.tree.query(px, py, band * np.sqrt(2) + 1.0)
         k = idx[found]
         dx, dy = px[found] - e.x[k], py[found] - e.y[k]
         d = dx * e.nx[k] + dy * e.ny[k]  # signed distance along the normal, bright side > 0
@@ -775,7 +879,7 @@ def locate_target(image: np.ndarray, squares: tuple[int, int] = SQUARES) -> Targ
     # the corner grid is symmetric: fix the colour parity from square (1, 1) (black) against (2, 1) (white)
     probe = np.array([[1.15, 1.15], [1.85, 1.85], [2.15, 1.15], [2.85, 1.85]])
     ix, iy = view.to_image(probe[:, 0], probe[:, 1])
-    values = ndimage.map_coordinates(image, [iy, ix], order=1)
+    values = _bilinear(image, iy, ix)
     if values[:2].mean() > values[2:].mean():
         view.homography = view.homography @ np.array([[-1.0, 0, squares[0]], [0, 1, 0], [0, 0, 1]])
     return view
@@ -1054,7 +1158,7 @@ def _target_edges(known: "KnownPattern", origin: tuple[int, int], s: int, grid: 
             bi0, bj0 = max(0, i0 - halo), max(0, j0 - halo)
             ii, jj = np.mgrid[bi0 : min(grid[0], i1 + halo), bj0 : min(grid[1], j1 + halo)]
             alpha = block.alpha(ii.ravel(), jj.ravel()).reshape(ii.shape)
-            smooth = ndimage.gaussian_filter(alpha, 1.0)
+            smooth = _gaussian_filter(alpha, 1.0)
             gy, gx = np.gradient(smooth)
             mag = np.hypot(gx, gy)
             own = (slice(i0 - bi0, i1 - bi0), slice(j0 - bj0, j1 - bj0))
@@ -1087,7 +1191,7 @@ class _TargetPrediction:
                  edges: Edgels, band: float) -> None:
         self.known, self.origin, self.s, self.grid, self.edges, self.band = known, origin, s, grid, edges, band
         self.reach = band
-        self.tree = cKDTree(np.column_stack([edges.x, edges.y])) if len(edges) else None
+        self.tree = _TreePoints(edges.x, edges.y) if len(edges) else None
         self.block: _PatternBlock | None = None
 
     def focus(self, box: tuple[int, int, int, int]) -> "_TargetPrediction":
@@ -1105,9 +1209,7 @@ class _TargetPrediction:
         sharp = np.zeros(i.shape)
         if self.tree is None or i.size == 0:
             return known, sharp
-        # one thread, as in `_BlindPrediction.predict`
-        dist, idx = self.tree.query(np.column_stack([j / self.s, i / self.s]), distance_upper_bound=self.band)
-        found = np.isfinite(dist)
+        found, idx = self.tree.query(j / self.s, i / self.s, self.band)
         found[found] = self.block.inside(i[found], j[found])
         k = idx[found]
         e = self.edges
@@ -1253,7 +1355,7 @@ def _window_equations(image, saturated, window, s, support, band, length, sigma,
     candidates = cv2.erode(_near_edges(edges, crop.shape, prediction.reach).view(np.uint8),
                            np.ones((2 * r + 1, 2 * r + 1), np.uint8),
                            borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
-    candidates &= ~ndimage.binary_dilation(saturated[cy0:cy1, cx0:cx1], iterations=int(np.ceil(band)) + 1)
+    candidates &= ~_dilate(saturated[cy0:cy1, cx0:cx1], int(np.ceil(band)) + 1)
     edge_px = -(-half // s)  # footprints reach ceil(half / s) pixels
     inside = np.zeros_like(candidates)
     inside[max(y0 - cy0, edge_px) : min(y1 - cy0, crop.shape[0] - edge_px),
