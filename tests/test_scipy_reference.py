@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 import scipy.fft
 import scipy.signal
-from scipy import linalg, special
+from scipy import linalg, optimize, special
 from scipy.spatial import cKDTree
 
-from psfd.estimator import bernoulli, detect, fourier, geometry, quantiles, radiometry, raw, simulate
+from psfd.estimator import bernoulli, detect, fourier, geometry, nnls, quantiles, radiometry, raw, simulate
 
 DATA = Path(__file__).parent / "data"
 
@@ -63,6 +63,7 @@ REFERENCE = [
     (quantiles, "percentile", np.percentile),
     (bernoulli, "_gram", _scipy_gram),
     (bernoulli, "_cholesky_solve", _scipy_cholesky_solve),
+    (nnls, "_cholesky_solve", _scipy_cholesky_solve),  # the exchanges of `nnls_normal`
     (bernoulli, "_triangular_inverse", lambda lower: linalg.lapack.dtrtri(lower, lower=1)[0]),
     (detect, "_Neighbours", _TreeNeighbours),
     (geometry, "f_quantile", lambda q, d1, d2: special.fdtri(d1, d2, 1.0 - q)),
@@ -151,3 +152,17 @@ def test_the_gram_matrix_is_the_symmetric_rank_update():
     assert ours.dtype == np.float32 and np.array_equal(ours, ours.T)
     # float32 sums of 20000 products of unit-variance terms: rounding ~1e-7 relative of ~2e4 on the diagonal
     np.testing.assert_allclose(ours, _scipy_gram(a), rtol=0, atol=5e-3)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_nnls_safeguard_is_scipys_minimiser(seed):
+    """Lawson-Hanson on the normal equations (`nnls._lawson_hanson`, taken only if the exchanges ever fail to
+    end) gives scipy.optimize.nnls's minimiser, with about half the variables at the bound."""
+    rng = np.random.default_rng(seed)
+    a = rng.standard_normal((120, 40))
+    v = a @ np.maximum(rng.standard_normal(40), 0.0) + 0.5 * rng.standard_normal(120)
+    q, c = a.T @ a, a.T @ v
+    reference, _ = optimize.nnls(a, v)
+    assert 5 < np.count_nonzero(reference == 0) < 35
+    np.testing.assert_allclose(nnls._lawson_hanson(q, c, 1e-10 * np.abs(c).max()), reference, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(nnls.nnls_normal(q, c), reference, rtol=0, atol=1e-10)
