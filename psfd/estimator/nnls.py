@@ -39,8 +39,10 @@ def nnls_normal(q: np.ndarray, c: np.ndarray, passive: np.ndarray | None = None)
     solves of the free block on the example photo's windows (6-10 on the ~800
     observations of a 24 MP frame's 10 x 10 grid, where the noisy tails change
     sign more): 7-27x faster on 17 x 17 to 33 x 33 kernels, the same minimiser
-    (1e-15, tests/test_bernoulli.py). Each exchange gathers the free rows of Q
-    once (`_kkt`).
+    (1e-15, tests/test_bernoulli.py). The sharp-edge solve starts from nothing:
+    1-12 solves on the real wall photo's windows, the minimiser of the former
+    scipy path to 2e-12 (tests/test_scipy_reference.py). Each exchange gathers
+    the free rows of Q once (`_kkt`).
 
     Parameters
     ----------
