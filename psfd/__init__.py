@@ -20,6 +20,7 @@ The modules, from the bottom up (each imports only those above it in this list):
   ``pair_register`` (near/far pair registration), ``twoscale`` (the two-photo method),
   ``fourier`` (the orthonormal DCT/DST and FFT convolution on OpenCV's DFT, without scipy's
   start-up), ``quantiles`` (numpy's median and percentiles without numpy.ma's import),
+  ``nnls`` (non-negative least squares on the normal equations, the Bernoulli and sharp-edge solves),
   ``sharpedge`` (the sharp-edge baseline), ``kernels`` (the PSF record and kernel
   conventions), ``mtf`` (MTF profiles, MTF50, FWHM, errors between kernels), ``gamma``
   (conditioning of a pattern), ``simulate`` (rendering frames of known PSF).

@@ -10,6 +10,11 @@ numpy's median and percentile, scipy.spatial.cKDTree, scipy.special.fdtri),
 kept as the reference, and the PSFs must agree within 1e-3 of their noise
 floor: the changes are float rounding (float32 transforms: ~1e-7 of the
 pattern), three orders of magnitude below what the estimate can resolve.
+
+The sharp-edge PSF solve (Joshi et al., CVPR 2008, eq. (5)) likewise: its
+smoothness term written densely and the non-negative solve on the normal
+equations (`nnls`), against the former scipy.sparse operator and
+scipy.optimize.nnls on the Cholesky factor of the same matrix.
 """
 
 from __future__ import annotations
@@ -20,10 +25,10 @@ import numpy as np
 import pytest
 import scipy.fft
 import scipy.signal
-from scipy import linalg, ndimage, special
+from scipy import linalg, ndimage, optimize, sparse, special
 from scipy.spatial import cKDTree
 
-from psfd.estimator import bernoulli, detect, fourier, geometry, quantiles, radiometry, raw, simulate
+from psfd.estimator import bernoulli, detect, fourier, geometry, nnls, quantiles, radiometry, raw, sharpedge, simulate
 
 DATA = Path(__file__).parent / "data"
 
@@ -63,6 +68,7 @@ REFERENCE = [
     (quantiles, "percentile", np.percentile),
     (bernoulli, "_gram", _scipy_gram),
     (bernoulli, "_cholesky_solve", _scipy_cholesky_solve),
+    (nnls, "_cholesky_solve", _scipy_cholesky_solve),  # the exchanges of `nnls_normal`
     (bernoulli, "_triangular_inverse", lambda lower: linalg.lapack.dtrtri(lower, lower=1)[0]),
     (detect, "_Neighbours", _TreeNeighbours),
     (geometry, "f_quantile", lambda q, d1, d2: special.fdtri(d1, d2, 1.0 - q)),
@@ -238,3 +244,102 @@ def test_the_sharp_edge_estimate_is_the_scipy_paths(photo, target_form, monkeypa
     assert new.noise_floor == pytest.approx(old.noise_floor, rel=1e-6)
     if target_form:
         np.testing.assert_array_equal(new.psf, old.psf)
+
+
+# --------------------------------------------------------------------------- sharp-edge PSF solve
+
+
+def _former_gradient_operator(support):
+    """`sharpedge.gradient_operator` as it was: a scipy.sparse CSR matrix."""
+    d = sparse.diags([-np.ones(support - 1), np.ones(support - 1)], [0, 1], shape=(support - 1, support))
+    eye = sparse.identity(support)
+    return sparse.vstack([sparse.kron(eye, d), sparse.kron(d, eye)]).tocsr()
+
+
+def _former_solve_kernel(ata, atb, sigma, support, weight=sharpedge.LAMBDA):
+    """`sharpedge.solve_kernel` as it was: Lawson-Hanson (scipy.optimize.nnls) on Q's Cholesky factor."""
+    g = _former_gradient_operator(support)
+    q = ata / sigma**2 + weight * support**2 * (g.T @ g).toarray()
+    c = atb / sigma**2
+    q[np.diag_indices_from(q)] += 1e-12 * np.trace(q) / q.shape[0]
+    chol = linalg.cholesky(q, lower=True)
+    k, _ = optimize.nnls(chol.T, linalg.solve_triangular(chol, c, lower=True), maxiter=50 * q.shape[0])
+    return k.reshape(support, support), q
+
+
+@pytest.mark.parametrize("support", [3, 5, 17, 33])
+def test_the_gradient_operator_and_its_normal_matrix_are_the_sparse_ones(support):
+    former = _former_gradient_operator(support)
+    assert np.array_equal(sharpedge.gradient_operator(support), former.toarray())
+    assert np.array_equal(sharpedge._smoothness_matrix(support), (former.T @ former).toarray())
+
+
+@pytest.fixture(scope="module")
+def edge_systems():
+    """What `estimate_edges` hands to `solve_kernel` (its normal equations of eq. (5), sigma, support) on the real
+    wall photo, blind, and on a simulated frame of the edge target, target form, at 9 x 9 and 17 x 17; and the
+    photo's 17 x 17 PSFs on the current path."""
+    from test_sharpedge import S as EDGE_S, SUPPORT as EDGE_SUPPORT, edge_frame
+
+    systems, solve = [], sharpedge.solve_kernel
+
+    def recorded(ata, atb, sigma, support, weight=sharpedge.LAMBDA):
+        systems.append((ata, atb, sigma, support))
+        return solve(ata, atb, sigma, support, weight)
+
+    wall = raw.load_frame(DATA / "IMG_0608_v1.pgm", "mono")
+    target = edge_frame(simulate.gaussian_psf(0.8, 0.5, theta=0.5, s=EDGE_S, support=EDGE_SUPPORT))
+    patch = pytest.MonkeyPatch()
+    patch.setattr(sharpedge, "solve_kernel", recorded)
+    try:
+        psfs = sharpedge.estimate_edges(wall, support=17)
+        sharpedge.estimate_edges(wall, support=9)
+        for support in (9, 17):
+            sharpedge.estimate_edges(target, support=support, target_form=True)
+    finally:
+        patch.undo()
+    assert [system[3] for system in systems] == [17, 9, 9, 17]
+    return systems, psfs
+
+
+@pytest.mark.parametrize("weight", [0.0, 2.0, 2e6])
+def test_the_edge_kernel_is_the_scipy_paths_minimiser(edge_systems, weight):
+    """The same strictly convex problem: the same Q bit for bit, and the same minimiser to 1e-9 of the kernel's
+    peak (measured: 2e-15 to 2e-12), with the constraint active (zeros in the kernels) at every weight."""
+    bound = 0
+    for ata, atb, sigma, support in edge_systems[0]:
+        k, q = sharpedge.solve_kernel(ata, atb, sigma, support, weight)
+        k_former, q_former = _former_solve_kernel(ata, atb, sigma, support, weight)
+        assert np.array_equal(q, q_former)
+        assert np.abs(k - k_former).max() <= 1e-9 * np.abs(k_former).max()
+        assert k.min() >= 0.0
+        bound += int(np.count_nonzero(k_former == 0))
+    assert bound > 0
+
+
+def test_the_photos_edge_psf_is_the_scipy_paths(edge_systems, monkeypatch):
+    psfs = edge_systems[1]
+    monkeypatch.setattr(sharpedge, "solve_kernel", _former_solve_kernel)
+    former = sharpedge.estimate_edges(raw.load_frame(DATA / "IMG_0608_v1.pgm", "mono"), support=17)
+    assert len(psfs) == len(former) == 1
+    for a, b in zip(psfs, former):
+        assert np.abs(a.psf - b.psf).max() <= 1e-3 * b.noise_floor
+        assert a.noise_floor == pytest.approx(b.noise_floor, rel=1e-9)
+        assert a.residual == pytest.approx(b.residual, rel=1e-6)
+        ours, theirs = dict(a.params), dict(b.params)
+        assert ours.pop("mass") == pytest.approx(theirs.pop("mass"), rel=1e-9)
+        assert ours == theirs
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_nnls_safeguard_is_scipys_minimiser(seed):
+    """Lawson-Hanson on the normal equations (`nnls._lawson_hanson`, taken only if the exchanges ever fail to
+    end) gives scipy.optimize.nnls's minimiser, with about half the variables at the bound."""
+    rng = np.random.default_rng(seed)
+    a = rng.standard_normal((120, 40))
+    v = a @ np.maximum(rng.standard_normal(40), 0.0) + 0.5 * rng.standard_normal(120)
+    q, c = a.T @ a, a.T @ v
+    reference, _ = optimize.nnls(a, v)
+    assert 5 < np.count_nonzero(reference == 0) < 35
+    np.testing.assert_allclose(nnls._lawson_hanson(q, c, 1e-10 * np.abs(c).max()), reference, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(nnls.nnls_normal(q, c), reference, rtol=0, atol=1e-10)

@@ -38,6 +38,7 @@ from psfd.errors import BadInputError, EstimationError, TargetNotFoundError
 from psfd.vocabulary import DEFAULT_S, SHARP_EDGE, check_sizes
 from psfd.estimator import target
 from psfd.estimator.kernels import PSF, field_of_window, split_grid
+from psfd.estimator.nnls import nnls_normal
 from psfd.estimator.raw import Frame
 
 __all__ = [
@@ -759,15 +760,30 @@ def _tile_footprints(crop, candidates, prediction, s, support, tile):
 # --------------------------------------------------------------------------- PSF (sec. 5)
 
 
-def gradient_operator(support: int):
-    """Forward differences along x and y inside a support x support kernel (the grad of eq. (5)), a CSR matrix."""
-    # scipy.sparse, linalg and optimize only here and in `solve_kernel`: loaded after the edge search,
-    # they are not part of its peak memory (optimize alone maps 11 MB)
-    from scipy import sparse
+def gradient_operator(support: int) -> np.ndarray:
+    """Forward differences along x and y inside a support x support kernel (the grad of eq. (5)), a dense matrix.
 
-    d = sparse.diags([-np.ones(support - 1), np.ones(support - 1)], [0, 1], shape=(support - 1, support))
-    eye = sparse.identity(support)
-    return sparse.vstack([sparse.kron(eye, d), sparse.kron(d, eye)]).tocsr()
+    Rows: the support (support - 1) differences along x, then those along y; columns: the kernel's samples
+    row by row. `solve_kernel` takes its normal matrix from `_smoothness_matrix` instead (2 support^4 values
+    here at 65 x 65, a quarter of a gigabyte).
+    """
+    d = np.eye(support - 1, support, 1) - np.eye(support - 1, support)
+    eye = np.eye(support)
+    return np.vstack([np.kron(eye, d), np.kron(d, eye)])
+
+
+def _smoothness_matrix(support: int) -> np.ndarray:
+    """grad^T grad of eq. (5), `gradient_operator`'s normal matrix, written directly: the Laplacian of the
+    4-neighbour grid of the kernel's samples (the number of neighbours on the diagonal, -1 for each pair of
+    neighbours). Small integers: exactly the product, without it (support^6 multiply-adds as a dense one)."""
+    n = support * support
+    i = np.arange(n)
+    row, col = np.divmod(i, support)
+    lap = np.zeros((n, n))
+    lap[i, i] = 4 - (row == 0) - (row == support - 1) - (col == 0) - (col == support - 1)
+    for a, b in ((i[col < support - 1], 1), (i[row < support - 1], support)):  # right and lower neighbours
+        lap[a, a + b] = lap[a + b, a] = -1.0
+    return lap
 
 
 def solve_kernel(ata: np.ndarray, atb: np.ndarray, sigma: float, support: int, weight: float = LAMBDA
@@ -776,24 +792,26 @@ def solve_kernel(ata: np.ndarray, atb: np.ndarray, sigma: float, support: int, w
 
     gamma = (2R + 1)^2 with R the kernel radius on the grid the kernel lives
     on, i.e. the number of kernel samples. The paper uses a projected-gradient
-    Newton method; the problem is the same strictly convex quadratic, solved
-    here exactly by the Lawson-Hanson active set (scipy's nnls) on its
-    Cholesky factor: with Q = L L^T, k^T Q k / 2 - c^T k = ||L^T k - L^-1 c||^2 / 2 + const.
+    Newton method; the problem is the same strictly convex quadratic
+    k^T Q k / 2 - c^T k, solved here exactly on its normal equations by block
+    principal pivoting (`psfd.estimator.nnls.nnls_normal`): the minimiser the
+    former Lawson-Hanson solve on Q's Cholesky factor (scipy.optimize.nnls) gave,
+    to 1e-9 (tests/test_scipy_reference.py), without scipy's 0.5 s of imports.
 
     Returns
     -------
     kernel : ndarray (support, support), not normalised.
     hessian : ndarray, Q (its inverse is the posterior covariance of k).
     """
-    from scipy import linalg, optimize
-
-    g = gradient_operator(support)
-    q = ata / sigma**2 + weight * support**2 * (g.T @ g).toarray()
+    q = _smoothness_matrix(support)
+    q *= weight * support**2
+    q += ata / sigma**2  # the sum in either order: Q bit for bit as ata / sigma^2 + weight gamma grad^T grad
     c = atb / sigma**2
     # a whisper of ridge keeps Q positive definite when the weight is 0 and the data rank-deficient
     q[np.diag_indices_from(q)] += 1e-12 * np.trace(q) / q.shape[0]
-    chol = linalg.cholesky(q, lower=True)
-    k, _ = optimize.nnls(chol.T, linalg.solve_triangular(chol, c, lower=True), maxiter=50 * q.shape[0])
+    # started with every sample bound: on the windows of the real wall photo (17 x 17 and 9 x 9, weights 0, 2
+    # and 2e6) as few Cholesky solves as from the LS kernel's positive samples (1-12), without the LS solve
+    k = nnls_normal(q, c)
     return k.reshape(support, support), q
 
 
