@@ -4,15 +4,16 @@ argmin ||A h - v||^2 subject to h >= 0, given Q = A^T A (positive definite)
 and c = A^T v, by block principal pivoting (Judice & Pires, Comput. Oper.
 Res. 21, 1994; one of the two methods compared by Portugal, Judice & Vicente,
 Math. Comp. 63, 1994, the NNLS reference of Delbracio et al., IJCV 2012,
-sec. 4), with the active set method of Lawson & Hanson (Solving Least Squares
+sec. 4), with scipy's Lawson & Hanson active set method (Solving Least Squares
 Problems, 1974, ch. 23) as a safeguard. It solves the Bernoulli estimate's
 system (IJCV 2012, problem (P)) and the sharp-edge estimate's regularised one
 (Joshi et al., CVPR 2008, eq. (5)) alike: both are strictly convex quadratics
 over the non-negative orthant, whose minimiser is unique.
 
-numpy and OpenCV only: scipy.optimize.nnls (Lawson-Hanson on A itself) needs
+numpy and OpenCV: scipy.optimize.nnls (Lawson-Hanson on A itself) needs
 scipy.linalg and scipy.optimize, 0.3-0.5 s of a process's start-up, and can
-neither start from a guess nor take the normal equations.
+neither start from a guess nor take the normal equations; it is loaded only
+for the safeguard, which no photograph has reached.
 """
 
 from __future__ import annotations
@@ -83,8 +84,11 @@ def nnls_normal(q: np.ndarray, c: np.ndarray, passive: np.ndarray | None = None)
             last = int(np.flatnonzero(wrong)[-1])
             free[last] = ~free[last]
         h, y = _kkt(q, c, free)
-    # not reached in exact arithmetic (Murty's rule terminates); the slow method as a safeguard
-    return _lawson_hanson(q, c, tol)
+    # not reached in exact arithmetic (Murty's rule terminates); the slow solver as a safeguard
+    from scipy import linalg, optimize  # 0.3-0.5 s of imports: only here
+
+    lower = linalg.cholesky(q, lower=True, check_finite=False)
+    return optimize.nnls(lower.T, linalg.solve_triangular(lower, c, lower=True), maxiter=50 * n)[0]
 
 
 def _kkt(q: np.ndarray, c: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -127,47 +131,3 @@ def _cholesky_solve(q: np.ndarray, c: np.ndarray, idx: np.ndarray | None = None)
     if not ok or not np.isfinite(x).all():
         raise np.linalg.LinAlgError("the free block of the normal equations is not positive definite")
     return x[:, 0]
-
-
-def _lawson_hanson(q: np.ndarray, c: np.ndarray, tol: float) -> np.ndarray:
-    """The same minimiser by Lawson & Hanson's active set method (1974, ch. 23, algorithm NNLS) on Q and c.
-
-    One variable is freed per outer step, the one of most negative multiplier
-    y = Q h - c; the inner loop moves from h towards the free block's solution
-    until a free variable reaches 0, which is then bound again. Each step lowers
-    the objective, so no free set comes back: it ends, at most in 2^n steps
-    (3 n allowed, as scipy.optimize.nnls allows).
-
-    Raises
-    ------
-    numpy.linalg.LinAlgError
-        No minimiser after 3 n steps.
-    """
-    n = q.shape[0]
-    h = np.zeros(n)
-    free = np.zeros(n, dtype=bool)
-    for _ in range(3 * n):
-        y = q @ h - c
-        y[free] = np.inf  # only bound variables may be freed
-        j = int(np.argmin(y))
-        if y[j] >= -tol:
-            return h
-        free[j] = True
-        while True:
-            z = np.zeros(n)
-            idx = np.flatnonzero(free)
-            if idx.size:
-                z[idx] = _cholesky_solve(q, c, idx)
-            blocking = free & (z <= 0)
-            if not blocking.any():
-                h = z
-                break
-            # the step from h towards z that keeps every free variable >= 0 (none when h and z are both 0);
-            # the variable that stops it is bound exactly (rounding may leave it a hair above 0)
-            ratios = h[blocking] / np.maximum(h[blocking] - z[blocking], 1e-300)
-            first = int(np.argmin(ratios))
-            h += ratios[first] * (z - h)
-            h[np.flatnonzero(blocking)[first]] = 0.0
-            free &= h > 0
-            h[~free] = 0.0
-    raise np.linalg.LinAlgError("non-negative least squares: no minimiser after 3 n steps")

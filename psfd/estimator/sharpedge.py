@@ -43,8 +43,8 @@ from psfd.estimator.raw import Frame
 
 __all__ = [
     "SQUARES", "Edgels", "KnownPattern", "TargetView", "bernoulli_marks", "bernoulli_pattern", "detect_edges",
-    "edge_levels", "edge_pattern", "edge_target", "edge_target_in", "estimate_edges", "gradient_operator",
-    "locate_pattern", "locate_target", "noise_sigma", "solve_kernel"
+    "edge_levels", "edge_pattern", "edge_target", "edge_target_in", "estimate_edges", "locate_pattern",
+    "locate_target", "noise_sigma", "solve_kernel"
 ]
 
 TILE = 2  # squares per tile side of the edge target
@@ -760,22 +760,11 @@ def _tile_footprints(crop, candidates, prediction, s, support, tile):
 # --------------------------------------------------------------------------- PSF (sec. 5)
 
 
-def gradient_operator(support: int) -> np.ndarray:
-    """Forward differences along x and y inside a support x support kernel (the grad of eq. (5)), a dense matrix.
-
-    Rows: the support (support - 1) differences along x, then those along y; columns: the kernel's samples
-    row by row. `solve_kernel` takes its normal matrix from `_smoothness_matrix` instead (2 support^4 values
-    here at 65 x 65, a quarter of a gigabyte).
-    """
-    d = np.eye(support - 1, support, 1) - np.eye(support - 1, support)
-    eye = np.eye(support)
-    return np.vstack([np.kron(eye, d), np.kron(d, eye)])
-
-
 def _smoothness_matrix(support: int) -> np.ndarray:
-    """grad^T grad of eq. (5), `gradient_operator`'s normal matrix, written directly: the Laplacian of the
-    4-neighbour grid of the kernel's samples (the number of neighbours on the diagonal, -1 for each pair of
-    neighbours). Small integers: exactly the product, without it (support^6 multiply-adds as a dense one)."""
+    """grad^T grad of eq. (5), grad the forward differences along x and y inside the kernel, written directly:
+    the Laplacian of the 4-neighbour grid of the kernel's samples (the number of neighbours on the diagonal,
+    -1 for each pair of neighbours). Small integers: exactly the product, without the operator (2 support^4
+    values, a quarter of a gigabyte at 65 x 65) or its support^6 multiply-adds."""
     n = support * support
     i = np.arange(n)
     row, col = np.divmod(i, support)
