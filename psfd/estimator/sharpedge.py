@@ -255,33 +255,52 @@ def _gaussian_filter(image: np.ndarray, sd: float) -> np.ndarray:
     image = np.asarray(image)
     out = image
     for axis in range(image.ndim):
-        line = np.moveaxis(out.astype(np.float64), axis, 0)
-        n = line.shape[0]
-        # "reflect" repeats the edge sample (d c b a | a b c d), numpy's "symmetric"
-        padded = np.pad(line, [(radius, radius)] + [(0, 0)] * (line.ndim - 1), mode="symmetric")
-        summed = padded[radius : radius + n] * weights[radius]
+        line = out.astype(np.float64)
+        n = line.shape[axis]
+        padded = _reflected(line, radius, axis)
+
+        def taps(k: int) -> np.ndarray:  # the samples k - radius away from each output sample
+            return padded[(slice(None),) * axis + (slice(k, k + n),)]
+
+        summed = taps(radius) * weights[radius]
+        pair = np.empty_like(summed)
         for j in range(radius, 0, -1):
-            summed += (padded[radius - j : radius - j + n] + padded[radius + j : radius + j + n]) * weights[radius - j]
-        out = np.moveaxis(summed, 0, axis).astype(image.dtype, copy=False)
+            np.add(taps(radius - j), taps(radius + j), out=pair)
+            pair *= weights[radius - j]
+            summed += pair
+        out = summed.astype(image.dtype, copy=False)
     return out
 
 
+def _reflected(line: np.ndarray, radius: int, axis: int) -> np.ndarray:
+    """``line`` extended by ``radius`` samples at both ends of ``axis`` as "reflect" extends it (d c b a | a b c d)."""
+    n = line.shape[axis]
+    if radius > n:  # reflected more than once: numpy's "symmetric" padding repeats it
+        return np.pad(line, [(radius, radius) if a == axis else (0, 0) for a in range(line.ndim)], mode="symmetric")
+    index = np.concatenate([np.arange(radius - 1, -1, -1), np.arange(n), np.arange(n - 1, n - 1 - radius, -1)])
+    return np.take(line, index, axis=axis)
+
+
 def _bilinear(image: np.ndarray, y: np.ndarray, x: np.ndarray, nearest: bool = False) -> np.ndarray:
-    """scipy.ndimage.map_coordinates(image, [y, x], order=1) bit for bit: mode "constant" (0 outside the rows
-    0 .. rows - 1 and columns 0 .. cols - 1), or "nearest" (the edge samples repeated). Each of the four
-    neighbours times its row weight, then its column weight, summed in row-major order."""
+    """scipy.ndimage.map_coordinates(image, [y, x], order=1) of a float64 image, bit for bit: mode "constant"
+    (0 outside the rows 0 .. rows - 1 and columns 0 .. cols - 1), or "nearest" (the edge samples repeated).
+    Each of the four neighbours times its row weight, then its column weight, summed in row-major order."""
     rows, cols = image.shape
     y0, x0 = np.floor(y), np.floor(x)
     ty, tx = y - y0, x - x0
     row_weights, col_weights = (1.0 - ty, ty), (1.0 - tx, tx)
     y0, x0 = y0.astype(np.intp), x0.astype(np.intp)
     # out of the image a neighbour reads its edge sample: the value for "nearest", zero weight or dropped below
-    ys = (np.clip(y0, 0, rows - 1), np.clip(y0 + 1, 0, rows - 1))
+    starts = (np.clip(y0, 0, rows - 1) * cols, np.clip(y0 + 1, 0, rows - 1) * cols)
     xs = (np.clip(x0, 0, cols - 1), np.clip(x0 + 1, 0, cols - 1))
+    flat = np.ascontiguousarray(image).ravel()
     out = np.zeros(np.shape(y))
     for a in (0, 1):
         for b in (0, 1):
-            out += image[ys[a], xs[b]] * row_weights[a] * col_weights[b]
+            term = flat.take(starts[a] + xs[b])
+            term *= row_weights[a]
+            term *= col_weights[b]
+            out += term
     if nearest:
         return out
     return np.where((y >= 0) & (y <= rows - 1) & (x >= 0) & (x <= cols - 1), out, 0.0)
