@@ -783,6 +783,32 @@ def test_window_solve_equals_the_former_solves(tmp_path, monkeypatch, solver):
     assert checked >= 4
 
 
+def test_a_half_too_small_is_found_before_any_half_is_solved(monkeypatch):
+    """The prediction error is None when any half holds no more observations than unknowns, as before, but the
+    halves are counted before any is fitted: the former loop fitted up to three halves before it met the small
+    one (a window cut at its bottom) and threw them away."""
+    rng = np.random.default_rng(0)
+    n = 9
+
+    def quadrants(*sizes):
+        blocks = [rng.standard_normal((m, n)) for m in sizes]
+        values = [b @ rng.random(n) + 0.01 * rng.standard_normal(len(b)) for b in blocks]
+        return (np.array([b.T @ b for b in blocks]), np.array([b.T @ v for b, v in zip(blocks, values)]),
+                np.array([v @ v for v in values]), np.array([len(b) for b in blocks]))
+
+    parts = quadrants(40, 40, 3, 3)  # halves: 43 | 43, then 80 | 6 observations
+    fits = []
+    solve = bernoulli.nnls_normal
+    monkeypatch.setattr(bernoulli, "nnls_normal", lambda *args: fits.append(1) or solve(*args))
+    assert _former_cross_validated(parts, "nnls", np.ones(n, bool), 0.01) is None
+    assert len(fits) == 3
+    fits.clear()
+    assert bernoulli.cross_validated(parts, "nnls", np.ones(n, bool), 0.01) is None
+    assert not fits
+    assert bernoulli.cross_validated(quadrants(40, 40, 30, 30), "nnls", np.ones(n, bool), 0.01) is not None
+    assert len(fits) == 4  # every half large enough: all four fitted
+
+
 def _former_nnls_normal(q, c, passive=None):
     """`bernoulli.nnls_normal` before its exchanges gathered Q's free rows once (Q_FF by two takes of Q, and
     y = Q h - c from all of Q): the reference its minimiser must equal bit for bit."""

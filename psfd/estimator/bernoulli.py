@@ -789,15 +789,14 @@ def cross_validated(
     """
     ata, atv, vtv, count = parts
     n = ata.shape[1]
-    if sigma <= 0:
+    # every half is counted before any is solved: one too small makes the error None, and its fits would be lost
+    if sigma <= 0 or any(count[a] + count[b] <= n for pair in _HALVES for a, b in pair):
         return None
     rss = observations = 0.0
     for pair in _HALVES:
         # each half's sums once (a pair of quadrants: one addition each): the half fitted on is the other's test
         halves = [(ata[a] + ata[b], atv[a] + atv[b], vtv[a] + vtv[b], int(count[a] + count[b])) for a, b in pair]
-        for (q, c, _, m), (q_test, c_test, b_test, m_test) in (halves, halves[::-1]):
-            if m <= n:
-                return None
+        for (q, c, _, _), (q_test, c_test, b_test, m_test) in (halves, halves[::-1]):
             try:
                 if solver == "nnls":  # started from the whole fit's signs, no LS solve needed
                     h = nnls_normal(q, c, positive)
