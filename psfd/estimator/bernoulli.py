@@ -31,7 +31,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from psfd.errors import BadInputError, EstimationError, SaturatedError
 from psfd.estimator import detect, geometry, kernels, quantiles, radiometry, resample, target
 from psfd.estimator.kernels import PSF
-from psfd.estimator.nnls import _cholesky_solve, _kkt, nnls_normal  # noqa: F401 (_kkt: importable here as before)
+from psfd.estimator.nnls import _cholesky_solve, nnls_normal
 from psfd.estimator.raw import Frame
 from psfd.vocabulary import BERNOULLI, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, check_sizes, check_solver
 from psfd.workers import concurrently, usable_cores, worker_signals
