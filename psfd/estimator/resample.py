@@ -408,15 +408,7 @@ def keys_weights(t: np.ndarray, a: float = -0.5) -> np.ndarray:
     -------
     ndarray with a trailing axis of 4: weights of taps at offsets -1, 0, 1, 2.
     """
-    t = np.asarray(t)
-    u = 1 - t
-    # eq. (15) at the distances 1 + t and 2 - t (outer taps) and t, 1 - t (inner), expanded
-    out = np.empty(t.shape + (4,), dtype=t.dtype if t.dtype.kind == "f" else np.float64)
-    out[..., 0] = a * t * u * u
-    out[..., 1] = ((a + 2) * t - (a + 3)) * t * t + 1
-    out[..., 2] = ((a + 2) * u - (a + 3)) * u * u + 1
-    out[..., 3] = a * u * t * t
-    return out
+    return np.stack(_keys_taps(np.asarray(t), a), axis=-1)
 
 
 def keys_upsample(values: np.ndarray, s: int, start: tuple[int, int], shape: tuple[int, int]) -> np.ndarray:
@@ -515,8 +507,10 @@ def keys_bicubic(
 
 
 def _keys_taps(t: np.ndarray, a: float) -> tuple[np.ndarray, ...]:
-    """`keys_weights` as four arrays of the shape of ``t``, one per tap (the same expressions, contiguous)."""
+    """`keys_weights` as four arrays of the shape of ``t``, one per tap (each contiguous)."""
     u = 1 - t
+    # Keys, IEEE Trans. ASSP 1981, eq. (15) at the distances 1 + t and 2 - t (outer taps) and t, 1 - t (inner),
+    # expanded
     return (a * t * u * u, ((a + 2) * t - (a + 3)) * t * t + 1, ((a + 2) * u - (a + 3)) * u * u + 1, a * u * t * t)
 
 
