@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 from typing import Callable
 
-import cv2
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
