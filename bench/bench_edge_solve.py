@@ -15,29 +15,21 @@ Usage: python bench/bench_edge_solve.py --reference CHECKOUT [--rounds N]
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import checkout  # noqa: E402
 
-from psfd.estimator import raw, sharpedge
+import numpy as np  # noqa: E402
+
+from psfd.estimator import raw, sharpedge  # noqa: E402
 
 PHOTO = Path(__file__).resolve().parent.parent / "tests" / "data" / "IMG_0608_v1.pgm"
 RUNS = (("17 x 17", {"support": 17}), ("17 x 17, 3 x 2 grid", {"support": 17, "grid": (3, 2)}),
         ("9 x 9", {"support": 9}))
 WEIGHTS = (0.0, 2.0, 2e6)
-
-
-def reference_module(checkout: Path):
-    """sharpedge.py of another checkout, loaded under its own name beside this one's."""
-    path = checkout / "psfd" / "estimator" / "sharpedge.py"
-    spec = importlib.util.spec_from_file_location("sharpedge_reference", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
 
 
 def systems(frame, kwargs) -> list[tuple]:
@@ -61,7 +53,8 @@ def main() -> None:
     parser.add_argument("--reference", required=True, metavar="CHECKOUT", help="psfd checkout to compare with")
     parser.add_argument("--rounds", type=int, default=7, help="solves of each system by each, in turn")
     args = parser.parse_args()
-    solvers = {"this": sharpedge.solve_kernel, "reference": reference_module(Path(args.reference)).solve_kernel}
+    reference = checkout.module_of(Path(args.reference), "sharpedge")
+    solvers = {"this": sharpedge.solve_kernel, "reference": reference.solve_kernel}
     frame = raw.load_frame(PHOTO, "mono")
     print(f"{'windows':>20} {'weight':>7} {'ms/solve':>9} {'reference':>10} {'ratio':>6} {'max diff':>9}")
     for label, kwargs in RUNS:

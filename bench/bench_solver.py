@@ -18,7 +18,6 @@ Usage: python bench/bench_solver.py --reference CHECKOUT [--rounds N] [--keep DI
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import tempfile
 import time
@@ -26,21 +25,13 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_frames  # noqa: E402
+import checkout  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 from psfd.estimator import bernoulli, raw  # noqa: E402
 
 STEPS = ("normal_equations", "solve", "cross_validated")
-
-
-def reference_module(checkout: Path):
-    """bernoulli.py of another checkout, loaded under its own name beside this one's."""
-    path = checkout / "psfd" / "estimator" / "bernoulli.py"
-    spec = importlib.util.spec_from_file_location("bernoulli_reference", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def timed_steps(module) -> dict[str, list[float]]:
@@ -67,7 +58,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=2, help="runs of all windows by each, in turn")
     parser.add_argument("--keep", metavar="DIR", help="write (or reuse) the frame here instead of a temporary folder")
     args = parser.parse_args()
-    modules = {"this": bernoulli, "reference": reference_module(Path(args.reference).resolve())}
+    modules = {"this": bernoulli, "reference": checkout.module_of(Path(args.reference).resolve(), "bernoulli")}
     spent = {name: timed_steps(module) for name, module in modules.items()}
     totals = {name: {step: 0.0 for step in (*STEPS, "window")} for name in modules}
     with tempfile.TemporaryDirectory() as tmp:
