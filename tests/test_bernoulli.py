@@ -307,6 +307,22 @@ def test_estimate_target_recentres_the_kernel(tmp_path):
     assert _mtf_error(est.psf, h) < 4 * est.noise_floor + MODEL_MTF + reg_mtf
 
 
+def test_recentring_passes_translate_the_kernel_as_recentre_does():
+    """`_recentred` takes the kernel's spectrum once for its passes: each pass is `recentre` of the same kernel,
+    bit for bit."""
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[-8:9, -8:9]
+    kernel = np.exp(-((x - 0.7) ** 2 / 6 + (y + 0.4) ** 2 / 9)) + 1e-3 * rng.random((17, 17))
+    total = np.zeros(2)
+    out = kernel
+    for _ in range(3):
+        total += kernels.core_centroid(out)
+        out = bernoulli.recentre(kernel, (float(total[0]), float(total[1])))
+    centred, shift = bernoulli._recentred(kernel, "nnls")
+    assert shift == (float(total[0]), float(total[1]))
+    np.testing.assert_array_equal(centred, kernels.clip_negatives(out))
+
+
 def test_estimate_target_rotated_view(tmp_path):
     """Detection, geometry and estimate at 30 degrees with off-centre lens distortion.
 

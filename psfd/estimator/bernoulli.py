@@ -1313,22 +1313,33 @@ def recentre(kernel: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
     Fourier domain; zero padding to twice the support stops the shifted
     tails from wrapping around.
     """
+    return _translations(kernel)(shift)
+
+
+def _translations(kernel: np.ndarray) -> Callable[[tuple[float, float]], np.ndarray]:
+    """`recentre` of ``kernel`` by any shift, its padded spectrum taken once for all of them."""
     rows, cols = kernel.shape
     padded = np.zeros((2 * rows, 2 * cols))
     padded[:rows, :cols] = kernel
+    spectrum = np.fft.fft2(padded)
     fy = np.fft.fftfreq(2 * rows)[:, None]
     fx = np.fft.fftfreq(2 * cols)[None, :]
-    ramp = np.exp(2j * np.pi * (fx * shift[0] + fy * shift[1]))
-    return np.real(np.fft.ifft2(np.fft.fft2(padded) * ramp))[:rows, :cols]
+
+    def translated(shift: tuple[float, float]) -> np.ndarray:
+        ramp = np.exp(2j * np.pi * (fx * shift[0] + fy * shift[1]))
+        return np.real(np.fft.ifft2(spectrum * ramp))[:rows, :cols]
+
+    return translated
 
 
 def _recentred(kernel: np.ndarray, solver: str) -> tuple[np.ndarray, tuple[float, float]]:
     """The kernel with its core centred, and the shift removed (x, y samples)."""
     total = np.zeros(2)
     out = kernel
+    translated = _translations(kernel)
     for _ in range(3):  # the core moves with the shift: a few passes converge
         total += kernels.core_centroid(out)
-        out = recentre(kernel, (float(total[0]), float(total[1])))
+        out = translated((float(total[0]), float(total[1])))
     # the interpolation rings slightly below 0: project back as the solver did
     out = kernels.normalise(out) if solver == "ls" else kernels.clip_negatives(out)
     return out, (float(total[0]), float(total[1]))
