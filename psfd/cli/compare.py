@@ -347,6 +347,9 @@ class _Beside:
             self.pool.join()
 
 
+_UNSENT = object()  # what a `_Message` holds until its value arrives
+
+
 class _Message:
     """One value sent once from this process to a `_Beside` call, which may wait for it.
 
@@ -357,6 +360,7 @@ class _Message:
 
     def __init__(self, forked: bool) -> None:
         self.pipe = None
+        self.value: Any = _UNSENT
         if forked:
             import multiprocessing
 
@@ -371,11 +375,10 @@ class _Message:
 
     def receive(self) -> Any:
         """The value sent, waiting for it; in the worker, the same value on every call."""
-        if self.pipe is None or hasattr(self, "value"):
-            return self.value
-        if not self.pipe[1].closed:
-            self.pipe[1].close()
-        self.value = self.pipe[0].recv()
+        if self.value is _UNSENT:  # only in the worker: without one the value was sent first
+            if not self.pipe[1].closed:
+                self.pipe[1].close()
+            self.value = self.pipe[0].recv()
         return self.value
 
 
