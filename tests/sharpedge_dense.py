@@ -88,8 +88,6 @@ def shade_target(image: np.ndarray, alpha: np.ndarray, inside: np.ndarray, s: in
     gy, gx = np.gradient(smooth)
     mag = np.hypot(gx, gy)
     iy, ix = np.nonzero((alpha > 0.05) & (alpha < 0.95) & inside & (mag > 0))
-    keep = ((iy % s == 0) | (ix % s == 0)) & ((iy // s + ix // s) % 2 == 0)
-    iy, ix = iy[keep], ix[keep]
     nan = np.full(iy.size, np.nan)
     edges = edge_levels(image, Edgels(ix / s, iy / s, gx[iy, ix] / mag[iy, ix], gy[iy, ix] / mag[iy, ix],
                                       mag[iy, ix], nan, nan.copy()), length)
