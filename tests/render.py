@@ -639,6 +639,47 @@ def render(kernel: Kernel, view: View = View(), *, shape: tuple[int, int] | None
     )
 
 
+def edge_print(X: np.ndarray, Y: np.ndarray, squares: int = 8) -> np.ndarray:
+    """Reflectance of the sharp-edge target (Joshi et al., CVPR 2008, sec. 4.2, as psfd prints it) in squares:
+    a ``squares`` x ``squares`` checkerboard, square (0, 0) black, in each square a disc of radius 0.3 square
+    of the other colour; white beyond the board. 0 black, 1 white."""
+    ix, iy = np.floor(X), np.floor(Y)
+    disc = (X - ix - 0.5) ** 2 + (Y - iy - 0.5) ** 2 < 0.3**2
+    black = (((ix + iy) % 2 == 0) ^ disc) & (X >= 0) & (X < squares) & (Y >= 0) & (Y < squares)
+    return np.where(black, 0.0, 1.0)
+
+
+def render_edge_target(kernel: Kernel, px_per_square: float = 20.0, rotation_deg: float = 8.0, *,
+                       tilt: tuple[float, float] = (0.04, -0.03), shape: tuple[int, int] = (230, 230), seed: int = 0,
+                       light: Light = Light(), paper: Print = Print(), exposure: Exposure = Exposure(),
+                       samples: int = 32) -> Frame:
+    """A photograph of the sharp-edge target (8 x 8 squares and a white border of one square) through ``kernel``.
+
+    The same optics, light and sensor as `render`; the print is turned by
+    ``rotation_deg`` about the plane's centre, with the perspective of
+    `View.tilt`. The scene is the reflectance at the centre of each
+    1/``samples``-pixel square rather than its mean there: an edge moves by
+    up to 1/(2 ``samples``) pixel, in a direction that changes along the
+    turned edges, a blur some ten times narrower than the kernels here.
+    """
+    rows, cols = shape
+    a, p, half = math.radians(rotation_deg), px_per_square, 4.0  # the board's centre, in squares
+    perspective = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [tilt[0] / half, tilt[1] / half, 1.0]])
+    similarity = np.array([[p * math.cos(a), -p * math.sin(a), (cols - 1) / 2],
+                           [p * math.sin(a), p * math.cos(a), (rows - 1) / 2], [0.0, 0.0, 1.0]])
+    inverse = np.linalg.inv(similarity @ perspective @ np.array([[1.0, 0.0, -half], [0.0, 1.0, -half], [0, 0, 1]]))
+    field_of = light.field(shape)
+
+    def scene(x, y, pixel):
+        X, Y = _apply(inverse, x.astype(np.float64), y.astype(np.float64))
+        on_print = (X > -1) & (X < 9) & (Y > -1) & (Y < 9)
+        r = np.where(on_print, paper.black + (paper.white - paper.black) * edge_print(X, Y), paper.background)
+        return (r * field_of(x, y)).astype(np.float32)
+
+    frame, _ = _expose(blur(scene, shape, kernel, samples), exposure, seed, "edge target")
+    return frame
+
+
 def _expose(ideal: np.ndarray, exposure: Exposure, seed: int, name: str) -> tuple[Frame, Exposure]:
     """The sensor: shot noise (Poisson), read noise (Gaussian), gain, black level, 14-bit ADC and clipping."""
     e = exposure

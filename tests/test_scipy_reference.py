@@ -232,7 +232,8 @@ def test_the_nearest_edge_points_are_the_k_d_trees():
 @pytest.mark.parametrize("photo, target_form", [("IMG_0608_v1.pgm", False), ("img_example.pgm", True)])
 def test_the_sharp_edge_estimate_is_the_scipy_paths(photo, target_form, monkeypatch):
     """The whole sharp-edge estimate of a real photograph without scipy's filters and k-d tree: within 1e-3 of
-    its noise floor of the scipy path's (the target form keeps the k-d tree: the same bits)."""
+    its noise floor of the scipy path's (the target form takes every tied nearest edge point, `_TiedPoints`,
+    on both paths: the same bits)."""
     from psfd.estimator import sharpedge
 
     frame = raw.load_frame(DATA / photo, "g1")
