@@ -190,7 +190,7 @@ def test_target_form_on_the_bernoulli_marks(tmp_path):
 
 @pytest.mark.parametrize("form", ["edge target", "Bernoulli marks"])
 def test_the_target_form_does_not_depend_on_the_order_of_its_edge_points(smooth_frame, form, monkeypatch):
-    """The edge points and the samples lie on the same s-grid, and one sample in ten is as near to two or more
+    """The edge points and the samples lie on the same s-grid, and one sample in five is as near to two or more
     edge points. When a sample took the levels of the first of them in a k-d tree's order, their order decided
     the PSF: reversed, the example photo's moved by 0.050 (its noise floor 0.0087), the edge target's here by
     0.0018 (floor 0.0013). With the mean of the tied points' levels, reversing them leaves the PSF as it was
