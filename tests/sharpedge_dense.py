@@ -15,7 +15,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from psfd.estimator.sharpedge import (
-    ANTI_ALIAS, DOG_RATIO, Edgels, KnownPattern, _normal_equations, edge_levels, noise_sigma
+    ANTI_ALIAS, DOG_RATIO, LATERAL, Edgels, KnownPattern, _clear_marches, _normal_equations, edge_levels, noise_sigma
 )
 
 
@@ -81,16 +81,40 @@ def render_target(known: KnownPattern, shape: tuple[int, int], s: int, origin: t
     return alpha / ANTI_ALIAS**2, known.region(px, py)
 
 
-def shade_target(image: np.ndarray, alpha: np.ndarray, inside: np.ndarray, s: int, band: float, length: int
+def nearest_levels(measured: Edgels, others: Edgels) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of ``others``: the mean levels of the nearest of the ``measured`` points (all on the s-grid)."""
+    tree = cKDTree(np.column_stack([measured.x, measured.y]))
+    k = min(8, len(measured))
+    dist, idx = tree.query(np.column_stack([others.x, others.y]), k=k)
+    dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
+    tied = dist <= dist[:, :1] * (1 + 1e-12)
+    count = tied.sum(axis=1)
+    return (np.where(tied, measured.lo[idx], 0.0).sum(axis=1) / count,
+            np.where(tied, measured.hi[idx], 0.0).sum(axis=1) / count)
+
+
+def shade_target(image: np.ndarray, alpha: np.ndarray, inside: np.ndarray, s: int, band: float, length: int,
+                 known_pattern: KnownPattern, origin: tuple[float, float], kernel_radius: float
                  ) -> tuple[np.ndarray, np.ndarray, Edgels]:
-    """Edge points of the rendered target, their levels, and the shaded coverage (sec. 4.2)."""
+    """Edge points of the rendered target, their levels, and the shaded coverage (sec. 4.2).
+
+    An edge point whose marches meet another edge of the pattern or leave its known region
+    (`sharpedge._clear_marches`) takes the mean levels of its nearest clear points (sec. 4.1).
+    """
     smooth = ndimage.gaussian_filter(alpha, 1.0)
     gy, gx = np.gradient(smooth)
     mag = np.hypot(gx, gy)
     iy, ix = np.nonzero((alpha > 0.05) & (alpha < 0.95) & inside & (mag > 0))
     nan = np.full(iy.size, np.nan)
-    edges = edge_levels(image, Edgels(ix / s, iy / s, gx[iy, ix] / mag[iy, ix], gy[iy, ix] / mag[iy, ix],
-                                      mag[iy, ix], nan, nan.copy()), length)
+    points = Edgels(ix / s, iy / s, gx[iy, ix] / mag[iy, ix], gy[iy, ix] / mag[iy, ix], mag[iy, ix], nan, nan.copy())
+    clear = _clear_marches(known_pattern, origin, points, 2 * kernel_radius, s, LATERAL * kernel_radius)
+    edges = edge_levels(image, points.subset(clear), length)
+    if len(edges) and not clear.all():
+        others = points.subset(~clear)
+        others.lo, others.hi = nearest_levels(edges, others)
+        edges = Edgels(*(np.concatenate([a, b]) for a, b in zip(vars(edges).values(), vars(others).values())))
+    elif not len(edges):
+        edges = edge_levels(image, points, length)
     known, sharp = np.zeros(alpha.shape, dtype=bool), np.zeros(alpha.shape)
     if len(edges) == 0:
         return sharp, known, edges
@@ -123,7 +147,8 @@ def window_equations(image, saturated, window, s, support, band, length, sigma, 
         sharp, predicted = predict_sharp(edges, shape, s, band)
     else:
         alpha, inside = render_target(known, shape, s, (cx0, cy0))
-        sharp, predicted, edges = shade_target(crop, alpha, inside, s, band, length)
+        sharp, predicted, edges = shade_target(crop, alpha, inside, s, band, length, known, (cx0, cy0),
+                                               (support // 2) / s)
     valid = ndimage.binary_erosion(predicted, np.ones((support, support), bool), border_value=0)[::s, ::s].copy()
     valid &= ~ndimage.binary_dilation(saturated[cy0 : cy0 + crop.shape[0], cx0 : cx0 + crop.shape[1]],
                                       iterations=int(np.ceil(band)) + 1)
