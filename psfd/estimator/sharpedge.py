@@ -1262,14 +1262,15 @@ def _clear_marches(known: "KnownPattern", origin: tuple[int, int], edges: Edgels
         first = np.arange(min(s, steps), steps + 1) / steps
         lines += [(-lateral, first), (lateral, first)]
     for offset, t in lines:
-        lx, ly = x - offset * edges.ny, y + offset * edges.nx
-        x0, y0 = known.to_pattern(lx, ly)
         for sign, colour in ((1.0, 1.0), (-1.0, 0.0)):
-            x1, y1 = known.to_pattern(lx + sign * reach * edges.nx, ly + sign * reach * edges.ny)
+            k = np.flatnonzero(ok)  # the points still clear: a point fails on its first blocked strip
+            nx, ny = edges.nx[k], edges.ny[k]
+            lx, ly = x[k] - offset * ny, y[k] + offset * nx
+            x0, y0 = known.to_pattern(lx, ly)
+            x1, y1 = known.to_pattern(lx + sign * reach * nx, ly + sign * reach * ny)
             px = x0[:, None] + t[None, :] * (x1 - x0)[:, None]
             py = y0[:, None] + t[None, :] * (y1 - y0)[:, None]
-            ok &= (known.reflectance(px, py) == colour).all(axis=1)
-            ok &= np.asarray(known.region(px, py), dtype=bool).all(axis=1)
+            ok[k] = (known.reflectance(px, py) == colour).all(axis=1) & np.asarray(known.region(px, py), bool).all(axis=1)
     return ok
 
 
