@@ -291,6 +291,19 @@ def test_the_target_forms_levels_are_the_prints(request, form):
     assert error.max() < 0.1
 
 
+def target_form_errors(frame, kernel, pattern: str):
+    """The target form's PSF of ``frame`` against ``kernel``: `render.compare`'s errors and the L2 error over
+    the support (against `render.support_truth`, the band-limited samples), the pattern checked."""
+    import render
+
+    [est] = sharpedge.estimate_edges(frame, s=S, support=SUPPORT, target_form=True)
+    errors = render.compare(est.psf, kernel, S)
+    l2 = float(np.sqrt(np.sum((est.psf - render.support_truth(kernel, S, SUPPORT)) ** 2)))
+    print(f"\n{pattern} through {kernel.name}: {errors}  L2 {l2:.4f}  floor {est.noise_floor:.4f}")
+    assert est.params["pattern"] == pattern
+    return errors, l2
+
+
 def test_the_target_form_against_the_true_psf(defocused_edge_target):
     """The target form on a photograph of the edge target from the independent renderer, against its PSF
     (`render.support_truth`: the band-limited samples on the support).
@@ -305,14 +318,8 @@ def test_the_target_form_against_the_true_psf(defocused_edge_target):
     Allowed: 0.03 in L2 (0.026 before; the two noise seeds of this view give 0.023 and 0.026), 0.08 in max
     MTF, a signed error in (0, 0.035).
     """
-    import render
-
     frame, kernel, _ = defocused_edge_target
-    [est] = sharpedge.estimate_edges(frame, s=S, support=SUPPORT, target_form=True)
-    errors = render.compare(est.psf, kernel, S)
-    l2 = float(np.sqrt(np.sum((est.psf - render.support_truth(kernel, S, SUPPORT)) ** 2)))
-    print(f"\nedge target through {kernel.name}: {errors}  L2 {l2:.4f}  floor {est.noise_floor:.4f}")
-    assert est.params["pattern"] == "edge target"
+    errors, l2 = target_form_errors(frame, kernel, "edge target")
     assert l2 < 0.03
     assert errors.max_mtf < 0.08
     assert 0 < errors.mean_signed < 0.035
@@ -329,14 +336,8 @@ def test_the_marks_target_form_against_the_true_psf(defocused_bernoulli_marks):
     of 0.45 pixel, 0.3 and 0.45 pixel per cell): L2 error -0.017 +- 0.0025 (lower on all 16), max MTF error
     -0.020 +- 0.010. Allowed: 0.045 in L2, 0.13 in max MTF, a signed error in (0, 0.035).
     """
-    import render
-
     frame, kernel, _ = defocused_bernoulli_marks
-    [est] = sharpedge.estimate_edges(frame, s=S, support=SUPPORT, target_form=True)
-    errors = render.compare(est.psf, kernel, S)
-    l2 = float(np.sqrt(np.sum((est.psf - render.support_truth(kernel, S, SUPPORT)) ** 2)))
-    print(f"\nBernoulli marks through {kernel.name}: {errors}  L2 {l2:.4f}  floor {est.noise_floor:.4f}")
-    assert est.params["pattern"] == "Bernoulli target marks"
+    errors, l2 = target_form_errors(frame, kernel, "Bernoulli target marks")
     assert l2 < 0.045
     assert errors.max_mtf < 0.13
     assert 0 < errors.mean_signed < 0.035

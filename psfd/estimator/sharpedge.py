@@ -1290,10 +1290,16 @@ def _target_levels(image, points: Edgels, clear: np.ndarray, s: int, length: int
         return edge_levels(image, points, length)
     nearest = _TiedPoints(np.rint(measured.y * s), np.rint(measured.x * s))
     _, sample, point = nearest.query(np.rint(others.y * s), np.rint(others.x * s), np.inf)
-    count = np.bincount(sample, minlength=len(others))
-    others.lo = np.bincount(sample, measured.lo[point], len(others)) / count
-    others.hi = np.bincount(sample, measured.hi[point], len(others)) / count
+    others.lo, others.hi = _mean_levels(measured, sample, point, len(others))
     return Edgels(*(np.concatenate([getattr(measured, f.name), getattr(others, f.name)]) for f in fields(Edgels)))
+
+
+def _mean_levels(edges: Edgels, sample: np.ndarray, point: np.ndarray, n: int,
+                 at: "np.ndarray | slice" = slice(None)) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of samples 0 .. n - 1, taken ``at`` (each needs a point there): the mean levels of each sample's
+    nearest edge points, the (sample, point) pairs of `_TiedPoints.query`."""
+    count = np.bincount(sample, minlength=n)[at]
+    return (np.bincount(sample, edges.lo[point], n)[at] / count, np.bincount(sample, edges.hi[point], n)[at] / count)
 
 
 class _TargetPrediction:
@@ -1336,10 +1342,7 @@ class _TargetPrediction:
         keep = found[sample]
         sample, point = sample[keep], point[keep]
         e = self.edges
-        # the mean levels of each sample's nearest edge points
-        count = np.bincount(sample, minlength=i.size)[found]
-        lo = np.bincount(sample, e.lo[point], i.size)[found] / count
-        hi = np.bincount(sample, e.hi[point], i.size)[found] / count
+        lo, hi = _mean_levels(e, sample, point, i.size, found)
         sharp[found] = lo + (hi - lo) * self.block.alpha(i[found], j[found])
         return found, sharp
 
