@@ -1288,10 +1288,14 @@ def _target_levels(image, points: Edgels, clear: np.ndarray, s: int, length: int
     others = points.subset(~clear)
     if not len(measured):
         return edge_levels(image, points, length)
-    nearest = _TiedPoints(np.rint(measured.y * s), np.rint(measured.x * s))
-    _, sample, point = nearest.query(np.rint(others.y * s), np.rint(others.x * s), np.inf)
+    _, sample, point = _TiedPoints(*_on_grid(measured, s)).query(*_on_grid(others, s), np.inf)
     others.lo, others.hi = _mean_levels(measured, sample, point, len(others))
     return Edgels(*(np.concatenate([getattr(measured, f.name), getattr(others, f.name)]) for f in fields(Edgels)))
+
+
+def _on_grid(edges: Edgels, s: int) -> tuple[np.ndarray, np.ndarray]:
+    """(i, j): the s-grid samples the target form's edge points are (`_target_edges`: x = j / s, y = i / s)."""
+    return np.rint(edges.y * s), np.rint(edges.x * s)
 
 
 def _mean_levels(edges: Edgels, sample: np.ndarray, point: np.ndarray, n: int,
@@ -1318,8 +1322,7 @@ class _TargetPrediction:
                  edges: Edgels, band: float) -> None:
         self.known, self.origin, self.s, self.grid, self.edges, self.band = known, origin, s, grid, edges, band
         self.reach = band
-        # the edge points are s-grid samples (`_target_edges`): x = j / s, y = i / s
-        self.points = _TiedPoints(np.rint(edges.y * s), np.rint(edges.x * s)) if len(edges) else None
+        self.points = _TiedPoints(*_on_grid(edges, s)) if len(edges) else None
         self.block: _PatternBlock | None = None
 
     def focus(self, box: tuple[int, int, int, int]) -> "_TargetPrediction":
