@@ -42,7 +42,7 @@ from psfd import __version__
 from psfd.drivers.base import CameraInfo
 from psfd.errors import BadInputError, CatalogueError, StorageError, path_reason, user_name
 from psfd.estimator.kernels import PSF
-from psfd.vocabulary import camera_fnumber, data_dir, method_name, parse_fnumber
+from psfd.vocabulary import BERNOULLI, SHARP_EDGE, camera_fnumber, data_dir, method_name, parse_fnumber
 
 STEP_STATES = ("pending", "running", "done", "failed")
 RUN_STATES = ("running", "done", "paused", "cancelled", "failed")
@@ -224,10 +224,30 @@ def _v5_prediction_error(db: sqlite_utils.Database) -> None:
         db["psfs"].add_column("prediction_error", float)
 
 
+def _v6_noise_floor_as_norm(db: sqlite_utils.Database) -> None:
+    """Version 6: every noise floor in one unit, the L2 norm of the unit-sum kernel's error (`PSF.noise_floor`).
+
+    Sharp-edge floors were the RMS per sample (times the support: the norm over its k x k samples); Bernoulli
+    floors were those of the kernel before it was divided by its mass (over the mass, kept in its params).
+    """
+    rows = list(db.query("SELECT id, method, support, noise_floor, params FROM psfs WHERE noise_floor IS NOT NULL "
+                         "AND method IN (?, ?)", [SHARP_EDGE, BERNOULLI]))  # read whole before any row changes
+    for row in rows:
+        if row["method"] == SHARP_EDGE:
+            floor = row["noise_floor"] * row["support"]
+        else:
+            mass = json.loads(row["params"] or "{}").get("mass")
+            if not isinstance(mass, (int, float)) or not mass > 0:
+                continue
+            floor = row["noise_floor"] / mass
+        db.execute("UPDATE psfs SET noise_floor = ? WHERE id = ?", [floor, row["id"]])
+
+
 # In the order they landed: a catalogue's user_version counts the migrations it ran. Each later one
 # checks its columns before adding them, so a catalogue is the same whichever of them ran first.
 MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [
-    _v1_tables, _v2_query_indexes, _v3_frame_exif, _v4_relative_frame_paths, _v5_prediction_error]
+    _v1_tables, _v2_query_indexes, _v3_frame_exif, _v4_relative_frame_paths, _v5_prediction_error,
+    _v6_noise_floor_as_norm]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -989,7 +1009,7 @@ COLUMNS: dict[str, dict[str, str]] = {
         "mtf50_y": "MTF50 along y (vertical frequency), cycles per channel pixel (Nyquist 0.5)",
         "fwhm_x": "full width at half maximum along x, channel pixels",
         "fwhm_y": "full width at half maximum along y, channel pixels",
-        "noise_floor": "expected RMS error of each kernel sample from sensor noise, fraction of energy per sample",
+        "noise_floor": "expected L2 norm of the unit-sum kernel's error from sensor noise (over all its samples)",
         "prediction_error": "cross-validated prediction error: the kernel fitted on one half of the noise region "
                             "predicts the other half, RMS residual over the noise level (about 1 when the model "
                             "holds; NULL for methods without it and older rows)",

@@ -155,14 +155,14 @@ def _cmap(name: str, under: str | None = None, bad: str | None = None) -> Any:
 def mtf_noise_band(est: PSF) -> float | None:
     """One standard deviation of the MTF error that the kernel's noise floor implies, or None.
 
-    With independent errors of RMS sigma on the n samples of a unit-sum kernel,
-    each OTF value is off by sigma * sqrt(n) (Parseval): MTF values below this
-    band cannot be told from noise (Delbracio et al., IJCV 2012, sec. 2, on the
-    noise of the estimate).
+    The floor is the L2 norm of the kernel's noise error (`PSF.noise_floor`);
+    for errors independent from sample to sample each OTF value is off by that
+    norm (Parseval), so MTF values below this band cannot be told from noise
+    (Delbracio et al., IJCV 2012, sec. 3.1, on the noise of the estimate).
     """
     if est.noise_floor is None or not math.isfinite(est.noise_floor):
         return None
-    return float(est.noise_floor) * math.sqrt(est.psf.size)
+    return float(est.noise_floor)
 
 
 def psf_figure(est: PSF, pitch_um: float | None = None) -> Figure:
@@ -195,9 +195,10 @@ def psf_figure(est: PSF, pitch_um: float | None = None) -> Figure:
     _kernel_axes(ax_log, f"log scale, {LOG_DECADES} decades\n(black: below, blue: negative or 0)")
     bar = fig.colorbar(image, ax=ax_log, shrink=0.85, extend="min")
     bar.set_label(VALUE_LABEL)
-    if est.noise_floor and floor < est.noise_floor < peak:
-        bar.ax.axhline(est.noise_floor, color="white", lw=2)
-        bar.set_label(VALUE_LABEL + "\nwhite line: noise floor")
+    per_sample = _per_sample(est)
+    if per_sample and floor < per_sample < peak:
+        bar.ax.axhline(per_sample, color="white", lw=2)
+        bar.set_label(VALUE_LABEL + "\nwhite line: noise floor per sample")
 
     _mtf_axes(ax_mtf, est, pitch_um)
     m = est.metrics()
@@ -206,10 +207,20 @@ def psf_figure(est: PSF, pitch_um: float | None = None) -> Figure:
         f"{', '.join(Path(p).name for p in est.sources) or 'an image'}\n"
         f"s = {s} (grid lines: channel pixels), support {psf.shape[0]} samples = {psf.shape[0] / s:.2f} px;  "
         f"FWHM x {_num(m['fwhm_x'], '.2f')} y {_num(m['fwhm_y'], '.2f')} px;  "
-        f"noise floor {_num(est.noise_floor, '.1e')} per sample",
+        f"noise floor {_num(_relative(est), '.1%')} of the kernel's L2 norm ({_num(per_sample, '.1e')} per sample)",
         fontsize=10,
     )
     return fig
+
+
+def _per_sample(est: PSF) -> float | None:
+    """The noise floor as the RMS error of one sample: the norm over the k x k samples, over k."""
+    return None if est.noise_floor is None else float(est.noise_floor) / math.sqrt(est.psf.size)
+
+
+def _relative(est: PSF) -> float | None:
+    """The noise floor over the kernel's own L2 norm: the relative error that noise alone makes."""
+    return None if est.noise_floor is None else float(est.noise_floor) / float(np.linalg.norm(est.psf))
 
 
 def _num(value: float | None, spec: str) -> str:

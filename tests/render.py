@@ -570,7 +570,7 @@ class Render:
 
     def exposed(self, exposure: Exposure, seed: int = 0) -> Render:
         """The same scene and optics through another exposure (no new rendering)."""
-        frame, exposure = _expose(self.ideal, exposure, seed, self.frame.source)
+        frame, exposure = expose(self.ideal, exposure, seed, self.frame.source)
         return dataclasses.replace(self, frame=frame, exposure=exposure)
 
     def flare(self) -> tuple[float, float]:
@@ -631,7 +631,7 @@ def render(kernel: Kernel, view: View = View(), *, shape: tuple[int, int] | None
         return reflectance(X, Y, noise, paper, table, jacobian * pixel) * field_of(x, y)
 
     ideal = blur(scene, shape, kernel, samples)
-    frame, exposure = _expose(ideal, exposure, seed, name)
+    frame, exposure = expose(ideal, exposure, seed, name)
     return Render(
         frame=frame, ideal=ideal, kernel=kernel, view=view,
         to_pattern=lambda x, y: _apply(inverse, x, y), to_image=lambda X, Y: _apply(h, X, Y),
@@ -653,7 +653,17 @@ def render_edge_target(kernel: Kernel, px_per_square: float = 20.0, rotation_deg
                        tilt: tuple[float, float] = (0.04, -0.03), shape: tuple[int, int] = (230, 230), seed: int = 0,
                        light: Light = Light(), paper: Print = Print(), exposure: Exposure = Exposure(),
                        samples: int = 32) -> Frame:
-    """A photograph of the sharp-edge target (8 x 8 squares and a white border of one square) through ``kernel``.
+    """A photograph of the sharp-edge target (8 x 8 squares and a white border of one square) through ``kernel``:
+    `edge_target_light` through the sensor (`expose`)."""
+    ideal = edge_target_light(kernel, px_per_square, rotation_deg, tilt=tilt, shape=shape, light=light, paper=paper,
+                              samples=samples)
+    return expose(ideal, exposure, seed, "edge target")[0]
+
+
+def edge_target_light(kernel: Kernel, px_per_square: float = 20.0, rotation_deg: float = 8.0, *,
+                      tilt: tuple[float, float] = (0.04, -0.03), shape: tuple[int, int] = (230, 230),
+                      light: Light = Light(), paper: Print = Print(), samples: int = 32) -> np.ndarray:
+    """The light the sensor of `render_edge_target` receives, before its noise (what `expose` takes).
 
     The same optics, light and sensor as `render`; the print is turned by
     ``rotation_deg`` about the plane's centre, with the perspective of
@@ -676,12 +686,14 @@ def render_edge_target(kernel: Kernel, px_per_square: float = 20.0, rotation_deg
         r = np.where(on_print, paper.black + (paper.white - paper.black) * edge_print(X, Y), paper.background)
         return (r * field_of(x, y)).astype(np.float32)
 
-    frame, _ = _expose(blur(scene, shape, kernel, samples), exposure, seed, "edge target")
-    return frame
+    return blur(scene, shape, kernel, samples)
 
 
-def _expose(ideal: np.ndarray, exposure: Exposure, seed: int, name: str) -> tuple[Frame, Exposure]:
-    """The sensor: shot noise (Poisson), read noise (Gaussian), gain, black level, 14-bit ADC and clipping."""
+def expose(ideal: np.ndarray, exposure: Exposure, seed: int, name: str) -> tuple[Frame, Exposure]:
+    """The sensor: shot noise (Poisson), read noise (Gaussian), gain, black level, 14-bit ADC and clipping.
+
+    The same ``ideal`` exposed with other seeds gives photographs of one scene that differ only in their noise.
+    """
     e = exposure
     if math.isinf(e.electrons):  # noise-free: a fixed scale, no quantisation
         e = Exposure(10000.0, 0.0, None, e.black_level, e.white_level)

@@ -204,7 +204,7 @@ def test_conditioning_matches_the_paper(tmp_path):
     v, truth, _ = _plane(tmp_path / "t.dng", h, seed=4, pixels_per_cell=0.25)
     (r,) = bernoulli.estimate_plane(v, truth["to_pattern"]["g1"], s=S)
     m, n = r["count"], 17 * 17
-    gamma = (r["noise_floor"] / r["sigma"]) ** 2
+    gamma = (r["noise_floor"] * r["mass"] / r["sigma"]) ** 2  # the floor is the unit-sum kernel's
     bound = (1 + 4 * (n - 1) ** 2) / (m * n)
     assert 1.5 < gamma / bound < 3.0
 

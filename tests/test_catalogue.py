@@ -113,6 +113,29 @@ def test_prediction_error_migration_adds_it_beside_the_noise_floor(tmp_path):
     assert list(db["psfs"].columns_dict).count("prediction_error") == 1
 
 
+def test_noise_floors_of_older_catalogues_are_brought_to_one_unit(tmp_path):
+    """Version 6: a sharp-edge floor stored as the RMS per sample becomes the norm over its k x k samples (x k),
+    a Bernoulli floor of the kernel before its division by the mass becomes the unit-sum kernel's (/ mass);
+    two-photo floors, floors without a mass and absent floors stay as they were."""
+    path = tmp_path / "old.sqlite"
+    db = sqlite_utils.Database(path)
+    before = MIGRATIONS.index(catalogue_module._v6_noise_floor_as_norm)
+    for migrate in MIGRATIONS[:before]:
+        migrate(db)
+    db.execute(f"PRAGMA user_version = {before}")
+    stored = [("sharp-edge", 17, 2.5e-3, None), ("bernoulli", 17, 8e-3, '{"mass": 0.8, "solver": "nnls"}'),
+              ("bernoulli", 25, 8e-3, "{}"), ("two-photo", 25, 2e-2, "{}"), ("sharp-edge", 9, None, "{}")]
+    for method, support, floor, params in stored:
+        db["psfs"].insert({"method": method, "channel": "g1", "field_x": 0.5, "field_y": 0.5, "s": 4,
+                           "support": support, "psf": b"", "noise_floor": floor, "params": params})
+    db.close()
+
+    with Catalogue(path) as cat:
+        assert cat.schema_version() == SCHEMA_VERSION > before
+        floors = [row["noise_floor"] for row in cat.db.query("SELECT noise_floor FROM psfs ORDER BY id")]
+    assert floors == [pytest.approx(2.5e-3 * 17), pytest.approx(1e-2), 8e-3, 2e-2, None]
+
+
 def test_failed_migration_is_rolled_back(tmp_path, monkeypatch):
     path = tmp_path / "cat.sqlite"
     Catalogue(path).close()

@@ -67,6 +67,12 @@ def test_psf_figure_linear_log_and_mtf_with_noise_band():
         assert verticals == [-1.5, -0.5, 0.5, 1.5]
     bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
     assert len(bars) == 2 and all("fraction of energy per sample" in ax.get_ylabel() for ax in bars)
+    # the log view's white line: the floor per sample, the norm of the kernel's error over its 17 x 17 samples / 17
+    (white,) = [line for line in bars[1].get_lines() if line.get_color() == "white"]
+    assert white.get_ydata()[0] == pytest.approx(1e-3 / 17)
+    assert "noise floor per sample" in bars[1].get_ylabel()
+    relative = 1e-3 / np.linalg.norm(psf)
+    assert f"noise floor {relative:.1%} of the kernel's L2 norm ({1e-3 / 17:.1e} per sample)" in fig._suptitle.get_text()
     assert all(len(ax.get_yticks()) >= 3 for ax in bars)  # colour bars with ticks
     mtf_ax = next(ax for ax in fig.axes if ax.get_ylabel() == "MTF")
     assert mtf_ax.get_xlabel() == figures.FREQ_LABEL
@@ -74,7 +80,7 @@ def test_psf_figure_linear_log_and_mtf_with_noise_band():
     assert mtf_ax.get_ylim()[1] >= max(mx.max(), my.max())
     assert mtf_ax.get_xlim() == pytest.approx((0, 2.0))  # up to s/2
     band = figures.mtf_noise_band(estimate(psf))
-    assert band == pytest.approx(1e-3 * 17)  # sigma * sqrt(17 * 17 samples)
+    assert band == pytest.approx(1e-3)  # the floor: the norm of the kernel's error, each OTF value's (Parseval)
     spans = [p for p in mtf_ax.patches if p.get_label().startswith("noise floor")]
     assert len(spans) == 1 and spans[0].get_path().get_extents().transformed(spans[0].get_transform()).height > 0
     legend = [t.get_text() for t in mtf_ax.get_legend().get_texts()]

@@ -331,7 +331,7 @@ CSV_COLUMNS = (
     ("mtf50_x_lp_mm", "mtf50_x [lp/mm]"), ("mtf50_y_lp_mm", "mtf50_y [lp/mm]"),
     ("mtf50_x_lw_ph", "mtf50_x [LW/PH]"), ("mtf50_y_lw_ph", "mtf50_y [LW/PH]"),
     ("fwhm_x", "fwhm_x [channel px]"), ("fwhm_y", "fwhm_y [channel px]"),
-    ("noise_floor", "noise_floor [fraction of energy per sample, RMS]"),
+    ("noise_floor", "noise_floor [L2 norm of the unit-sum kernel's error]"),
     ("residual", "residual [normalised data units, RMS]"),
     ("pixel_pitch_um", "pixel_pitch [um]"), ("image_height_px", "image_height [px]"),
     ("run_id", "run_id"), ("step", "step"), ("source", "source"), ("created", "created [UTC]"),
@@ -473,8 +473,9 @@ def print_table(estimates: list[PSF], stream: TextIO | None = None) -> None:
             f"{fmt(m['fwhm_y'], '.2f'):>7} {fmt(est.noise_floor, '.2e'):>9} {fmt(est.prediction_error, '.2f'):>5}",
             file=stream,
         )
-    print("MTF50 in cycles per channel pixel (Nyquist 0.5); FWHM in channel pixels; pred.: cross-validated "
-          "prediction error over the noise level (about 1 when the model holds).", file=stream)
+    print("MTF50 in cycles per channel pixel (Nyquist 0.5); FWHM in channel pixels; noise: the noise floor, L2 norm "
+          "of the unit-sum kernel's error from sensor noise; pred.: cross-validated prediction error over the noise "
+          "level (about 1 when the model holds).", file=stream)
 
 
 ROW_COLUMNS = (

@@ -708,8 +708,8 @@ def estimate_window(
     Returns
     -------
     dict with ``psf`` (unit sum, convolution order), ``mass`` (sum before
-    normalisation), ``noise_floor`` sigma_n sqrt(trace((A^T A)^-1)) (IJCV 2012,
-    sec. 3.1: E||h_e - h||^2 = sigma_n^2 ||(S_s U)^+||_F^2), ``sigma`` (sigma_n
+    normalisation), ``noise_floor`` sigma_n sqrt(trace((A^T A)^-1)) / mass (IJCV 2012,
+    sec. 3.1: E||h_e - h||^2 = sigma_n^2 ||(S_s U)^+||_F^2, for the unit-sum kernel), ``sigma`` (sigma_n
     from the LS residual), ``residual`` (RMS residual of the returned kernel),
     ``prediction_error`` (`cross_validated`), ``count``.
     """
@@ -734,7 +734,8 @@ def estimate_window(
     return {
         "psf": np.ascontiguousarray(kernel),
         "mass": mass,
-        "noise_floor": float(sigma * np.linalg.norm(inverse_factor)),  # trace((A^T A)^-1) = ||L^-1||_F^2
+        # trace((A^T A)^-1) = ||L^-1||_F^2; the error of h / mass is that of h over the mass
+        "noise_floor": float(sigma * np.linalg.norm(inverse_factor) / mass),
         "sigma": float(sigma),
         "residual": float(np.sqrt(rss(h) / count)),
         "prediction_error": cross_validated(parts, solver, h > 0, float(sigma)),

@@ -41,8 +41,13 @@ class PSF:
     window : (int, int, int, int)
         (x0, y0, x1, y1) of the window on the channel plane, in channel pixels, end exclusive.
     noise_floor : float or None
-        Expected RMS error of the kernel values from sensor noise,
-        sigma_n * sqrt(trace((A^T A)^-1)) (Delbracio et al., IJCV 2012, sec. 2).
+        The error that sensor noise alone makes in the kernel, as the L2 norm
+        over its samples: sqrt(E||h_e - h||^2) = sigma_n sqrt(trace((A^T A)^-1))
+        for the unit-sum kernel (Delbracio et al., IJCV 2012, sec. 3.1), the
+        same unit for every method; noise_floor / ||psf|| is the relative
+        error, the RMS per sample noise_floor / k for a k x k kernel. It is
+        the least-squares (or posterior) error: the non-negative solution
+        comes closer, so it bounds the noise of the stored kernel from above.
     residual : float or None
         RMS of the model residual on the observed samples (data units normalised to [0, 1]).
     prediction_error : float or None

@@ -355,7 +355,7 @@ class _TiedPoints:
     There the edge points and the samples lie on the same s-grid (`_target_edges`), and one query in five
     is an exact tie between two or more edge points. Taking one of them, as a k-d tree's layout happened
     to rank them, made the PSF depend on that rank: on the example photo, the other tied point moved it
-    by 0.035 and the points in reverse order by 0.050 (its noise floor 0.0087), for the levels of
+    by 0.035 and the points in reverse order by 0.050 (a third of its noise floor, 0.15), for the levels of
     neighbouring edge points differ, most near the pattern's corners. So every tied point is returned and
     the prediction averages their levels, whatever the points' order. Points and samples are given in
     samples, integers: squared distances are exact integers, and so are the ties. OpenCV's exact single
@@ -1203,7 +1203,7 @@ def _target_edges(known: "KnownPattern", origin: tuple[int, int], s: int, grid: 
     levels, and so the PSF, depend on beyond the noise. The one taken before
     (the samples on the pixels' rows and columns, of every other pixel, about
     one per pixel of edge length) moved the example photo's PSF by 0.070 when
-    the other half was taken (its noise floor 0.0087), and was less accurate
+    the other half was taken (half its noise floor, 0.15), and was less accurate
     on renders of known PSF: L2 error against the truth higher by 0.006 on the
     edge target and by 0.05 (about twice) on the Bernoulli target's marks. Edge
     points come out in raster order.
@@ -1535,8 +1535,9 @@ def _estimate_window(image, saturated, window, s, support, weight, band, length,
         "edges": int(in_window.sum()),
         "orientation_min": int(hist.min()),
         "mass": total,
-        # posterior std of a kernel value, RMS over the kernel, for the normalised kernel
-        "noise_floor": float(np.sqrt(np.trace(np.linalg.inv(q)) / q.shape[0]) / total),
+        # the norm of the posterior error of the normalised kernel, sqrt(trace(Q^-1)) / total: the unit of
+        # every method's floor (`kernels.PSF.noise_floor`)
+        "noise_floor": float(np.sqrt(np.trace(np.linalg.inv(q))) / total),
         "residual": float(np.sqrt(rss / n_valid)),
     }
     return k / total, info, warnings
