@@ -84,15 +84,21 @@ def test_migration_from_version_1_keeps_data_and_adds_indexes(tmp_path):
         assert cat.add_rig(CameraInfo("Old", "1", "L")) == 1  # the old row is still there
 
 
+def _catalogue_before(path, migration) -> tuple[sqlite_utils.Database, int]:
+    """A catalogue that every migration before ``migration`` has run on, and its schema version."""
+    db = sqlite_utils.Database(path)
+    before = MIGRATIONS.index(migration)
+    for migrate in MIGRATIONS[:before]:
+        migrate(db)
+    db.execute(f"PRAGMA user_version = {before}")
+    return db, before
+
+
 def test_prediction_error_migration_adds_it_beside_the_noise_floor(tmp_path):
     """A catalogue from before the prediction error (every earlier migration run) opens, its PSFs read
     with no prediction error, and new ones store it."""
     path = tmp_path / "old.sqlite"
-    db = sqlite_utils.Database(path)
-    before = MIGRATIONS.index(catalogue_module._v5_prediction_error)
-    for migrate in MIGRATIONS[:before]:
-        migrate(db)
-    db.execute(f"PRAGMA user_version = {before}")
+    db, before = _catalogue_before(path, catalogue_module._v5_prediction_error)
     db["psfs"].insert({"method": "bernoulli", "channel": "g1", "field_x": 0.5, "field_y": 0.5, "s": 4,
                        "support": 17, "psf": b"", "noise_floor": 2e-3})
     db.close()
@@ -118,11 +124,7 @@ def test_noise_floors_of_older_catalogues_are_brought_to_one_unit(tmp_path):
     a Bernoulli floor of the kernel before its division by the mass becomes the unit-sum kernel's (/ mass);
     two-photo floors, floors without a mass and absent floors stay as they were."""
     path = tmp_path / "old.sqlite"
-    db = sqlite_utils.Database(path)
-    before = MIGRATIONS.index(catalogue_module._v6_noise_floor_as_norm)
-    for migrate in MIGRATIONS[:before]:
-        migrate(db)
-    db.execute(f"PRAGMA user_version = {before}")
+    db, before = _catalogue_before(path, catalogue_module._v6_noise_floor_as_norm)
     stored = [("sharp-edge", 17, 2.5e-3, None), ("bernoulli", 17, 8e-3, '{"mass": 0.8, "solver": "nnls"}'),
               ("bernoulli", 25, 8e-3, "{}"), ("two-photo", 25, 2e-2, "{}"), ("sharp-edge", 9, None, "{}")]
     for method, support, floor, params in stored:
