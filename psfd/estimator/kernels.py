@@ -48,6 +48,9 @@ class PSF:
         error, the RMS per sample noise_floor / k for a k x k kernel. It is
         the least-squares (or posterior) error: the non-negative solution
         comes closer, so it bounds the noise of the stored kernel from above.
+        The two-photo method gives that of its inter-image kernel, which the
+        PSF is derived from; on renders it bounds the PSF's noise as well
+        (tests/test_noise_floor.py).
     residual : float or None
         RMS of the model residual on the observed samples (data units normalised to [0, 1]).
     prediction_error : float or None
