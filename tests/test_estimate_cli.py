@@ -56,6 +56,18 @@ def run(capsys, *argv: str) -> tuple[int, str, str]:
 # ---------------------------------------------------------------- writers
 
 
+def test_plain_converts_arrays_at_once_as_it_does_item_by_item():
+    """Arrays of numbers take one tolist(); with NaN or inf each value is looked at, and those become null."""
+    arrays = [np.arange(6, dtype=np.int16).reshape(2, 3), np.linspace(0, 1, 6, dtype=np.float32).reshape(3, 2),
+              np.array([[0.5, np.nan], [-np.inf, 2.0]]), np.array([True, False])]
+    for array in arrays:
+        fast = output.plain(array)
+        assert fast == output.plain(array.tolist())  # the item-by-item path, through the nested lists
+        assert all(type(v) in (int, float, bool, type(None)) for v in np.ravel(np.array(fast, dtype=object)))
+        json.dumps(fast, allow_nan=False)
+    assert output.plain(arrays[2]) == [[0.5, None], [None, 2.0]]
+
+
 def test_write_estimates_files_round_trip(tmp_path):
     kernel = np.arange(25.0).reshape(5, 5) - 12  # signed, as an inter-image kernel can be
     residual = np.random.default_rng(0).normal(size=(40, 60))

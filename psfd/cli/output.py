@@ -372,6 +372,9 @@ def plain(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return [plain(v) for v in value]
     if isinstance(value, np.ndarray):
+        # numbers with nothing to replace convert in one call (400 kernels of 17 x 17: 0.5 s item by item)
+        if value.dtype.kind in "biu" or (value.dtype.kind == "f" and np.isfinite(value).all()):
+            return value.tolist()
         return plain(value.tolist())
     if isinstance(value, np.generic):
         value = value.item()
