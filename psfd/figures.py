@@ -207,7 +207,7 @@ def psf_figure(est: PSF, pitch_um: float | None = None) -> Figure:
         f"{', '.join(Path(p).name for p in est.sources) or 'an image'}\n"
         f"s = {s} (grid lines: channel pixels), support {psf.shape[0]} samples = {psf.shape[0] / s:.2f} px;  "
         f"FWHM x {_num(m['fwhm_x'], '.2f')} y {_num(m['fwhm_y'], '.2f')} px;  "
-        f"noise floor {_num(_relative(est), '.1%')} of the kernel's L2 norm ({_num(per_sample, '.1e')} per sample)",
+        f"noise floor {_num(est.relative_noise, '.1%')} of the kernel's L2 norm ({_num(per_sample, '.1e')} per sample)",
         fontsize=10,
     )
     return fig
@@ -216,11 +216,6 @@ def psf_figure(est: PSF, pitch_um: float | None = None) -> Figure:
 def _per_sample(est: PSF) -> float | None:
     """The noise floor as the RMS error of one sample: the norm over the k x k samples, over k."""
     return None if est.noise_floor is None else float(est.noise_floor) / math.sqrt(est.psf.size)
-
-
-def _relative(est: PSF) -> float | None:
-    """The noise floor over the kernel's own L2 norm: the relative error that noise alone makes."""
-    return None if est.noise_floor is None else float(est.noise_floor) / float(np.linalg.norm(est.psf))
 
 
 def _num(value: float | None, spec: str) -> str:

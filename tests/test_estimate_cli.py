@@ -330,6 +330,7 @@ def test_target_end_to_end_on_real_photo(capsys, data_dir):
     header, row = stdout.splitlines()[:2]
     assert header.split()[-2:] == ["noise", "pred."]
     assert row.split()[-1] == f"{record['prediction_error']:.2f}"
+    assert row.split()[-2] == f"{record['noise_floor'] / np.linalg.norm(record['psf']):.1%}"  # relative to the kernel
 
 
 def test_thesis_spline_geometry_is_selectable_and_agrees_on_the_real_photo(capsys, data_dir):

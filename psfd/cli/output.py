@@ -473,12 +473,12 @@ def print_table(estimates: list[PSF], stream: TextIO | None = None) -> None:
         print(
             f"{source:<28} {est.channel:<5} {est.field[0]:.2f},{est.field[1]:.2f}  "
             f"{fmt(m['mtf50_x']):>8} {fmt(m['mtf50_y']):>8} {fmt(m['fwhm_x'], '.2f'):>7} "
-            f"{fmt(m['fwhm_y'], '.2f'):>7} {fmt(est.noise_floor, '.2e'):>9} {fmt(est.prediction_error, '.2f'):>5}",
+            f"{fmt(m['fwhm_y'], '.2f'):>7} {fmt(est.relative_noise, '.1%'):>9} {fmt(est.prediction_error, '.2f'):>5}",
             file=stream,
         )
-    print("MTF50 in cycles per channel pixel (Nyquist 0.5); FWHM in channel pixels; noise: the noise floor, L2 norm "
-          "of the unit-sum kernel's error from sensor noise; pred.: cross-validated prediction error over the noise "
-          "level (about 1 when the model holds).", file=stream)
+    print("MTF50 in cycles per channel pixel (Nyquist 0.5); FWHM in channel pixels; noise: the noise floor over the "
+          "kernel's L2 norm (its relative error from sensor noise); pred.: cross-validated prediction error over the "
+          "noise level (about 1 when the model holds).", file=stream)
 
 
 ROW_COLUMNS = (

@@ -83,6 +83,11 @@ class PSF:
     def support(self) -> int:
         return int(self.psf.shape[0])
 
+    @property
+    def relative_noise(self) -> float | None:
+        """The noise floor over the kernel's own L2 norm: the relative error that sensor noise alone makes."""
+        return None if self.noise_floor is None else float(self.noise_floor) / float(np.linalg.norm(self.psf))
+
     def metrics(self) -> dict[str, float]:
         """MTF50 (cycles per channel pixel) and FWHM (channel pixels) along x and y."""
         fx, mx, my = mtf.profiles(self.psf, self.s)
