@@ -372,7 +372,7 @@ def plain(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return [plain(v) for v in value]
     if isinstance(value, np.ndarray):
-        # numbers with nothing to replace convert in one call (400 kernels of 17 x 17: 0.5 s item by item)
+        # numbers with nothing to replace convert in one call (400 kernels of 17 x 17: 0.013 s, 0.11 s item by item)
         if value.dtype.kind in "biu" or (value.dtype.kind == "f" and np.isfinite(value).all()):
             return value.tolist()
         return plain(value.tolist())
