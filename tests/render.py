@@ -183,6 +183,23 @@ def gaussian(sigma: float, sigma_y: float | None = None, theta_deg: float = 0.0,
     return Kernel(name or f"gaussian {sigma:g}x{sy:g}@{theta_deg:g}", optics, cutoff, aperture)
 
 
+def two_lobes(sigma: float = 0.3, weight: float = 0.4, offset: tuple[float, float] = (1.2, 0.5),
+              aperture: float = 0.5) -> Kernel:
+    """A Gaussian lobe with a second one, of ``weight`` of the light, ``offset`` (x, y) channel pixels away.
+
+    Not symmetric under a half turn, a transposition or a mirror, as every other kernel here is: only such a
+    kernel shows whether an estimate is the PSF or its flipped copy (a correlation kernel, a convolution turned
+    round). The second lobe's shift is the phase ramp exp(-2 pi i f . offset) of its transfer function.
+    """
+    lobe = gaussian(sigma, aperture=aperture)
+    dx, dy = offset
+
+    def optics(fx, fy):
+        return lobe.optics(fx, fy) * ((1.0 - weight) + weight * np.exp(-2j * math.pi * (fx * dx + fy * dy)))
+
+    return Kernel(f"two lobes {sigma:g}, {weight:g} at ({dx:g}, {dy:g})", optics, lobe.cutoff, aperture)
+
+
 def _pupil_otf(fc: float) -> OTF:
     """Incoherent circular-pupil transfer function, cut-off ``fc`` cycles per pixel (Goodman, Fourier Optics, 6.3)."""
 
