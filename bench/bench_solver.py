@@ -65,7 +65,7 @@ def main() -> None:
         path = Path(args.keep or tmp).resolve() / "large.dng"
         path.parent.mkdir(parents=True, exist_ok=True)
         if not path.exists():
-            bench_frames.make_frame(path, bench_frames.FRAMES["large"][0])
+            bench_frames.make_frame(path, bench_frames.FRAMES["large"])
         frames = raw.load_frames(path, "all")
         results, windows = {}, 0
         for round_ in range(args.rounds):
