@@ -198,13 +198,17 @@ def test_compare_cli_bad_inputs(edge_dng, tmp_path, capsys):
 def test_error_footnote_only_with_an_error_column(capsys):
     kernel = np.zeros((9, 9))
     kernel[4, 4] = 1.0
-    one = Estimate("bernoulli x.dng", PSF(kernel, 2, "bernoulli", "g1", ["x.dng"], (0.5, 0.5), (0, 0, 8, 8)))
+    one = Estimate("bernoulli x.dng", PSF(kernel, 2, "bernoulli", "g1", ["x.dng"], (0.5, 0.5), (0, 0, 8, 8),
+                                          noise_floor=0.048))
     skipped = Estimate("sharp-edge x.dng", None, "no edges")
     print_table([one, skipped], {one.label: {}}, with_truth=False)
     text = capsys.readouterr().out
     assert "MTF50" in text and "skipped: no edges" in text and "MTF error" not in text
+    # each estimate's floor relative to its kernel (a unit kernel here: the floor itself)
+    assert "noise 4.8%" in text and "noise: each estimate's noise floor over its kernel's L2 norm" in text
     print_table([one], {one.label: {LOW: 0.01, HIGH: 0.02}}, with_truth=True)
-    assert "MTF error: RMS difference" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "MTF error: RMS difference" in text and text.splitlines()[1].split()[-1] == "4.8%"
 
 
 def test_a_failed_comparison_figure_leaves_no_output_folder(tmp_path, monkeypatch):

@@ -393,7 +393,7 @@ def print_table(estimates: list[Estimate], table: dict, with_truth: bool, stream
     width = max(len(e.label) for e in estimates) + 2
     shown = False  # whether any MTF error was printed, to explain it
     if with_truth:
-        head = f"{'MTF err <=Nyq':>14} {'MTF err >Nyq':>13} {'MTF50 x':>8} {'MTF50 y':>8}"
+        head = f"{'MTF err <=Nyq':>14} {'MTF err >Nyq':>13} {'MTF50 x':>8} {'MTF50 y':>8} {'noise':>7}"
         print(f"{'method':<{width}} {head}", file=stream)
     for e in estimates:
         if e.psf is None:
@@ -403,10 +403,12 @@ def print_table(estimates: list[Estimate], table: dict, with_truth: bool, stream
         if with_truth:
             err = table[e.label]
             print(f"{e.label:<{width}} {fmt(err[LOW], '.4f'):>14} {fmt(err[HIGH], '.4f'):>13} "
-                  f"{fmt(m['mtf50_x'], '.4f'):>8} {fmt(m['mtf50_y'], '.4f'):>8}", file=stream)
+                  f"{fmt(m['mtf50_x'], '.4f'):>8} {fmt(m['mtf50_y'], '.4f'):>8} {fmt(e.psf.relative_noise, '.1%'):>7}",
+                  file=stream)
             shown = True
         else:
-            print(f"{e.label}: MTF50 x {fmt(m['mtf50_x'], '.4f')} y {fmt(m['mtf50_y'], '.4f')}", file=stream)
+            print(f"{e.label}: MTF50 x {fmt(m['mtf50_x'], '.4f')} y {fmt(m['mtf50_y'], '.4f')}, "
+                  f"noise {fmt(e.psf.relative_noise, '.1%')}", file=stream)
             for other, err in table[e.label].items():
                 print(f"    vs {other:<{width}} MTF err <=Nyq {fmt(err[LOW], '.4f')}  >Nyq {fmt(err[HIGH], '.4f')}",
                       file=stream)
@@ -416,6 +418,8 @@ def print_table(estimates: list[Estimate], table: dict, with_truth: bool, stream
     if shown:
         print("MTF error: RMS difference of the x and y MTF profiles, cycles per channel pixel (Nyquist 0.5).",
               file=stream)
+    print("noise: each estimate's noise floor over its kernel's L2 norm (its relative error from sensor noise).",
+          file=stream)
 
 
 def write_outputs(out: Path, estimates: list[Estimate], table: dict, truth, s: int, force: bool = False) -> None:
