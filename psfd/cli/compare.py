@@ -418,8 +418,9 @@ def print_table(estimates: list[Estimate], table: dict, with_truth: bool, stream
     if shown:
         print("MTF error: RMS difference of the x and y MTF profiles, cycles per channel pixel (Nyquist 0.5).",
               file=stream)
-    print("noise: each estimate's noise floor over its kernel's L2 norm (its relative error from sensor noise).",
-          file=stream)
+    if any(e.psf is not None for e in estimates):  # a noise figure was printed
+        print("noise: each estimate's noise floor over its kernel's L2 norm (its relative error from sensor noise).",
+              file=stream)
 
 
 def write_outputs(out: Path, estimates: list[Estimate], table: dict, truth, s: int, force: bool = False) -> None:
