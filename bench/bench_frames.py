@@ -10,10 +10,19 @@ distortion):
   the frame of issue 11's 74 s figure), ``--channel all --grid 10x10`` (400
   PSFs); goal <= 5 s on 2 cores. At the default s = 4 that is s/t = 4.2, far
   outside the paper's [0.7, 2.0] (every window warns), so the same command is
-  also timed at ``-s 2`` (s/t = 2.1, at the range's edge). Its MTF below
-  Nyquist is nearly as accurate: on a render of this scale by tests/render.py
-  (diffraction at f/5.6, 10 x 10 windows) the RMS error is 0.0172 against
-  0.0137 at s = 4 (medians; 0.038 at s = 1).
+  also timed at ``-s 2`` (s/t = 2.1, at the range's edge). Which s is more
+  accurate there depends on the lens: on renders of this scale by
+  tests/render.py (10 x 10 windows, medians of the RMS MTF error up to 0.5
+  and up to 1 cycle per channel pixel, s = 4 against s = 2):
+
+      diffraction f/5.6   0.0137 / 0.0148  against  0.0172 / 0.0331
+      diffraction f/11    0.0215 / 0.0227  against  0.0192 / 0.0376
+      Gaussian 0.45 px    0.0100 / 0.0096  against  0.0062 / 0.0091
+
+  s = 2 holds a sharp lens's MTF less well near 1 cycle per pixel, its
+  grid's Nyquist; below that it is about as good (f/5.6: median MTF50 0.753
+  against 0.745 at s = 4, truth 0.778). At s = 1 the error below Nyquist is
+  0.038 (f/5.6).
 
 Each command is started as a subprocess (what a user waits for: start-up,
 imports, decoding, estimation, teardown), several times; the median is
