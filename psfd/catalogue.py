@@ -708,6 +708,14 @@ class Catalogue:
             row["payload"] = json.loads(row["payload"]) if row["payload"] else {}
         return rows
 
+    def last_rail_position(self, run_id: int) -> dict | None:
+        """The rail position ({x, y, z} in mm) of the run's latest stored frame; None before its first."""
+        sql = ("SELECT f.rail FROM frames f JOIN psf_frames pf ON pf.frame_id = f.id JOIN psfs p ON p.id = pf.psf_id "
+               "WHERE p.run_id = ? ORDER BY f.id DESC LIMIT 1")
+        with self._read() as db:
+            row = db.execute(sql, [run_id]).fetchone()
+        return json.loads(row[0]) if row and row[0] else None
+
     def _step(self, db: sqlite_utils.Database, run_id: int, key: str) -> dict:
         row = next(db.query("SELECT id, state FROM steps WHERE run_id = ? AND key = ?", [run_id, key]), None)
         if row is None:

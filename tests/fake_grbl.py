@@ -269,6 +269,13 @@ class FakeGrbl:
         with self._lock:
             self._door_ajar = False
 
+    def power_cycle(self) -> None:
+        """The board loses power and boots again (a USB cable pulled and put back, a power cut): the motors
+        stop dead and the position restarts at 0 where the carriage stands (grbl main.c clears
+        sys_position at boot); with homing enabled it comes up locked in Alarm."""
+        with self._lock:
+            self._reboot()
+
     def push(self, axis: int, mm: float) -> None:
         """Someone moves the carriage by hand (motors idle): the controller counts no steps."""
         with self._lock:
@@ -937,7 +944,7 @@ class FakeGrbl:
         pressed = {}
         for i in range(N_AXIS):
             p = self._mpos[i] + self._offset[i]
-            if p > 1e-6 or p < -self.span[i] - 1e-6:
+            if p >= 0.0 or p <= -self.span[i]:  # a switch is closed from its trigger point on
                 pressed[i] = True
         return pressed
 

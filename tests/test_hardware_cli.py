@@ -49,7 +49,7 @@ def test_rail_commands_simulated(capsys):
 def test_rail_commands_on_grbl(capsys):
     # homing enabled, fast seek; GRBL homes to the + end and backs off 1 mm: machine coordinates are negative
     firmware = FakeGrbl({22: 1, 24: 600, 25: 3000, 26: 10, 110: 6000, 111: 6000, 120: 200, 121: 200},
-                        homing_cycles=((0,),), start=(-5.0, -5.0, 0.0))
+                        homing_cycles=((0,),), start=(-5.0, -5.0, -50.0))
     try:
         assert run(capsys, "rail", "home", "--rail-port", firmware.port)[:2] == (0, "X=-1\n")
         code, out, _ = run(capsys, "rail", "move", "X=-120", "Y=-4", "--rail-port", firmware.port,

@@ -144,6 +144,18 @@ def test_fake_follows_the_documented_alarm_behaviour(make_fake):
 # ---------------------------------------------------------------------------------------------- connecting
 
 
+def test_info_gives_where_a_restarted_controller_reads_in_work_coordinates(make_fake, connect):
+    """GRBL counts from machine position 0 at power-up (main.c) and keeps the G54 offset in EEPROM: in the
+    work coordinates psfd moves in, a restarted controller reads minus the work offset."""
+    fake = make_fake()
+    with fake._lock:
+        fake._coords[0][0] = -200.0  # G10 L2 P1 X-200, stored once: distances from the - end, positive
+    rail = connect(fake)
+    info = rail.info()
+    assert info.travel == {"x": (0.0, 200.0)} and info.power_up == {"x": 200.0}
+    assert rail.position().x == 200.0  # this controller has just booted
+
+
 def test_open_reads_the_controller_and_does_not_reset_it(make_fake, connect):
     fake = make_fake()
     rail = connect(fake)
@@ -151,12 +163,12 @@ def test_open_reads_the_controller_and_does_not_reset_it(make_fake, connect):
     assert fake.resets() == [] and "$$" in fake.lines  # the first driver reset GRBL at every open
     info = rail.info()
     assert info == RailInfo(controller="Grbl 1.1h.20190825", axes=("x",), travel={"x": (-200.0, 0.0)}, units="mm",
-                            homing=False, state="Idle")
+                            homing=False, state="Idle", power_up={"x": 0.0})
     assert rail.position() == Position(0.0, None, None)
 
 
 def test_home_to_the_plus_end_gives_negative_coordinates(make_fake, connect):
-    fake = make_fake({22: 1}, start=(-30.0, 0.0, 0.0))
+    fake = make_fake({22: 1}, start=(-30.0, -50.0, -50.0))
     rail = connect(fake, limits={"x": (-200, 0), "y": (-50, 50)})
     assert rail.info().travel == {"x": (-200.0, 0.0), "y": (-50.0, 0.0)}  # the config narrows, never widens
     assert rail.home() == Position(-1.0, 0.0, None)  # GRBL homes to + and backs off $27
@@ -214,7 +226,7 @@ def test_without_a_lock_directory_the_device_lock_still_refuses(make_fake, conne
 
 
 def test_grblhal_banner_and_boot_alarm(make_fake, connect):
-    fake = make_fake({22: 1}, flavour="grblhal", auto_reset=True, boot_time=0.3, start=(-5.0, 0.0, 0.0))
+    fake = make_fake({22: 1}, flavour="grblhal", auto_reset=True, boot_time=0.3, start=(-5.0, -50.0, -50.0))
     rail = connect(fake)
     assert rail.banner == "GrblHAL 1.1f ['$' or '$HELP' for help]" and rail.info().controller.startswith("GrblHAL")
     with pytest.raises(RailAlarm, match="homing needed"):
@@ -395,7 +407,7 @@ def test_soft_limit_alarm_then_recovery(make_fake, connect):
 
 
 def test_hard_limit_mid_move_is_reset_and_homing_needed(make_fake, connect):
-    fake = make_fake({21: 1, 22: 1}, start=(-60.0, 0.0, 0.0))
+    fake = make_fake({21: 1, 22: 1}, start=(-60.0, -50.0, -50.0))
     rail = connect(fake)
     rail.unlock()  # unlocked where it stands: the controller believes X=0, the carriage is 60 mm from the + switch
     with pytest.raises(RailAlarm, match=r"ALARM:1 \(hard limit triggered\) .*homing needed.*switch X still pressed"):
@@ -407,8 +419,24 @@ def test_hard_limit_mid_move_is_reset_and_homing_needed(make_fake, connect):
     assert fake.crashes == 0
 
 
+def test_travel_keeps_off_the_homing_switch_when_hard_limits_are_on(make_fake, connect):
+    """Homing leaves machine 0 where the + switch closed and the carriage at -$27 (grbl limits.c); a move
+    back to 0 closes the switch again, which with hard limits on is ALARM:1 and a lost position. The
+    travel ends at -$27 then, and a plan reaching 0 is refused before anything is sent."""
+    fake = make_fake({20: 1, 21: 1, 22: 1, 27: 1.0})
+    rail = connect(fake)
+    assert rail.home().x == -1.0
+    assert rail.info().travel == {"x": (-200.0, -1.0)}
+    sent = len(fake.lines)
+    with pytest.raises(RailError, match=r"X=0 mm is outside the rail's travel \[-200, -1\]"):
+        rail.move(x=0)
+    assert fake.lines[sent:] == [] and rail.move(x=-1.0).x == -1.0 and fake.alarms() == []
+    # without hard limits the switch is only read while homing: the whole span stays open
+    assert connect(make_fake({20: 1, 22: 1})).info().travel == {"x": (-200.0, 0.0)}
+
+
 def test_homing_without_a_switch_fails_cleanly(make_fake, connect):
-    fake = make_fake({22: 1, 130: 20}, span=(500.0, 500.0, 500.0), start=(-100.0, 0.0, 0.0))
+    fake = make_fake({22: 1, 130: 20}, span=(500.0, 500.0, 500.0), start=(-100.0, -50.0, -50.0))
     rail = connect(fake)
     with pytest.raises(RailAlarm, match=r"ALARM:9 \(homing failed: limit switch not found"):
         rail.home()

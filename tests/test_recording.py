@@ -132,7 +132,7 @@ def test_bad_recording_folders(tmp_path):
 
 def test_grbl_session_keeps_its_serial_exchange(tmp_path):
     firmware = FakeGrbl({22: 1, 24: 600, 25: 3000, 26: 10, 110: 30000, 120: 3000}, homing_cycles=((0,),),
-                        start=(-5.0, 0.0, 0.0))
+                        start=(-5.0, -50.0, -50.0))
     try:
         rail = GrblRail(firmware.port, timeout=0.5, limits={"x": (-200, 0)}, feed=30000, poll=0.01)
         recorder = Recorder(tmp_path / "rec", rail=rail, rig={"rail_port": firmware.port})

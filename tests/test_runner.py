@@ -11,13 +11,16 @@ import time
 from pathlib import Path
 
 import pytest
+from fake_grbl import FakeGrbl
 
 from psfd.catalogue import Catalogue
 from psfd.daemon.plan import parse_plan
 from psfd.daemon.runner import Control, Runner
 from psfd.daemon.store import frames_dir_for, shown_state, store_busy, store_frame, store_lock, sweep_frames
 from psfd.drivers import open_rig
-from psfd.errors import BadInputError, CameraError, EstimationError, RailAlarm
+from psfd.drivers.grbl import GrblRail
+from psfd.drivers.sim import SimRig
+from psfd.errors import BadInputError, CameraError, EstimationError, RailAlarm, RailError
 
 # 2 apertures x 2 field positions x 1 channel: small enough for the default suite.
 PLAN = """
@@ -150,6 +153,62 @@ def test_rail_alarm_pauses_the_run(tmp_path):
         result = Runner(cat, tmp_path / "frames", workers=1, progress=None).run(plan, camera, AlarmRail(rail))
         assert result.state == "paused" and "ALARM" in result.reason
         assert cat.run_summary(result.run_id)["failed"] == 1
+
+
+@pytest.mark.parametrize("homing", [0, 1])
+def test_a_rail_that_restarted_while_the_run_was_stopped_is_refused_until_put_right(tmp_path, homing):
+    """A USB-powered controller that boots again (cable pulled and put back, power cut) counts from machine
+    position 0 wherever the carriage stands (grbl main.c); with homing off ($22=0) it comes up Idle, and a
+    resume would shoot every step left 60 mm off (the carriage at -60 reads 0). The resume is refused
+    before any motion, the run stays resumable, and goes on once the rail is put right as the error says:
+    homed, or moved by hand to where 0 was, reset, and moved back to the run's last position."""
+    firmware = FakeGrbl({22: homing, 24: 600, 25: 3000, 26: 10, 110: 6000, 120: 200}, homing_cycles=((0,),),
+                        start=(-10.0, -50.0, -50.0), boot_time=0.2)
+    plan = parse_plan(PLAN.replace("simulate = true", f'rail_port = "{firmware.port}"')
+                      .format(x="-40, -60, -80", y0=0, y1=0).replace("apertures = [4, 11]", "apertures = [8]")
+                      .replace("y = [0, 0]\n", ""), "grbl.toml")
+    rig = SimRig()  # its camera; the rail is the controller on the pseudo-terminal
+    db, frames = tmp_path / "cat.sqlite", tmp_path / "frames"
+    try:
+        rail = GrblRail(firmware.port, poll=0.02)
+        if homing:
+            rail.home()  # machine 0 is the + switch's trigger point
+        with Catalogue(db) as cat:
+            first = Runner(cat, frames, workers=1, progress=None).run(plan, FailingCamera(rig.camera, 1), rail)
+            assert first.state == "paused" and [s["state"] for s in cat.steps(first.run_id)] == [
+                "done", "failed", "pending"]
+            offset = firmware.physical_position()[0] - firmware.machine_position()[0]
+            firmware.power_cycle()
+            time.sleep(0.4)
+            sent = len(firmware.lines)
+            with pytest.raises(RailError) as refused:
+                Runner(cat, frames, workers=1, progress=None).run(plan, rig.camera, GrblRail(firmware.port, poll=0.02),
+                                                                   resume=True)
+            assert not [ln for ln in firmware.lines[sent:] if ln.startswith(("G0", "G1", "$J", "$H"))]
+            message = str(refused.value)
+            assert "reads X=0 mm" in message and f"run {first.run_id} left it at X=-60 to -40 mm" in message, message
+            assert cat.steps(first.run_id, ("done",)) and cat.runs()[0]["state"] == "paused"  # still resumable
+            # put right as the message says
+            if homing:
+                assert "`psfd rail home`" in message
+                rail = GrblRail(firmware.port, poll=0.02)
+                rail.home()
+            else:
+                assert "`psfd rail move X=-40`" in message
+                firmware.push(0, offset - firmware.physical_position()[0])  # by hand to where 0 was
+                firmware.power_cycle()
+                time.sleep(0.4)
+                rail = GrblRail(firmware.port, poll=0.02)
+                rail.move(x=-40)
+            again = Runner(cat, frames, workers=1, progress=None).run(plan, rig.camera, rail, resume=True)
+            assert again.state == "done" and again.steps_done == 2
+            shot = [cat.psf_frames(i)[0]["rail"]["x"] for i in first.psf_ids + again.psf_ids]
+        assert shot == [-40.0, -60.0, -80.0]
+        # the last step stood where the plan meant: the controller's coordinates agree with the carriage again
+        assert firmware.physical_position()[0] - firmware.machine_position()[0] == pytest.approx(offset, abs=0.01)
+    finally:
+        firmware.close()
+    check_complete(db, frames, plan)
 
 
 def test_pause_request_stops_after_the_current_frame(tmp_path):

@@ -59,7 +59,7 @@ from psfd.daemon.store import (INCOMING, check_room, shown_state, storage_error,
                                sweep_frames)
 from psfd.drivers import open_rig
 from psfd.drivers.base import Camera, CameraReady, CameraSetup, Rail, settle
-from psfd.errors import BadInputError, CameraError, EstimationError, HardwareError, PsfdError, StorageError
+from psfd.errors import BadInputError, CameraError, EstimationError, HardwareError, PsfdError, RailError, StorageError
 from psfd.estimator.raw import RAW_SUFFIXES
 from psfd.exif import check_settings, read_metadata
 from psfd.vocabulary import BACKLOG_MAX, WORKERS_MAX, camera_fnumber, check_count
@@ -282,7 +282,7 @@ class Runner:
             if problems:  # refused before the run is opened and before any motion, not at the step
                 raise BadInputError(f"{plan.path}: {'; '.join(problems)}")
             with store_lock(self.frames_dir):
-                run_id = self._open_run(plan, camera, resume, new)
+                run_id = self._open_run(plan, camera, rail, resume, new)
                 try:
                     result = self._execute(plan, run_id, camera, rail)
                 except BaseException:  # second Ctrl-C, or a bug: leave the run resumable, not "running"
@@ -301,7 +301,7 @@ class Runner:
 
     # -- steps --------------------------------------------------------------------------------
 
-    def _open_run(self, plan: Plan, camera: Camera, resume: bool, new: bool) -> int:
+    def _open_run(self, plan: Plan, camera: Camera, rail: Rail, resume: bool, new: bool) -> int:
         sweep_frames(self.frames_dir, self.catalogue.frame_hashes())
         # we hold the store lock, so a run journalled "running" here was killed: it is interrupted,
         # and done if it was killed between its last commit and its close (the one resumed here too:
@@ -309,6 +309,9 @@ class Runner:
         unfinished = start_check(self.catalogue, plan, resume, new)
         self.catalogue.close_finished_runs()
         if unfinished is not None:
+            lost = position_lost(rail, self.catalogue, unfinished)
+            if lost:  # refused before the run reopens: it stays resumable once the rail is put right
+                raise RailError(lost)
             self.catalogue.finish_run(unfinished, "running")
             return unfinished
         rig_id = self.catalogue.add_rig(camera.info())
@@ -503,6 +506,55 @@ def _step_error(exc: PsfdError | OSError) -> PsfdError:
     if isinstance(exc, PsfdError):
         return exc
     return storage_error(exc, "storing the frame") or HardwareError(f"storing the frame: {exc}")
+
+
+# mm: a restarted controller reads its power-up position exactly; GRBL reports three decimals
+_SAME_MM = 1e-3
+
+
+def position_lost(rail: Rail, catalogue: Catalogue, run_id: int) -> str | None:
+    """Why the rail cannot resume run ``run_id`` where the run left it, or None.
+
+    A controller that restarted while the run was stopped (a USB cable pulled and put back, a power cut)
+    counts its position again from wherever the carriage stands: GRBL from machine position 0 (grbl
+    main.c), locked in alarm until homed only when homing is enabled. Its reports look like any others,
+    so the restart shows only in where the rail reads: at its power-up position (`RailInfo.power_up`)
+    although the run cannot have left it there, outside the span from its latest stored frame to the
+    targets of its interrupted steps (a move cut short stops in between). Resuming would shoot every
+    step left at the wrong place, or drive the carriage into an end stop. None when the rail cannot say
+    or the run has no stored frame yet.
+    """
+    left = catalogue.steps(run_id, ("pending", "running", "failed"))
+    last = catalogue.last_rail_position(run_id)
+    if not left or not last:
+        return None
+    try:
+        info, at = rail.info(), rail.position()
+    except PsfdError as exc:
+        log.debug("rail not asked where it restarts: %s", exc)
+        return None
+    start = {axis: v for axis, v in (info.power_up or {}).items() if last.get(axis) is not None}
+    if not start or any(getattr(at, axis) is None or abs(getattr(at, axis) - v) > _SAME_MM
+                        for axis, v in start.items()):
+        return None
+    spans = {axis: [float(last[axis])] for axis in start}
+    for row in left:
+        if row["state"] != "pending":  # interrupted or failed: the carriage may be on its way there
+            step = Step.from_payload(row["payload"])
+            for axis, value in (("x", step.x), ("y", step.y), ("z", step.z)):
+                for v in value if isinstance(value, tuple) else (value,):
+                    if v is not None and axis in spans:
+                        spans[axis].append(float(v))
+    if all(min(s) - _SAME_MM <= start[axis] <= max(s) + _SAME_MM for axis, s in spans.items()):
+        return None
+    reads = ", ".join(f"{axis.upper()}={getattr(at, axis):g}" for axis in start)
+    left_at = ", ".join(f"{axis.upper()}={min(s):g}" + (f" to {max(s):g}" if max(s) > min(s) else "")
+                        for axis, s in spans.items())
+    back = " ".join(f"{axis.upper()}={last[axis]:g}" for axis in start)
+    fix = ("home it (`psfd rail home`) and resume" if info.homing else
+           f"move the carriage by hand to the + end, reset the controller, `psfd rail move {back}` and resume")
+    return (f"the rail reads {reads} mm, where its controller starts after power-up, but run {run_id} left it at "
+            f"{left_at} mm: the controller restarted (USB cable or power) and its position is lost; {fix}")
 
 
 def rail_problems(plan: Plan, rail: Rail) -> list[str]:

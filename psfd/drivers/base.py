@@ -162,6 +162,8 @@ class RailInfo:
     ``travel`` is the reachable span per axis in mm, in the coordinates `Rail.move` takes (for a GRBL
     controller: its machine travel [-$130, 0] shifted by the work offset, narrowed by the rig's limits).
     Positions are always mm; ``units`` is what the controller itself reports in ("mm" or "inch").
+    ``power_up`` is where each axis reads after the controller restarts, in the same coordinates (GRBL
+    counts from machine position 0 wherever the carriage stands); None for a rail that keeps its position.
     """
 
     controller: str
@@ -170,6 +172,7 @@ class RailInfo:
     units: str = "mm"
     homing: bool = False
     state: str = ""
+    power_up: dict[str, float] | None = None
 
 
 @runtime_checkable

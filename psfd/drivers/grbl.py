@@ -501,11 +501,14 @@ class GrblRail:
         return "inch" if self._scale != 1.0 else "mm"
 
     def info(self) -> RailInfo:
-        """Controller, axes, travel (mm, in the coordinates `move` takes), units, homing, state."""
+        """Controller, axes, travel (mm, in the coordinates `move` takes), units, homing, state, and the
+        power-up position: machine position 0 (grbl main.c clears sys_position at boot), less the work offset."""
         self.exchange = []
         status = self._status()
+        wco = self._wco or ()
+        power_up = {axis: 0.0 - wco[AXES.index(axis)] if AXES.index(axis) < len(wco) else 0.0 for axis in self.travel}
         return RailInfo(controller=self.banner or self.firmware, axes=self.axes, travel=dict(self.travel),
-                        units=self.units, homing=self._homing_enabled, state=status.name)
+                        units=self.units, homing=self._homing_enabled, state=status.name, power_up=power_up)
 
     def home(self) -> Position:
         """Run the homing cycle (``$H``); returns the position after it (GRBL: -``$27`` in machine coordinates)."""
@@ -688,10 +691,16 @@ class GrblRail:
                 raise RailError(f"rail_limits name axis {axis.upper()} but the controller on {self.port} has "
                                 f"{n_axes} axes")
             length = self._settings_full[130 + index]
-            if force_origin and int(self._settings_full[23]) & (1 << index):
+            homes_to_minus = bool(int(self._settings_full[23]) & (1 << index))
+            if force_origin and homes_to_minus:
                 lo, hi = 0.0, length
             else:
                 lo, hi = -length, 0.0  # GRBL's machine space is negative, whichever end it homes to
+                if self._homing_enabled and self._settings_full[21]:
+                    # the homed end is where its switch closed (grbl limits.c sets the position to -$27 after
+                    # the pull-off, $27 - $130 homing to the - end): a move back to it closes the switch, ALARM:1
+                    pulloff = self._settings_full[27]
+                    lo, hi = (lo + pulloff, hi) if homes_to_minus else (lo, hi - pulloff)
             offset = self._wco[index] if self._wco and index < len(self._wco) else 0.0
             lo, hi = lo - offset, hi - offset
             if lo_cfg is not None:
