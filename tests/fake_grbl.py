@@ -224,6 +224,7 @@ class FakeGrbl:
         self._poll = select.poll()
         self._poll.register(self.master, select.POLLIN | select.POLLHUP)
         self._coords = [[0.0] * N_AXIS for _ in range(6)]  # G54..G59, kept in EEPROM across resets
+        self.startup_lines = ["", ""]  # $N0, $N1 in EEPROM: run after every reset that ends Idle (protocol.c)
         self._power_up()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="fake-grbl", daemon=True)
@@ -374,6 +375,9 @@ class FakeGrbl:
             self.state = "Idle"
             if self._door_ajar:
                 self._flags.add("door")
+            for text in filter(None, self.startup_lines):  # system_execute_startup(): each echoed with its answer
+                code = self._gcode(text)
+                self._write_line(f">{text}:" + ("ok" if not code else f"error:{code}"))
         self._boot_alarm = False
 
     def _reboot(self) -> None:
@@ -683,8 +687,11 @@ class FakeGrbl:
                 self._write_line(text)
             return 0
         if rest == "N":
-            self._write_line("$N0=")
-            self._write_line("$N1=")
+            for n, text in enumerate(self.startup_lines):
+                self._write_line(f"$N{n}={text}")
+            return 0
+        if rest[:1] == "N" and rest[1:2] in ("0", "1") and rest[2:3] == "=":
+            self.startup_lines[int(rest[1])] = rest[3:]
             return 0
         if rest == "SLP":
             self._write_line("[MSG:Sleeping]")

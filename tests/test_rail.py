@@ -144,6 +144,19 @@ def test_fake_follows_the_documented_alarm_behaviour(make_fake):
 # ---------------------------------------------------------------------------------------------- connecting
 
 
+def test_a_startup_line_that_moves_the_carriage_is_refused_at_open(make_fake, connect):
+    """GRBL runs its startup lines after every reset that ends Idle (protocol.c), and psfd resets after every
+    stop: a line that moves the carriage (or shifts its coordinates) would run unattended after each one."""
+    fake = make_fake()
+    fake.startup_lines[1] = "G0X-20"
+    with pytest.raises(RailError, match=r"startup line \$N1=G0X-20 runs after every reset.*send `\$N1=`"):
+        connect(fake)
+    assert fake.machine_position()[0] == 0.0 and fake.resets() == []  # refused before anything moved it
+    fake.startup_lines[1] = "G21G90"  # modes only: harmless, and run after the resets psfd sends
+    rail = connect(fake)
+    assert rail.move(x=-5).x == -5.0
+
+
 def test_info_gives_where_a_restarted_controller_reads_in_work_coordinates(make_fake, connect):
     """GRBL counts from machine position 0 at power-up (main.c) and keeps the G54 offset in EEPROM: in the
     work coordinates psfd moves in, a restarted controller reads minus the work offset."""
@@ -468,8 +481,11 @@ def test_port_vanishing_mid_move(make_fake, connect):
     fake = make_fake(SLOW)
     fake.when(lambda f: f.machine_position()[0] < -10.0, FakeGrbl.unplug)
     rail = connect(fake)
-    with pytest.raises(RailError, match="is gone"):
+    with pytest.raises(RailError, match="is gone") as gone:
         rail.move(x=-100)
+    # the reason once, then what to do: the port takes no feed hold any more
+    assert str(gone.value).count("is gone") == 1 and "the next psfd command that opens the port stops it" in str(
+        gone.value), gone.value
     rail.close()
     rail.close()  # idempotent
 

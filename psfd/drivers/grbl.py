@@ -561,7 +561,9 @@ class GrblRail:
         except BaseException as exc:
             if not self._moving:
                 raise
-            stopped = self._halt()
+            # a port that is gone takes no feed hold: the board goes on with what it was sent
+            stopped = ("the carriage may still be moving: the next psfd command that opens the port stops it"
+                       if isinstance(exc, PortGone) else self._halt())
             if isinstance(exc, RailError):
                 raise type(exc)(f"{exc}; {stopped}") from None
             exc.add_note(stopped)
@@ -622,6 +624,7 @@ class GrblRail:
             log.info("rail %s: `$$` has no %s; using grbl's defaults", self.port, ", ".join(f"${n}" for n in missing))
         self._scale = MM_PER_INCH if self._settings_full[13] else 1.0
         info = self._command("$I", self.timeout)
+        self._check_startup_lines()
         self.version = next((ln[5:-1].split(":")[0] for ln in info if ln.startswith("[VER:")), "")
         self.options = next((ln[5:-1] for ln in info if ln.startswith("[OPT:")), "")
         if "[FIRMWARE:grblHAL]" in info:
@@ -632,6 +635,24 @@ class GrblRail:
             self.firmware = f"Grbl {self.version}".strip()
         status = self._status_with_wco()
         self.travel = self._travel(len(status.machine))
+
+    def _check_startup_lines(self) -> None:
+        """Refuse a controller whose startup lines (``$N0``, ``$N1``) move the carriage or shift its coordinates.
+
+        GRBL runs them after every reset that ends Idle (protocol.c, system_execute_startup), and psfd resets
+        the controller after every stop: a line with an axis word (G0 X10, G92 X0, G10 L20 X0) or a move to a
+        stored position (G28, G30) would move the carriage unattended, or shift every position after it.
+        """
+        try:
+            lines = self._command("$N", self.timeout)
+        except RailError as exc:  # a firmware without startup lines (FluidNC keeps its own in a file)
+            log.debug("rail %s: no startup lines (%s)", self.port, exc)
+            return
+        for number, text in (m.groups() for m in map(_STARTUP_LINE.match, lines) if m):
+            if _MOVES.search(re.sub(r"\(.*?\)|;.*", "", text.upper())):
+                raise RailError(f"rail {self.port}: the controller's startup line $N{number}={text} runs after every "
+                                f"reset, which psfd sends after every stop, and would move the carriage or shift its "
+                                f"coordinates: clear it (send `$N{number}=` from a terminal)")
 
     def _probe(self) -> GrblStatus:
         """A status report, asking with ``?`` (and ``$I`` for boards that wait for a line); reset only if deaf."""
@@ -1027,6 +1048,9 @@ class GrblRail:
     travel: dict[str, tuple[float, float]] = {}
 
 
+_STARTUP_LINE = re.compile(r"^\$N(\d)=(.*)$")
+# in a startup line: an axis word (a move, G92 or G10 offsets), or G28 / G30, the moves to stored positions
+_MOVES = re.compile(r"[XYZABC]|G0*(28|30)(?!\.1)")
 _SETTING = re.compile(r"^\$(\d+)=([-+]?\d*\.?\d+)")
 
 
