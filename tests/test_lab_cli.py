@@ -227,6 +227,14 @@ def test_plan_init_writes_every_key_and_passes_plan_check(tmp_path, capsys):
     assert "ok, 2 steps" in capsys.readouterr().out  # the simulated one is small enough to try at once
     code = main(["plan", "init", str(tmp_path / "plan-True.toml")])
     assert code == 2 and "exists" in capsys.readouterr().err
+    # a two-photo plan as the template's comments say (the kind, near and far, no x, the simulated rig's
+    # textured plane): no Bernoulli-only key or default is left active to refuse it
+    text = (tmp_path / "plan-True.toml").read_text().replace('kind = "bernoulli"', 'kind = "two-photo"')
+    text = text.replace("# near = ", "near = ").replace("# far = ", "far = ").replace('# scene = "bernoulli"',
+                                                                                    'scene = "texture"')
+    pair = tmp_path / "pair.toml"
+    pair.write_text("\n".join(line for line in text.splitlines() if not line.startswith("x = ")) + "\n")
+    assert main(["plan", "check", str(pair)]) == 0, capsys.readouterr().err
 
 
 def test_status_json_has_one_shape(tmp_path, capsys):

@@ -182,7 +182,7 @@ def run_export(args: argparse.Namespace) -> int:
             return [entry["file"] for entry in index] + ["index.json", "metrics.csv"]
 
         output.write_folder(out, write, args.force)
-    print(f"exported {len(result.rows)} PSFs to {out}")
+    print(f"exported {len(result.rows)} PSF{'' if len(result.rows) == 1 else 's'} to {out}")
     return 0
 
 

@@ -619,7 +619,8 @@ def plan_template(simulate: bool = False) -> str:
             (False, "scale = [0.25]", "instead of x: channel pixels per target cell; psfd puts the rail there"),
         ]
     target = [
-        (True, f'kind = "{BERNOULLI}"', f'"{BERNOULLI}" (the printed noise target) or "{TWO_PHOTO}" (two photos)'),
+        (True, f'kind = "{BERNOULLI}"', f'"{BERNOULLI}" (the printed noise target) or "{TWO_PHOTO}" (two photos '
+                                        'of a textured plane: give near and far, no x)'),
         (False, "near = 600", f"{TWO_PHOTO}: near distance, mm (far / near must exceed s)"),
         (False, "far = 2200", f"{TWO_PHOTO}: far distance, mm"),
         (False, "cell_mm = 0.5", f"{BERNOULLI}: printed size of one noise cell, mm (for the capture scale key)"),
@@ -630,9 +631,10 @@ def plan_template(simulate: bool = False) -> str:
                (True, "channels = " + ('["g1"]' if simulate else '"all"'), '"all" or a list of ' + ", ".join(CHANNELS)),
                (True, "repeats = 1", "exposures per position and aperture")]
     estimator = [
-        (True, f"s = {DEFAULT_S[BERNOULLI]}", "super-resolution: kernel samples per pixel, 1 to 8"),
+        (False, f"s = {DEFAULT_S[BERNOULLI]}", f"super-resolution: kernel samples per pixel, 1 to 8 (default "
+                                               f"{DEFAULT_S[BERNOULLI]}, {TWO_PHOTO} {DEFAULT_S[TWO_PHOTO]})"),
         (False, f"support = {4 * DEFAULT_S[BERNOULLI] + 1}", "kernel side in samples, odd (default 4 s + 1)"),
-        (True, f'solver = "{DEFAULT_SOLVER}"', f"{BERNOULLI} only: {', '.join(SOLVERS)}"),
+        (False, f'solver = "{DEFAULT_SOLVER}"', f"{BERNOULLI} only: {', '.join(SOLVERS)}"),
         (True, "grid = [1, 1]", "windows across and down the target, a PSF each"),
     ]
     lines = [f"# psfd measurement plan ({'simulated rig' if simulate else 'real rig'}): every key and what it means.",
