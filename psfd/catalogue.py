@@ -14,8 +14,10 @@ Frame paths inside the catalogue's folder (the frame store beside it) are
 stored relative to that folder, so a catalogue and its frames can be moved or
 copied together; a frame elsewhere keeps its absolute path, and so do the
 absolute paths of older catalogues outside the folder (`psf_frames` returns
-absolute paths either way). `datasette_metadata` describes every table and
-column, with units, in the metadata format Datasette reads.
+absolute paths either way). A PSF's ``sources`` are stored the same way and
+read back absolute, under the catalogue's current folder. `datasette_metadata`
+describes every table and column, with units, in the metadata format Datasette
+reads.
 """
 
 from __future__ import annotations
@@ -243,11 +245,28 @@ def _v6_noise_floor_as_norm(db: sqlite_utils.Database) -> None:
         db.execute("UPDATE psfs SET noise_floor = ? WHERE id = ?", [floor, row["id"]])
 
 
+def _v7_relative_psf_sources(db: sqlite_utils.Database) -> None:
+    """Version 7: a PSF's sources inside the catalogue's folder become relative to it, as frame paths did in
+    version 4 (others stay absolute).
+
+    Sources already relative are left alone, so running it again, or after any other migration, changes nothing.
+    """
+    folder = _database_folder(db)
+    if folder is None:
+        return
+    rows = db.execute("SELECT id, sources FROM psfs WHERE sources IS NOT NULL").fetchall()  # read whole first
+    for psf_id, text in rows:
+        sources = json.loads(text)
+        stored = [stored_frame_path(s, folder) if os.path.isabs(s) else s for s in sources]
+        if stored != sources:
+            db.execute("UPDATE psfs SET sources = ? WHERE id = ?", [json.dumps(stored), psf_id])
+
+
 # In the order they landed: a catalogue's user_version counts the migrations it ran. Each later one
 # checks its columns before adding them, so a catalogue is the same whichever of them ran first.
 MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [
     _v1_tables, _v2_query_indexes, _v3_frame_exif, _v4_relative_frame_paths, _v5_prediction_error,
-    _v6_noise_floor_as_norm]
+    _v6_noise_floor_as_norm, _v7_relative_psf_sources]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -315,11 +334,13 @@ FROM psfs p LEFT JOIN rigs r ON r.id = p.rig_id LEFT JOIN steps st ON st.id = p.
 """
 
 
-def _row(raw: dict) -> dict:
+def _row(raw: dict, folder: Path) -> dict:
+    """A PSF row as readers see it: JSON columns decoded, ``sources`` absolute under the catalogue's ``folder``."""
     row = dict(raw)
     row["window"] = [row.pop(k) for k in ("window_x0", "window_y0", "window_x1", "window_y1")]
     for key in ("params", "warnings", "sources"):
         row[key] = json.loads(row[key]) if row[key] else ({} if key == "params" else [])
+    row["sources"] = [str(folder / source) for source in row["sources"]]  # an absolute path stays as it is
     return row
 
 
@@ -780,7 +801,8 @@ class Catalogue:
             indices = range(len(frame_ids)) if indices is None else indices
             if any(not 0 <= i < len(frame_ids) for i in indices):
                 raise BadInputError(f"frame index out of range in {list(indices)} ({len(frame_ids)} frames)")
-            psf_id = int(db["psfs"].insert(self._psf_record(estimate, meta, rig_id, run_id, step_id)).last_pk)
+            record = self._psf_record(estimate, meta, rig_id, run_id, step_id, self.folder)
+            psf_id = int(db["psfs"].insert(record).last_pk)
             db["psf_frames"].insert_all(
                 ({"psf_id": psf_id, "frame_id": frame_ids[i]} for i in sorted(set(indices))),
             )
@@ -802,7 +824,8 @@ class Catalogue:
         return int(db.execute("SELECT id FROM frames WHERE sha256 = ?", [frame.sha256]).fetchone()[0])
 
     @staticmethod
-    def _psf_record(estimate: PSF, meta: dict, rig_id: int | None, run_id: int | None, step_id: int | None) -> dict:
+    def _psf_record(estimate: PSF, meta: dict, rig_id: int | None, run_id: int | None, step_id: int | None,
+                    folder: Path) -> dict:
         array = np.asarray(estimate.psf, dtype=np.float64)
         if array.ndim != 2 or array.shape[0] % 2 == 0 or array.shape[1] % 2 == 0 or not np.all(np.isfinite(array)):
             raise BadInputError(f"PSF array must be 2-D, odd-sized and finite (got shape {array.shape})")
@@ -823,7 +846,8 @@ class Catalogue:
             "params": json.dumps(estimate.params, sort_keys=True, default=str),
             "psfd_version": __version__,
             "warnings": json.dumps(list(estimate.warnings)),
-            "sources": json.dumps([str(s) for s in estimate.sources]),
+            # as frame paths: relative to the catalogue's folder when inside it, so the two can move together
+            "sources": json.dumps([stored_frame_path(s, folder) for s in estimate.sources]),
             "created": _now(),
         }
 
@@ -884,7 +908,7 @@ class Catalogue:
                 params += [lo, hi]
             sql = _ROW_SQL + (f" WHERE {' AND '.join(where)}" if where else "")
             sql += " ORDER BY r.model, r.lens, p.aperture, p.channel, p.method, p.field_y, p.field_x, p.id"
-            rows = [_row(r) for r in db.query(sql, params)]
+            rows = [_row(r, self.folder) for r in db.query(sql, params)]
         if near is not None:
             rows = _nearest_per_group(rows, near)
         if limit is not None:
@@ -904,7 +928,7 @@ class Catalogue:
             blob = db.execute("SELECT psf FROM psfs WHERE id = ?", [psf_id]).fetchone()
         if row is None or blob is None:
             raise CatalogueError(f"no PSF {psf_id}")
-        return _from_npy(blob[0]), _row(row)
+        return _from_npy(blob[0]), _row(row, self.folder)
 
     def psf_frames(self, psf_id: int) -> list[dict]:
         """The frames a PSF was estimated from (``path`` absolute, wherever it is stored relative)."""
@@ -1025,7 +1049,8 @@ COLUMNS: dict[str, dict[str, str]] = {
         "params": "estimator parameters, JSON",
         "psfd_version": "psfd version that made the estimate",
         "warnings": "conditions of the method only partly met, JSON list of sentences",
-        "sources": "files the estimate came from, JSON list",
+        "sources": "files the estimate came from, JSON list: relative to the catalogue's folder when inside it, "
+                   "else absolute",
         "created": "when the estimate was stored, ISO 8601 UTC",
     },
     "psf_frames": {

@@ -5,6 +5,7 @@ Every test uses a real SQLite file in tmp_path.
 
 from __future__ import annotations
 
+import json
 import math
 import multiprocessing
 import sqlite3
@@ -136,6 +137,36 @@ def test_noise_floors_of_older_catalogues_are_brought_to_one_unit(tmp_path):
         assert cat.schema_version() == SCHEMA_VERSION > before
         floors = [row["noise_floor"] for row in cat.db.query("SELECT noise_floor FROM psfs ORDER BY id")]
     assert floors == [pytest.approx(2.5e-3 * 17), pytest.approx(1e-2), 8e-3, 2e-2, None]
+
+
+def test_psf_sources_of_older_catalogues_become_relative_to_its_folder(tmp_path):
+    """Version 7: a PSF's absolute sources inside the catalogue's folder become relative to it, as frame paths
+    did (version 4); sources elsewhere, ones already relative and absent ones stay; it runs again unchanged."""
+    path = tmp_path / "lab" / "old.sqlite"
+    path.parent.mkdir()
+    db, before = _catalogue_before(path, catalogue_module._v7_relative_psf_sources)
+    near, far = (str(path.parent / "old-frames" / "aa" / f"{n}.dng") for n in ("near", "far"))
+    for sources in (json.dumps([near, far]), json.dumps(["/mnt/raw/y.dng"]), json.dumps(["old-frames/bb/z.dng"]),
+                    None):
+        db["psfs"].insert({"method": "two-photo", "channel": "g1", "field_x": 0.5, "field_y": 0.5, "s": 4,
+                           "support": 17, "psf": b"", "sources": sources})
+    db.close()
+    expected = [json.dumps(["old-frames/aa/near.dng", "old-frames/aa/far.dng"]), json.dumps(["/mnt/raw/y.dng"]),
+                json.dumps(["old-frames/bb/z.dng"]), None]
+
+    with Catalogue(path) as cat:
+        assert cat.schema_version() == SCHEMA_VERSION > before
+        assert [r[0] for r in cat.db.execute("SELECT sources FROM psfs ORDER BY id").fetchall()] == expected
+    moved = tmp_path / "moved"
+    path.parent.rename(moved)
+    with Catalogue(moved / "old.sqlite", readonly=True) as cat:
+        assert [row["sources"] for row in cat.query().rows] == [
+            [str(moved / "old-frames" / "aa" / "near.dng"), str(moved / "old-frames" / "aa" / "far.dng")],
+            ["/mnt/raw/y.dng"], [str(moved / "old-frames" / "bb" / "z.dng")], []]
+    db = sqlite_utils.Database(moved / "old.sqlite")
+    catalogue_module._v7_relative_psf_sources(db)
+    assert [r[0] for r in db.execute("SELECT sources FROM psfs ORDER BY id").fetchall()] == expected
+    db.close()
 
 
 def test_failed_migration_is_rolled_back(tmp_path, monkeypatch):
@@ -525,13 +556,18 @@ def test_frame_paths_are_relative_to_the_catalogue_folder_so_it_can_move(tmp_pat
     with Catalogue(folder / "cat.sqlite") as cat:
         run = new_run(cat, keys=("a",))
         records = [FrameRecord(str(inside), "1" * 64, {}, {}, "t"), FrameRecord(str(outside), "2" * 64, {}, {}, "t")]
-        (psf_id,) = cat.commit_step(run, "a", records, [(make_psf(), {"aperture": 5.6})])
+        estimate = make_psf()
+        estimate.sources = [str(inside), str(outside)]
+        (psf_id,) = cat.commit_step(run, "a", records, [(estimate, {"aperture": 5.6})])
         stored = [r[0] for r in cat.db.execute("SELECT path FROM frames ORDER BY id").fetchall()]
+        (sources,) = cat.db.execute("SELECT sources FROM psfs").fetchone()
     assert stored == ["cat-frames/ab/1.dng", str(outside)]  # inside: relative; elsewhere: absolute
+    assert sources == json.dumps(stored)  # the PSF's sources are stored the same way
     moved = tmp_path / "moved"
     (folder).rename(moved)
     with Catalogue(moved / "cat.sqlite") as cat:
         paths = [f["path"] for f in cat.psf_frames(psf_id)]
+        assert cat.psf(psf_id)[1]["sources"] == paths
     assert paths == [str(moved / "cat-frames" / "ab" / "1.dng"), str(outside)]
 
 

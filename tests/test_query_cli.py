@@ -234,3 +234,52 @@ def test_query_subprocess_uses_the_default_catalogue(catalogue, tmp_path):
     (row,) = [json.loads(line) for line in proc.stdout.splitlines()]
     assert (row["channel"], row["aperture"], row["field_x"], row["field_y"]) == ("r", 8.0, 0.5, 0.5)
     assert np.array(row["psf"]) == pytest.approx(gaussian(sigma_at((0.5, 0.5), 8.0)))
+
+
+def _capture(catalogue, *argv) -> None:
+    """One simulated-rig capture into ``catalogue`` by the whole ``psfd`` process (its frames beside it)."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "psfd", "capture", "--aperture", "5.6", "--simulate", "--channels", "g1",
+         "--catalogue", str(catalogue), "--socket", str(catalogue.parent / "none.sock"), "--workers", "1", *argv],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+
+
+def _query_json(catalogue) -> list[dict]:
+    proc = subprocess.run([sys.executable, "-m", "psfd", "query", "--catalogue", str(catalogue), "--json"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    return [json.loads(line) for line in proc.stdout.splitlines()]
+
+
+def test_moved_catalogue_and_frame_store_show_the_frames_where_they_now_are(tmp_path):
+    """The audit: a catalogue copied with its frame store, the old folder gone, shows the sources under the
+    new folder (JSON and CSV), files that exist."""
+    import csv
+
+    _capture(tmp_path / "k1" / "cat.sqlite")
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    subprocess.run(["cp", "-a", str(tmp_path / "k1" / "cat.sqlite"), str(tmp_path / "k1" / "cat-frames"),
+                    str(moved)], check=True)
+    os.rename(tmp_path / "k1", tmp_path / "k1.away")
+    (row,) = _query_json(moved / "cat.sqlite")
+    (source,) = row["sources"]
+    assert source.startswith(str(moved / "cat-frames") + os.sep) and os.path.isfile(source)
+    table = subprocess.run([sys.executable, "-m", "psfd", "query", "--catalogue", str(moved / "cat.sqlite"), "--csv"],
+                           capture_output=True, text=True, timeout=120)
+    assert table.returncode == 0, table.stderr
+    (record,) = csv.DictReader(table.stdout.splitlines())
+    assert record["source"] == source
+
+
+def test_sources_outside_the_catalogue_folder_stay_absolute(tmp_path):
+    shots = tmp_path / "elsewhere" / "shots"
+    _capture(tmp_path / "k1" / "cat.sqlite", "--out", str(shots))
+    with Catalogue(tmp_path / "k1" / "cat.sqlite", readonly=True) as cat:
+        (stored,) = json.loads(cat.db.execute("SELECT sources FROM psfs").fetchone()[0])
+    assert os.path.isabs(stored) and stored.startswith(str(shots) + os.sep)
+    os.rename(tmp_path / "k1", tmp_path / "moved")
+    (row,) = _query_json(tmp_path / "moved" / "cat.sqlite")
+    assert row["sources"] == [stored] and os.path.isfile(stored)
