@@ -472,7 +472,7 @@ def test_output_folders_honour_the_umask(tmp_path):
 
 def test_force_replaces_an_output_folder_whole_and_nothing_else(tmp_path, capsys):
     out = tmp_path / "out"
-    output.write_estimates([synthetic(0), synthetic(1)], out)
+    output.write_estimates([synthetic(0, figures={"kernel": np.eye(3)}), synthetic(1)], out)  # NAME.kernel.* too
     with pytest.raises(BadInputError, match="add --force"):
         output.write_estimates([synthetic(0)], out)
     output.write_estimates([synthetic(0)], out, force=True)
@@ -481,12 +481,86 @@ def test_force_replaces_an_output_folder_whole_and_nothing_else(tmp_path, capsys
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging or old folder left
     home = tmp_path / "home"
     (home / "Documents").mkdir(parents=True)
-    with pytest.raises(BadInputError, match="holds folders"):
+    with pytest.raises(BadInputError, match="holds the folder Documents"):
         output.write_estimates([synthetic(0)], home, force=True)
     assert [p.name for p in home.iterdir()] == ["Documents"]
     (tmp_path / "file").write_text("mine")
     with pytest.raises(BadInputError, match="not a folder"):
         output.write_estimates([synthetic(0)], tmp_path / "file", force=True)
+
+
+def psfd(cwd: Path, *argv: str) -> subprocess.CompletedProcess:
+    """`python -m psfd ARGV` run as a user runs it, in ``cwd``."""
+    return subprocess.run([sys.executable, "-m", "psfd", *map(str, argv)], cwd=cwd, capture_output=True,
+                          text=True, timeout=300)
+
+
+def contents(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` (hidden ones too) with its bytes."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_force_never_deletes_a_folder_of_the_users_files(tmp_path, data_dir):
+    """The audit's case: `--out . --force` in a folder of photographs refuses before writing, deleting nothing."""
+    shoot = tmp_path / "shoot"
+    shoot.mkdir()
+    for name in ("IMG_0001.pgm", "IMG_0002.pgm"):
+        (shoot / name).write_bytes((data_dir / "img_example.pgm").read_bytes())
+    (shoot / "notes.txt").write_text("notes\n")
+    notes = tmp_path / "nonempty"
+    notes.mkdir()
+    (notes / "notes.txt").write_text("notes\n")
+    before = contents(tmp_path)
+    for out, named in ((".", "IMG_0001.pgm"), ("../nonempty", "notes.txt")):
+        done = psfd(shoot, "estimate", "bernoulli", "IMG_0001.pgm", "--out", out, "--force")
+        assert done.returncode == 2 and done.stdout == ""
+        assert done.stderr.startswith("psfd: error: ") and done.stderr.count("\n") == 1
+        assert named in done.stderr and "new or empty folder" in done.stderr
+        assert contents(tmp_path) == before  # every file kept, with its content; no results, no staging
+
+
+def test_force_never_deletes_an_input_named_like_a_result(tmp_path, data_dir):
+    """A frame inside the folder to replace, though named as psfd names a figure, is kept."""
+    out = tmp_path / "out"
+    out.mkdir()
+    frame = out / "IMG_0001_bernoulli_mono_w00.png"
+    cv2.imwrite(str(frame), cv2.imread(str(data_dir / "img_example.pgm"), cv2.IMREAD_UNCHANGED))
+    (out / "metrics.csv").write_text("id\n")
+    before = contents(tmp_path)
+    done = psfd(tmp_path, "estimate", "bernoulli", frame, "--out", out, "--force")
+    assert done.returncode == 2 and done.stderr.startswith("psfd: error: ") and done.stderr.count("\n") == 1
+    assert frame.name in done.stderr and "input" in done.stderr
+    assert contents(tmp_path) == before
+
+
+def test_force_replaces_earlier_results_of_the_same_command(tmp_path, data_dir):
+    first = psfd(tmp_path, "estimate", "bernoulli", data_dir / "img_example.pgm", "--out", "psfs")
+    assert first.returncode == 0, first.stderr
+    names = sorted(contents(tmp_path / "psfs"))
+    assert "metrics.csv" in names and "img_example_bernoulli_mono_w00.npy" in names
+    again = psfd(tmp_path, "estimate", "bernoulli", data_dir / "img_example.pgm", "--out", "psfs")
+    assert again.returncode == 2 and "--force" in again.stderr
+    (tmp_path / "psfs" / "metrics.csv").write_text("stale\n")
+    replaced = psfd(tmp_path, "estimate", "bernoulli", data_dir / "img_example.pgm", "--out", "psfs", "--force")
+    assert replaced.returncode == 0, replaced.stderr
+    assert sorted(contents(tmp_path / "psfs")) == names and (tmp_path / "psfs" / "metrics.csv").read_text() != "stale\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["psfs"]  # no staging or old folder left
+
+
+def test_force_replaces_an_earlier_comparison(tmp_path, data_dir):
+    """compare's own files (compare.png, compare.json) are results too; its --truth is never deleted."""
+    frame = data_dir / "img_example.pgm"
+    assert psfd(tmp_path, "compare", frame, "--out", "cmp").returncode == 0
+    names = sorted(contents(tmp_path / "cmp"))
+    assert {"compare.png", "compare.json", "metrics.csv"} <= set(names)
+    replaced = psfd(tmp_path, "compare", frame, "--out", "cmp", "--force")
+    assert replaced.returncode == 0, replaced.stderr
+    assert sorted(contents(tmp_path / "cmp")) == names
+    truth = next((tmp_path / "cmp").glob("*_bernoulli_*.npy"))
+    before = contents(tmp_path)
+    refused = psfd(tmp_path, "compare", frame, "--truth", truth, "--out", "cmp", "--force")
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and truth.name in refused.stderr
+    assert contents(tmp_path) == before
 
 
 class _Terminal(io.StringIO):

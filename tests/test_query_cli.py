@@ -130,6 +130,24 @@ def test_export_failure_leaves_nothing(capsys, catalogue, tmp_path, monkeypatch)
     assert sorted(p.name for p in tmp_path.iterdir()) == CATALOGUE_FILES
 
 
+def test_export_force_replaces_an_earlier_export_and_nothing_else(catalogue, tmp_path):
+    def export(*argv: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "psfd", "export", "--catalogue", catalogue, "--channel", "g1",
+                               "--aperture", "8", *argv], capture_output=True, text=True, timeout=120)
+
+    out = tmp_path / "export"
+    for fmt, suffix in (("npy", ".npy"), ("tiff", ".tif"), ("json", ".json"), ("npy", ".npy")):
+        done = export("--format", fmt, "--out", str(out), "--force")
+        assert done.returncode == 0, done.stderr
+        psfs = [p.suffix for p in out.iterdir() if p.name.startswith("psf")]
+        assert psfs == [suffix] * 9 and len(list(out.iterdir())) == 9 + 2  # and index.json, metrics.csv
+    (out / "keep.txt").write_text("mine")
+    before = sorted(p.name for p in out.iterdir())
+    done = export("--out", str(out), "--force")
+    assert_one_line_error(done.returncode, done.stderr, 2, "keep.txt")
+    assert sorted(p.name for p in out.iterdir()) == before and (out / "keep.txt").read_text() == "mine"
+
+
 def test_report_as_png_and_vector(capsys, catalogue, tmp_path):
     """`psfd report` writes the field report (its content: tests/test_figures.py) by the file's suffix."""
     for name, magic in (("report.png", b"\x89PNG"), ("report.pdf", b"%PDF"), ("report.svg", b"<?xml")):

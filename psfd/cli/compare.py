@@ -17,7 +17,7 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, Iterable, NamedTuple
 
 from psfd.cli import options, summary
 from psfd.errors import BadInputError, EstimationError, PsfdError
@@ -66,10 +66,11 @@ def run(args: argparse.Namespace) -> int:
     if not weights or any(w < 0 for w in weights):
         raise BadInputError("--weights: expected non-negative numbers separated by commas")
     options.parse_channel(args.channel)
+    inputs = [*args.frames, *([args.truth] if args.truth else [])]  # never deleted by --force
     if args.out is not None:
         from psfd.cli import output
 
-        output.check_out_dir(args.out, args.force)
+        output.check_out_dir(args.out, args.force, inputs)
     from psfd.estimator import mtf, raw
 
     truth_s = sizes[BERNOULLI]["s"]
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
                             None if truth is None else (truth, truth_s))
     print_table(estimates, table, truth is not None)
     if args.out is not None:
-        write_outputs(Path(args.out), done, table, truth, truth_s, force=args.force)
+        write_outputs(Path(args.out), done, table, truth, truth_s, force=args.force, inputs=inputs)
         print(f"wrote the comparison to {args.out}")
     return 0
 
@@ -423,8 +424,10 @@ def print_table(estimates: list[Estimate], table: dict, with_truth: bool, stream
               file=stream)
 
 
-def write_outputs(out: Path, estimates: list[Estimate], table: dict, truth, s: int, force: bool = False) -> None:
-    """The estimates (output.write_estimates) with compare.png and compare.json, all in one atomic folder."""
+def write_outputs(out: Path, estimates: list[Estimate], table: dict, truth, s: int, force: bool = False,
+                  inputs: Iterable[str] = ()) -> None:
+    """The estimates (output.write_estimates) with compare.png and compare.json, all in one atomic folder
+    (``force``, ``inputs``: `psfd.cli.output.check_out_dir`)."""
     from psfd import figures
     from psfd.cli import output
 
@@ -443,4 +446,5 @@ def write_outputs(out: Path, estimates: list[Estimate], table: dict, truth, s: i
         extra={"compare.png": lambda path: figures.save_comparison(curves, path, truth is not None),
                "compare.json": lambda path: path.write_text(json.dumps(output.plain(summary), indent=1))},
         force=force,
+        inputs=inputs,
     )

@@ -86,8 +86,14 @@ def _settings(args: argparse.Namespace, method: str) -> dict:
     if args.out is not None:
         from psfd.cli import output
 
-        output.check_out_dir(args.out, args.force)
+        output.check_out_dir(args.out, args.force, _inputs(args))
     return settings
+
+
+def _inputs(args: argparse.Namespace) -> list[str]:
+    """The files the command reads, which ``--force`` must never delete with the folder it replaces."""
+    named = [getattr(args, name, None) for name in ("photo_a", "photo_b", "pattern")]
+    return [*getattr(args, "frames", []), *(path for path in named if path is not None)]
 
 
 def _load_all(paths: list[str], channel: str) -> list:
@@ -119,7 +125,7 @@ def _report(args: argparse.Namespace, estimates: list) -> int:
     from psfd.cli import output
 
     if args.out is not None:
-        files = output.write_estimates(estimates, args.out, force=args.force)
+        files = output.write_estimates(estimates, args.out, force=args.force, inputs=_inputs(args))
     output.log_warnings(estimates)
     if args.json:
         output.print_json(estimates)

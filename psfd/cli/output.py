@@ -1,10 +1,10 @@
 """What the commands write and print: PSF files, figure files, JSON lines, CSV, tables.
 
 Every output folder is checked the same way (`check_out_dir`: new or empty,
-in a writable place, or replaced whole with ``--force``) and written the same
-way (a hidden staging folder renamed at the end, with the permissions the
-umask gives a new folder), so a failure leaves nothing half-written and
-nothing a user made is overwritten silently. The pictures themselves are
+in a writable place, or replaced whole with ``--force`` when it holds only
+earlier results) and written the same way (a hidden staging folder renamed at
+the end, with the permissions the umask gives a new folder), so a failure
+leaves nothing half-written and nothing a user made is overwritten or deleted. The pictures themselves are
 drawn by `psfd.figures`.
 
 Units, wherever a number is printed or written: MTF50 in cycles per channel
@@ -24,7 +24,7 @@ import re
 import shutil
 import sys
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -32,6 +32,7 @@ import numpy as np
 
 from psfd.errors import BadInputError, NoMatchError, path_reason
 from psfd.estimator.kernels import PSF
+from psfd.vocabulary import ALIASES, CHANNELS, METHODS, MONO
 
 UNITS = ("units: f/ f-number; field normalised (0,0 top-left, 1,1 bottom-right); size: kernel side in samples "
          "of the s-times grid; mtf50 in cycles per channel pixel (Nyquist 0.5), lp/mm: line pairs per mm on the "
@@ -40,28 +41,58 @@ UNITS = ("units: f/ f-number; field normalised (0,0 top-left, 1,1 bottom-right);
 # ---------------------------------------------------------------- folders and files
 
 
-def check_out_dir(out_dir: str | os.PathLike, force: bool = False) -> Path:
+# What psfd itself writes into an --out folder, so all that --force may replace: the estimates
+# (`write_estimates`: NAME.npy/.tif/.png/.json and NAME.KEY.npy/.png, NAME from `base_names`), compare's
+# compare.png and compare.json, export's PSF files (`psfd.cli.query._file_stem`) and index.json, and
+# metrics.csv. Anything else in a folder is the user's, and a folder holding it is never replaced.
+_METHOD = "|".join(re.escape(m) for m in (*METHODS, *ALIASES))
+_CHANNEL = "|".join((*CHANNELS, MONO))
+RESULT_NAME = re.compile(
+    rf"metrics\.csv|index\.json|compare\.(png|json)"
+    rf"|.+_({_METHOD})_({_CHANNEL})_w\d{{2,}}(-\d+)?(\.[A-Za-z0-9._+-]+)?\.(npy|tif|png|json)"
+    rf"|psf\d{{6,}}_({_CHANNEL})_f(NA|[0-9.e+-]+)_({_METHOD})\.(npy|tif|json)"
+)
+
+
+def check_out_dir(out_dir: str | os.PathLike, force: bool = False,
+                  inputs: Iterable[str | os.PathLike] = ()) -> Path:
     """Fail early (before any work) if ``out_dir`` cannot be created or filled.
 
     An existing folder must be empty, so earlier results are never overwritten
     or mixed with new ones, unless ``force`` (``--force``) asks to replace it whole:
-    then it must be a folder of files such as psfd writes (no subfolders), never
-    a file and never a folder of folders (a home folder given by mistake).
+    then it must hold only files psfd writes (`RESULT_NAME`) and none of the
+    command's ``inputs``, so that no photograph, note or folder of the user's
+    (the current folder given by mistake) is ever deleted with it.
     """
     out_dir = Path(out_dir).absolute()
     if out_dir.exists() and not out_dir.is_dir():
         raise BadInputError(f"{out_dir}: exists and is not a folder")
     if out_dir.exists() and any(out_dir.iterdir()):
+        _check_replaceable(out_dir, inputs)
         if not force:
             raise BadInputError(f"{out_dir}: exists and is not an empty folder (add --force to replace it)")
-        if any(p.is_dir() for p in out_dir.iterdir()):
-            raise BadInputError(f"{out_dir}: holds folders, so it is not an output folder of psfd; not replaced")
     parent = out_dir.parent
     if not parent.is_dir():
         raise BadInputError(f"{parent}: {'not a folder' if parent.exists() else 'no such folder'}")
     if not os.access(parent, os.W_OK):
         raise BadInputError(f"{parent}: not a writable folder")
     return out_dir
+
+
+def _check_replaceable(out_dir: Path, inputs: Iterable[str | os.PathLike]) -> None:
+    """Refuse a folder holding anything but earlier results (`RESULT_NAME`), or an input of the command,
+    with or without ``--force``: the one-line error names it and says what to do instead."""
+    for entry in sorted(out_dir.iterdir()):
+        if entry.is_dir() or not RESULT_NAME.fullmatch(entry.name):
+            kind = "folder" if entry.is_dir() else "file"
+            raise BadInputError(f"{out_dir}: exists and is not an empty folder of psfd results (it holds the {kind} "
+                                f"{entry.name}); choose a new or empty folder for --out")
+    here = out_dir.resolve()
+    for path in map(Path, inputs):
+        # the link's folder and the file's own: an input reached through a symbolic link is kept too
+        if here in (path.absolute().parent.resolve(), path.resolve().parent):
+            raise BadInputError(f"{out_dir}: exists and holds {path.name}, an input of this command, which --force "
+                                "would delete; choose a new or empty folder for --out")
 
 
 def umask() -> int:
@@ -105,13 +136,16 @@ def parent_folder(out: Path) -> Path:
     return out.parent
 
 
-def write_folder(out_dir: str | os.PathLike, write: Callable[[Path], list[str]], force: bool = False) -> list[Path]:
+def write_folder(out_dir: str | os.PathLike, write: Callable[[Path], list[str]], force: bool = False,
+                 inputs: Iterable[str | os.PathLike] = ()) -> list[Path]:
     """Fill a new folder atomically: ``write(staging)`` fills a hidden folder beside ``out_dir``
     and returns the names it wrote; the folder is renamed to ``out_dir`` only when complete.
 
-    ``out_dir`` must not exist or be empty, or with ``force`` is replaced whole (`check_out_dir`, `publish`).
+    ``out_dir`` must not exist or be empty, or with ``force`` is replaced whole if it holds only earlier
+    results and none of the command's ``inputs`` (`check_out_dir`, `publish`): checked again here, as the
+    folder may have changed during the work.
     """
-    out_dir = check_out_dir(out_dir, force)
+    out_dir = check_out_dir(out_dir, force, inputs)
     tmp = staging_dir(out_dir)
     try:
         files = write(tmp)
@@ -189,6 +223,7 @@ def write_estimates(
     out_dir: str | os.PathLike,
     extra: dict[str, Callable[[Path], None]] | None = None,
     force: bool = False,
+    inputs: Iterable[str | os.PathLike] = (),
 ) -> list[Path]:
     """Write every estimate as .npy, 32-bit float .tif and a .png figure, plus its extra figures.
 
@@ -200,7 +235,7 @@ def write_estimates(
 
     ``extra`` maps further file names to functions that write them at the path
     given (e.g. a comparison figure), so they join the same atomic folder
-    (`write_folder`: nothing is left half-written).
+    (`write_folder`: nothing is left half-written). ``force`` and ``inputs``: as for `check_out_dir`.
 
     Returns
     -------
@@ -225,7 +260,7 @@ def write_estimates(
             files.append(name)
         return files
 
-    return write_folder(out_dir, write, force)
+    return write_folder(out_dir, write, force, inputs)
 
 
 def write_report(catalogue: Any, rows: list[dict], channel: str, out: Path) -> None:

@@ -159,13 +159,15 @@ def _write_psf(folder: Path, stem: str, array, meta: dict, fmt: str) -> str:
 
 
 def run_export(args: argparse.Namespace) -> int:
+    from psfd.catalogue import default_path
     from psfd.cli import output
 
     if args.format not in EXPORT_FORMATS:
         raise BadInputError(f"unknown export format {args.format!r} (one of {', '.join(EXPORT_FORMATS)})")
     filters = query_options(args)
     out = Path(args.out)
-    output.check_out_dir(out, args.force)
+    inputs = [args.catalogue or default_path()]  # never deleted by --force
+    output.check_out_dir(out, args.force, inputs)
     with open_catalogue(args) as cat:
         result = run_filters(cat, filters, "; nothing exported")
         rows = with_units(cat, result.rows)
@@ -181,7 +183,7 @@ def run_export(args: argparse.Namespace) -> int:
                 output.write_csv(index, stream)
             return [entry["file"] for entry in index] + ["index.json", "metrics.csv"]
 
-        output.write_folder(out, write, args.force)
+        output.write_folder(out, write, args.force, inputs)
     print(f"exported {len(result.rows)} PSF{'' if len(result.rows) == 1 else 's'} to {out}")
     return 0
 
