@@ -73,6 +73,9 @@ def test_query_table_and_note(capsys, catalogue):
     assert all(" 5.6 " in line and " g1 " in line for line in lines[1:-1])
     assert lines[-1].startswith("units: ") and "mtf50 in cycles per channel pixel" in lines[-1]
     assert "lp/mm" not in lines[0]  # no pixel pitch known for these PSFs: no lp/mm column
+    assert "lp/mm" not in lines[-1] and "dist" not in lines[-1]  # nor units of columns not shown
+    code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--channel", "g1", "--near", "0.5,0.5")
+    assert code == 0 and out.splitlines()[0].split()[-1] == "dist" and "dist: field distance" in out.splitlines()[-1]
 
     code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "f/6.3")
     assert code == 0 and err.strip() == "psfd: note: f/6.3 not measured; nearest is f/5.6"

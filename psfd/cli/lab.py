@@ -249,7 +249,7 @@ def run_capture(args: argparse.Namespace) -> int:
     code = _report(result, None)
     if result.get("rows"):
         print(output.format_rows(result["rows"]))
-        print(output.UNITS)
+        print(output.units_line(result["rows"]))
     return code
 
 
@@ -465,8 +465,9 @@ def _demo_outputs(catalogue: Path, workdir: Path) -> None:
     with Catalogue(catalogue, readonly=True) as cat:
         for name, near in (("centre", (0.5, 0.5)), ("corner", (0.0, 0.0))):
             print(f"\n$ psfd query --catalogue {catalogue} --channel g1 --near {near[0]:g},{near[1]:g}   # {name}")
-            print(output.format_rows(with_units(cat, cat.query(channel="g1", near=near).rows)))
-        print(output.UNITS)
+            rows = with_units(cat, cat.query(channel="g1", near=near).rows)
+            print(output.format_rows(rows))
+        print(output.units_line(rows))
         report = workdir / "report.png"
         output.write_report(cat, cat.query().rows, "g1", report)
     print(f"\nreport figure: {report}  (all PSFs: psfd query --catalogue {catalogue})")

@@ -34,9 +34,20 @@ from psfd.errors import BadInputError, NoMatchError, path_reason
 from psfd.estimator.kernels import PSF
 from psfd.vocabulary import ALIASES, CHANNELS, METHODS, MONO
 
-UNITS = ("units: f/ f-number; field normalised (0,0 top-left, 1,1 bottom-right); size: kernel side in samples "
-         "of the s-times grid; mtf50 in cycles per channel pixel (Nyquist 0.5), lp/mm: line pairs per mm on the "
-         "sensor; fwhm in channel pixels; dist: field distance to --near")
+
+
+def units_line(rows: list[dict]) -> str:
+    """The units of the columns `format_rows` shows for ``rows``: lp/mm and dist only where they are shown."""
+    mtf = "mtf50 in cycles per channel pixel (Nyquist 0.5)"
+    if _has_lp_mm(rows):
+        mtf += ", lp/mm: line pairs per mm on the sensor"
+    return (f"units: f/ f-number; field normalised (0,0 top-left, 1,1 bottom-right); size: kernel side in samples "
+            f"of the s-times grid; {mtf}; fwhm in channel pixels" +
+            ("; dist: field distance to --near" if rows and "distance" in rows[0] else ""))
+
+
+def _has_lp_mm(rows: list[dict]) -> bool:
+    return any(r.get("mtf50_x_lp_mm") is not None or r.get("mtf50_y_lp_mm") is not None for r in rows)
 
 # ---------------------------------------------------------------- folders and files
 
@@ -533,9 +544,9 @@ ROW_COLUMNS = (
 
 def format_rows(rows: list[dict]) -> str:
     """Aligned text table of catalogue PSF rows (MTF50 in cycles per channel pixel, FWHM in channel pixels;
-    MTF50 in lp/mm too when the rows carry it, `units`). The units line is `UNITS`."""
+    MTF50 in lp/mm too when the rows carry it, `units`). Their units line is `units_line`."""
     columns = list(ROW_COLUMNS)
-    if any(r.get("mtf50_x_lp_mm") is not None or r.get("mtf50_y_lp_mm") is not None for r in rows):
+    if _has_lp_mm(rows):
         columns.insert(-1, ("lp/mm x/y", lambda r: f"{fmt(r.get('mtf50_x_lp_mm'), '.1f')}/"
                                                   f"{fmt(r.get('mtf50_y_lp_mm'), '.1f')}"))
     if rows and "distance" in rows[0]:

@@ -128,7 +128,7 @@ def run_query(args: argparse.Namespace) -> int:
                 print(json.dumps(output.plain({**row, "psf": array})))
         else:
             print(output.format_rows(rows))
-            print(output.UNITS)
+            print(output.units_line(rows))
     return 0
 
 
