@@ -628,27 +628,36 @@ class Catalogue:
             )
         return run_id
 
-    def plan_runs(self, plan_text: str) -> list[dict]:
-        """The runs of exactly this plan text, newest first: id, state, started, finished, psfs."""
-        plan_hash = hashlib.sha256(plan_text.encode()).hexdigest()
+    def plan_runs(self, plan_text: str, states: tuple[str, ...] | None = None) -> list[dict]:
+        """The runs of this plan, newest first: id, state, started, finished, psfs; ``states``: only those in them.
+
+        A run is of this plan when its text says the same (`plan_content`): a plan whose comments or layout
+        were edited after a stop is still the plan of its runs, so that no position is measured twice.
+        """
+        from psfd.daemon.plan import plan_content  # here: the readers (psfd query, report) never parse a plan
+
+        sql = ("SELECT u.id, u.state, u.started, u.finished, u.plan_text, "
+               "(SELECT count(*) FROM psfs p WHERE p.run_id = u.id) AS psfs FROM runs u")
+        params: list[Any] = []
+        if states:
+            sql += f" WHERE u.state IN ({', '.join('?' * len(states))})"
+            params += list(states)
         with self._read() as db:
-            return list(
-                db.query(
-                    "SELECT u.id, u.state, u.started, u.finished, "
-                    "(SELECT count(*) FROM psfs p WHERE p.run_id = u.id) AS psfs "
-                    "FROM runs u WHERE u.plan_hash = ? AND u.plan_text = ? ORDER BY u.id DESC",
-                    [plan_hash, plan_text],
-                )
-            )
+            rows = list(db.query(sql + " ORDER BY u.id DESC", params))
+        content, same = plan_content(plan_text), {}  # each stored text is parsed once
+        for row in rows:
+            if row["plan_text"] not in same:
+                same[row["plan_text"]] = plan_content(row["plan_text"]) == content
+        return [{k: v for k, v in row.items() if k != "plan_text"} for row in rows if same[row["plan_text"]]]
 
     def unfinished_run(self, plan_text: str) -> int | None:
-        """The run of this plan to resume: the newest of exactly this plan text that is ``running`` or
-        ``paused`` (`UNFINISHED_STATES`), or None. Done, cancelled and failed runs are closed.
+        """The run of this plan (`plan_runs`) to resume: the newest that is ``running`` or ``paused``
+        (`UNFINISHED_STATES`), or None. Done, cancelled and failed runs are closed.
 
         Whether a ``running`` run is still alive or was killed is the frame store's to say
         (`psfd.daemon.store.shown_state`); either way it is unfinished.
         """
-        return next((int(r["id"]) for r in self.plan_runs(plan_text) if r["state"] in UNFINISHED_STATES), None)
+        return next((int(r["id"]) for r in self.plan_runs(plan_text, UNFINISHED_STATES)), None)
 
     def finish_run(self, run_id: int, state: str) -> None:
         """Set a run's state (``done``, ``paused``, ``cancelled``, ``failed``; ``running`` to resume it)."""
@@ -984,7 +993,8 @@ COLUMNS: dict[str, dict[str, str]] = {
         "id": "run id",
         "rig_id": "the rig (rigs.id)",
         "plan_path": "path of the plan file as given",
-        "plan_text": "the plan's TOML text, verbatim (a run is resumed for the same text only)",
+        "plan_text": "the plan's TOML text, verbatim (a run is resumed for a text of the same content: comments "
+                     "and layout aside)",
         "plan_hash": "SHA-256 of plan_text",
         "started": "start, ISO 8601 UTC",
         "finished": "end, ISO 8601 UTC (empty while running)",

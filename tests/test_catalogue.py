@@ -230,7 +230,7 @@ def test_default_path_follows_xdg(monkeypatch, tmp_path):
 # -- rigs, runs, steps ------------------------------------------------------------
 
 
-def test_unfinished_run_is_the_newest_running_or_paused_run_of_exactly_that_plan(tmp_path):
+def test_unfinished_run_is_the_newest_running_or_paused_run_of_that_plan(tmp_path):
     """The one rule the runner, the service and the demo use: cancelled and failed runs are closed."""
     text = "[rig]\nsimulate = true\n"
     with Catalogue(tmp_path / "cat.sqlite") as cat:
@@ -243,7 +243,27 @@ def test_unfinished_run_is_the_newest_running_or_paused_run_of_exactly_that_plan
         assert cat.unfinished_run(text) is None
         running = new_run(cat)  # journalled running: alive or killed, it is unfinished either way
         assert cat.unfinished_run(text) == running
-        assert cat.unfinished_run(text + " ") is None and cat.plan_runs("other plan") == []
+        assert cat.unfinished_run(text.replace("true", "false")) is None and cat.plan_runs("other plan") == []
+
+
+def test_a_plan_is_its_content_not_its_text(tmp_path):
+    """Comments, layout, key order and the spelling of a number leave a plan the same: its unfinished run is
+    found under any of them (and its runs listed), under no other value; a text that is no TOML is only itself."""
+    text = '[rig]\nsimulate = true\n\n[capture]\napertures = [5.6, 11]\ny = [-44.16, 0]\n'
+    same = ['# note: lens cap removed\n' + text, text + "\n\n", text.replace(" = ", "=").replace(", ", ","),
+            '[capture]\ny = [-44.16, 0.0]  # mm\napertures = [5.60, 11.0]\n[rig]\n"simulate" = true\n']
+    other = [text.replace("11", "16"), text.replace("[5.6, 11]", "[11, 5.6]"), text.replace("true", "false"),
+             text + "z = [0]\n", text.replace("simulate = true", 'simulate = "true"')]
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        run = cat.start_run("plan.toml", text, cat.add_rig(CANON), [("a", {"k": "a"})])
+        for edited in same:
+            assert cat.unfinished_run(edited) == run, edited
+            assert [r["id"] for r in cat.plan_runs(edited)] == [run]
+        for changed in other:
+            assert cat.unfinished_run(changed) is None and cat.plan_runs(changed) == [], changed
+        assert cat.run(run)["plan_text"] == text  # the run keeps the text it was started with
+        broken = cat.start_run("broken.toml", "not = [toml", cat.add_rig(CANON), [("a", {"k": "a"})])
+        assert cat.unfinished_run("not = [toml") == broken and cat.unfinished_run("not = [toml ") is None
 
 
 def test_rigs_runs_and_steps_lifecycle(tmp_path):

@@ -7,7 +7,7 @@ import textwrap
 import pytest
 
 from psfd.cli import main
-from psfd.daemon.plan import Step, check_text, load_plan, parse_plan
+from psfd.daemon.plan import Step, check_text, load_plan, parse_plan, plan_changes, plan_content
 from psfd.errors import BadInputError
 
 GOOD = """
@@ -172,3 +172,12 @@ def test_plan_check_takes_no_runner_options(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["plan", "check", str(good), "--workers", "2"])
     assert "unrecognized arguments: --workers" in capsys.readouterr().err
+
+
+def test_plan_content_ignores_the_wording_and_changes_name_the_keys():
+    """What a plan says, not how: the one content for a reworded plan; a changed value is named by its key."""
+    reworded = "# lens cap removed\n" + GOOD.replace("[5.6, 8]", "[5.60, 8.0]").replace("s = 4\n", "s=4  # x\n")
+    assert plan_content(reworded) == plan_content(GOOD) and plan_changes(GOOD, reworded) == []
+    changed = GOOD.replace("[5.6, 8]", "[5.6, 11]").replace("grid = [2, 1]\n", "")
+    assert plan_content(changed) != plan_content(GOOD)
+    assert plan_changes(GOOD, changed) == ["[capture] apertures", "[estimator] grid"]

@@ -11,6 +11,7 @@ import errno
 import hashlib
 import os
 import random
+import re
 import shutil
 import signal
 import sqlite3
@@ -340,3 +341,41 @@ def test_sigkill_sweep_over_every_phase(tmp_path, phase, seed):
     plan = small_plan()
     nth = 1 if phase in ("last-commit", "close-down") else random.Random(f"{phase}-{seed}").randint(1, 4)
     kill_and_resume(tmp_path, plan, phase, nth)
+
+
+# -- 11. a plan edited after a stop ----------------------------------------------------------------------
+
+# The audit's plan: 2 apertures x 3 lateral positions, 6 steps.
+SIX_STEPS = re.sub(r"y = \[(.*), (.*)\]", r"y = [\1, 0.0, \2]\nz = [0]", small_plan())
+
+
+def test_a_plan_edited_after_a_kill_is_still_its_plan_and_another_aperture_is_not(tmp_path):
+    """A comment added to the plan of a killed run neither hides the run from --resume nor lets a plain run
+    measure its positions a second time; a plan with another aperture is another plan."""
+    plan_path = write_plan(tmp_path, SIX_STEPS)
+    plan = parse_plan(SIX_STEPS, str(plan_path))
+    assert len(plan.steps()) == 6
+    db = tmp_path / "cat.sqlite"
+    common = ("--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1")
+    assert killed_run(plan_path, db, "commit", 4, False, tmp_path) == -signal.SIGKILL  # in step 4's commit
+    commented = SIX_STEPS + "# note: lens cap removed\n"
+    plan_path.write_text(commented)
+
+    again = _psfd("run", plan_path, *common)
+    assert again.returncode == 2 and len(again.stderr.strip().splitlines()) == 1, again.stderr
+    assert f"run 1 of plan {plan_path} is interrupted (3/6 steps done): add --resume" in again.stderr
+    assert "comments or layout" in again.stderr  # why an edited file is still the run's plan
+
+    plan_path.write_text(commented.replace("apertures = [4, 11]", "apertures = [4, 8]"))
+    other = _psfd("run", plan_path, "--resume", *common)
+    assert other.returncode == 2 and len(other.stderr.strip().splitlines()) == 1, other.stderr
+    assert f"no unfinished run of plan {plan_path} to resume: run 1 of it is interrupted (3/6 steps done)" \
+           in other.stderr and "[capture] apertures" in other.stderr, other.stderr
+
+    plan_path.write_text(commented)
+    resumed = _psfd("run", plan_path, "--resume", *common)
+    assert resumed.returncode == 0, resumed.stderr
+    assert states(db) == ["done"]  # run 1 went on: no second run
+    with Catalogue(db, readonly=True) as cat:
+        assert cat.run(1)["plan_text"] == SIX_STEPS and len(cat.steps(1)) == 6  # its own text and steps
+    check_complete(db, frames_dir_for(db), plan)  # every position exactly once

@@ -150,9 +150,12 @@ def test_pause_resume_then_sigterm_mid_run_and_resume_from_the_cli(served, tmp_p
     # submitting the paused plan afresh is refused at once (no PSF stored twice), as the bad input it is ...
     with pytest.raises(BadInputError, match=r"is paused .*add --resume to continue it, or --new"):
         client.request(sock, {"cmd": "submit", "plan": plan.text, "path": str(plan_path)})
-    # ... and so is resuming a plan that has no unfinished run
+    # ... with a comment added too: it is the same plan ...
+    with pytest.raises(BadInputError, match=r"is paused .*add --resume to continue it, or --new .*comments or layout"):
+        client.request(sock, {"cmd": "submit", "plan": plan.text + "\n# lens cap removed\n", "path": str(plan_path)})
+    # ... and resuming a plan that has no unfinished run (another aperture is another plan) is refused
     with pytest.raises(BadInputError, match="no unfinished run of plan other.toml to resume"):
-        client.request(sock, {"cmd": "submit", "plan": plan.text + "\n# other\n", "path": "other.toml",
+        client.request(sock, {"cmd": "submit", "plan": plan.text.replace("[4, 11]", "[4, 8]"), "path": "other.toml",
                                "resume": True})
     assert client.request(sock, {"cmd": "resume"})["queued"] == 1
     notes.messages.clear()

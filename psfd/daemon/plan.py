@@ -110,7 +110,7 @@ class Step:
 
 @dataclass
 class Plan:
-    """A validated plan; ``text`` is kept verbatim to find an unfinished run of it."""
+    """A validated plan; ``text`` is kept verbatim with its runs (`plan_content` says which plan it is)."""
 
     text: str
     path: str
@@ -164,6 +164,56 @@ def plan_text(tables: dict[str, dict[str, Any]]) -> str:
     for name, table in tables.items():
         lines += [f"[{name}]", *(f"{key} = {_toml(value)}" for key, value in table.items()), ""]
     return "\n".join(lines)
+
+
+def plan_content(text: str) -> str:
+    """What a plan's text says, as one canonical string: two texts are the same plan when theirs are equal.
+
+    The parsed TOML as JSON with sorted keys, so comments, blank lines, layout, key order, quoting and the
+    spelling of a number (5.6 or 5.60, 4 or 4.0) do not count; every key and value, and the order of a
+    list, does. A text that is not TOML (a catalogue may hold one) is only itself: a JSON list of it,
+    which the content of no TOML text is.
+    """
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError:
+        return json.dumps([text])
+    return json.dumps(_canonical(data), sort_keys=True, default=repr)
+
+
+def _canonical(value: Any) -> Any:
+    """A parsed TOML value with each whole float as an int: a plan reads 4.0 as it reads 4 (booleans stay)."""
+    if isinstance(value, dict):
+        return {key: _canonical(v) for key, v in value.items()}
+    if isinstance(value, list):
+        return [_canonical(v) for v in value]
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
+
+
+def plan_changes(old: str, new: str) -> list[str]:
+    """Where two plan texts differ in content (`plan_content`), as ``[table] key``, e.g. ``[capture] apertures``."""
+    before, after = (_tables(text) for text in (old, new))
+    changes = []
+    for name in dict.fromkeys([*before, *after]):
+        one, two = before.get(name), after.get(name)
+        if not (isinstance(one, dict) and isinstance(two, dict)):
+            changes += [f"[{name}]"] if _json(one) != _json(two) else []
+            continue
+        changes += [f"[{name}] {key}" for key in dict.fromkeys([*one, *two])
+                    if _json(one.get(key)) != _json(two.get(key))]
+    return changes
+
+
+def _tables(text: str) -> dict[str, Any]:
+    content = json.loads(plan_content(text))
+    return content if isinstance(content, dict) else {}
+
+
+def _json(value: Any) -> str:
+    """A value's canonical text: compared as text, true is not 1 (as Python's == would have it)."""
+    return json.dumps(value, sort_keys=True)
 
 
 def _toml(value: Any) -> str:

@@ -54,7 +54,7 @@ from typing import IO, Any, Callable
 
 from psfd.catalogue import UNFINISHED_STATES, Catalogue, FrameRecord, check_owner
 from psfd.daemon import work
-from psfd.daemon.plan import Plan, Step, check_rail
+from psfd.daemon.plan import Plan, Step, check_rail, plan_changes
 from psfd.daemon.store import (INCOMING, check_room, shown_state, storage_error, store_frame, store_lock,
                                sweep_frames)
 from psfd.drivers import open_rig
@@ -259,7 +259,8 @@ class Runner:
         """Run (or resume) a plan on an open rig; the rig is released when the run ends.
 
         With ``resume`` the latest unfinished (paused or interrupted) run of this
-        exact plan text goes on (its pending, failed and interrupted steps). Without
+        plan (`Catalogue.unfinished_run`: the same content, whatever its comments or
+        layout) goes on with its own stored steps (pending, failed and interrupted). Without
         it a new run starts, unless the plan has an unfinished run and ``new`` is
         false: that is refused, so that no PSF is stored twice by accident.
         A ``oneshot`` run (`psfd capture`) is never left resumable: where it
@@ -599,22 +600,59 @@ def start_check(catalogue: Catalogue, plan: Plan, resume: bool, new: bool,
     Raises
     ------
     BadInputError
-        ``resume`` and the plan has no unfinished run (`Catalogue.unfinished_run`); or it has one
+        ``resume`` and the plan has no unfinished run (`Catalogue.unfinished_run`: none of the same
+        content), saying so when one was started from this file with other values; or it has one
         and neither ``resume`` nor ``new`` was asked.
     """
     unfinished = catalogue.unfinished_run(plan.text)
     if resume:
         if unfinished is None:
-            raise BadInputError(f"no unfinished run of plan {plan.path} to resume")
+            raise BadInputError(f"no unfinished run of plan {plan.path} to resume"
+                                + _changed_since(catalogue, plan, frames_dir))
         return unfinished
     if unfinished is not None and not new:
         summary = catalogue.run_summary(unfinished)
-        state = summary["state"]
-        state = shown_state(state, frames_dir) if frames_dir is not None else state.replace("running", "interrupted")
         raise BadInputError(
-            f"run {unfinished} of plan {plan.path} is {state} ({summary['done']}/{summary['total']} "
-            "steps done): add --resume to continue it, or --new to start a fresh run")
+            f"run {unfinished} of plan {plan.path} is {_progress(summary, frames_dir)}: add --resume to continue it, "
+            "or --new to start a fresh run" + _reworded(catalogue.run(unfinished), plan))
     return None
+
+
+def _progress(summary: dict, frames_dir: str | os.PathLike | None) -> str:
+    """``interrupted (3/6 steps done)``: a run's state as a user reads it (`start_check`'s ``frames_dir``)."""
+    state = summary["state"]
+    state = shown_state(state, frames_dir) if frames_dir is not None else state.replace("running", "interrupted")
+    return f"{state} ({summary['done']}/{summary['total']} steps done)"
+
+
+def _reworded(run: dict, plan: Plan) -> str:
+    """Why a run is of this plan although the file was moved or edited since: a plan is what its text says."""
+    notes = []
+    if not _same_file(run["plan_path"], plan.path):
+        notes.append(f"started from {run['plan_path']}")
+    if run["plan_text"] != plan.text:
+        notes.append("the same plan: the texts differ in comments or layout only")
+    return f" ({'; '.join(notes)})" if notes else ""
+
+
+def _changed_since(catalogue: Catalogue, plan: Plan, frames_dir: str | os.PathLike | None) -> str:
+    """Why ``--resume`` finds no run of a plan file that has one: the file's content changed since, and where.
+
+    Empty when no unfinished run was started from this file.
+    """
+    for run in catalogue.runs():  # newest first
+        if run["state"] in UNFINISHED_STATES and _same_file(run["plan_path"], plan.path):
+            changes = plan_changes(catalogue.run(run["id"])["plan_text"], plan.text)
+            if changes:
+                return (f": run {run['id']} of it is {_progress(catalogue.run_summary(run['id']), frames_dir)}, "
+                        f"but with other {', '.join(changes)}; put its values back to resume it, or run without "
+                        "--resume to start this plan afresh")
+    return ""
+
+
+def _same_file(stored: str | None, path: str) -> bool:
+    """Whether a run's stored plan path names the plan file ``path`` (either relative to the current folder)."""
+    return stored is not None and os.path.abspath(stored) == os.path.abspath(path)
 
 
 def preflight(plan: Plan, catalogue_path: str | os.PathLike, frames_dir: str | os.PathLike, resume: bool,
