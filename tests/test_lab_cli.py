@@ -14,6 +14,7 @@ from psfd.cli.options import parse_axes
 from psfd.daemon import client
 from psfd.errors import BadInputError
 
+from plans import one_channel_plan
 from test_service import served  # noqa: F401 - fixture
 
 
@@ -57,6 +58,44 @@ def test_capture_goes_through_the_service_when_it_is_up(served, tmp_path):  # no
     assert client.request(sock, {"cmd": "status"})["last"]["state"] == "done"
 
 
+def psfd(*argv) -> subprocess.CompletedProcess:
+    """The whole ``psfd ARGV...`` process (on the simulated rig of this test's data folder)."""
+    return subprocess.run([sys.executable, "-m", "psfd", *map(str, argv)], capture_output=True, text=True, timeout=300)
+
+
+SIM_OFFERED = "(offered: 2.8, 4, 5.6, 8, 11, 16, 22)"
+
+
+def test_apertures_the_camera_does_not_offer_are_refused_before_the_run(tmp_path, private_data_home):
+    """Refused at once (exit 2, one line naming what the camera offers), not at the first such step of
+    a run that pauses overnight and can never finish: no run is opened, the rig neither moves nor is set."""
+    plan = tmp_path / "plan.toml"
+    plan.write_text(one_channel_plan("simulate = true", "5.6, 7.1, 3.3"))
+    db = tmp_path / "no" / "cat.sqlite"
+    for argv, message in ((["run", plan], f"{plan}: apertures f/7.1, f/3.3 are not offered by the camera"),
+                          (["capture", "--aperture", "7.1", "--simulate"],
+                           "capture: aperture f/7.1 is not offered by the camera")):
+        proc = psfd(*argv, "--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1")
+        assert proc.returncode == 2, proc.stderr
+        assert proc.stderr.splitlines() == [f"psfd: error: {message} {SIM_OFFERED}"]
+        if db.exists():
+            with Catalogue(db) as cat:
+                assert cat.runs() == []
+    assert not (private_data_home / "psfd" / "sim-rig.json").exists()  # nothing moved, set or shot
+
+
+def test_capture_through_the_service_refuses_an_aperture_not_offered(served, tmp_path, private_data_home):  # noqa: F811
+    proc, sock, db, notes = served
+    cli = psfd("capture", "--aperture", "7.1", "--simulate", "--channels", "g1", "--socket", sock)
+    assert cli.returncode == 2, cli.stderr
+    assert cli.stderr.splitlines() == [f"psfd: error: capture: aperture f/7.1 is not offered by the camera "
+                                       f"{SIM_OFFERED}"]
+    with Catalogue(db) as cat:
+        assert cat.runs() == []
+    assert not (private_data_home / "psfd" / "sim-rig.json").exists()
+    assert proc.poll() is None and client.request(sock, {"cmd": "status"})["state"] == "idle"
+
+
 @pytest.mark.parametrize("argv, message", [
     (["capture", "--aperture", "f/abc", "--simulate"], "--aperture: expected an f-number"),
     (["capture", "--aperture", "5.6", "--rail", "W=3", "--simulate"], "--rail: expected AXIS=MM"),
@@ -89,10 +128,12 @@ def test_capture_out_must_be_a_writable_folder(tmp_path, capsys):
 
 def test_failed_capture_is_an_error_and_not_resumable(tmp_path, capsys):
     db, none = tmp_path / "cat.sqlite", str(tmp_path / "none.sock")
-    code = main(["capture", "--simulate", "--aperture", "3.3", "--rail", "X=1200", "--catalogue", str(db),
-                 "--socket", none, "--workers", "1"])
+    # Y at the end of the travel puts the target half out of the frame: the step fails, not the command line
+    code = main(["capture", "--simulate", "--aperture", "5.6", "--rail", "X=1300,Y=60", "--channels", "g1",
+                 "--catalogue", str(db), "--socket", none, "--workers", "1"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert code == 4 and err[-1].startswith("psfd: error: step a3.3/x1200/r0: aperture f/3.3 is not offered")
+    assert code == 3 and err[-1].startswith("psfd: error: step a5.6/x1300/y60/r0: ")
+    assert err[-1].endswith("no calibration target found in the 320x240 image")
     assert not any("paused" in line for line in err)
     with Catalogue(db) as cat:
         assert [r["state"] for r in cat.runs()] == ["failed"]  # closed: `psfd status` shows nothing to resume
@@ -109,11 +150,11 @@ def test_failed_capture_is_an_error_and_not_resumable(tmp_path, capsys):
 def test_paused_run_hint_repeats_the_options_and_restart_is_refused(tmp_path, capsys):
     """A step the rig refuses pauses the run; the hint is a command that works as printed."""
     plan = tmp_path / "small.toml"
-    plan.write_text("[rig]\nsimulate = true\n[target]\nkind = 'bernoulli'\n[capture]\napertures = [3.3]\n"
-                    "x = [1300]\nchannels = ['g1']\n")
+    plan.write_text("[rig]\nsimulate = true\n[target]\nkind = 'bernoulli'\n[capture]\napertures = [5.6]\n"
+                    "x = [1300]\ny = [60]\nchannels = ['g1']\n")  # the target half out of the frame
     db, sock = tmp_path / "my run.sqlite", tmp_path / "none.sock"
     common = ["--catalogue", str(db), "--socket", str(sock), "--workers", "1"]
-    assert main(["run", str(plan), *common]) == 4
+    assert main(["run", str(plan), *common]) == 3
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.endswith(f"continue with: psfd run {plan} --resume --catalogue '{db}' --socket {sock}")
     # a plain restart would measure the same positions again: refused, naming the run
@@ -121,7 +162,7 @@ def test_paused_run_hint_repeats_the_options_and_restart_is_refused(tmp_path, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "run 1 of plan" in err[0] and "is paused (0/1 steps done)" in err[0]
     assert "add --resume" in err[0] and "--new" in err[0]
-    assert main(["run", str(plan), "--new", *common]) == 4  # deliberately a second run
+    assert main(["run", str(plan), "--new", *common]) == 3  # deliberately a second run
     capsys.readouterr()
     with Catalogue(db) as cat:
         assert len(cat.runs()) == 2

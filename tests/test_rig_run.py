@@ -203,16 +203,47 @@ def test_psfd_run_refuses_a_plan_outside_the_rails_travel_before_anything(tmp_pa
         assert sqlite3.connect(tmp_path / "c.sqlite").execute("SELECT count(*) FROM runs").fetchone()[0] == 0
 
 
-def _run_on_virtual_camera(tmp_path: Path, rig: str, capture: str) -> subprocess.CompletedProcess:
-    """The whole `psfd run` process on libgphoto2's virtual camera (one JPEG in its store) and the ``rig`` table."""
-    store = tmp_path / "vcamera"
-    store.mkdir()
-    (tmp_path / "home").mkdir()
-    assert cv2.imwrite(str(store / "frame.jpg"), (np.random.default_rng(1).random((48, 64)) * 255).astype(np.uint8))
-    env = dict(os.environ, VCAMERADIR=str(store), HOME=str(tmp_path / "home"), XDG_DATA_HOME=str(tmp_path / "data"))
+def test_psfd_run_refuses_apertures_the_camera_does_not_offer_before_anything(tmp_path):
+    """The virtual camera offers f/2.8 to f/22 in third stops: a plan at f/1.4 and f/6.7 is refused at once
+    (exit 2), naming what the camera offers, before a run is opened and before the rail moves."""
+    firmware = FakeGrbl({110: 6000, 120: 200}, homing_cycles=((0,),), start=(-100.0, -50.0, -50.0))
+    try:
+        proc = _run_on_virtual_camera(tmp_path, f'rail_port = "{firmware.port}"', "x = [-40]", "5.6, 1.4, 6.7")
+        lines = list(firmware.lines)
+    finally:
+        firmware.close()
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        f"psfd: error: {tmp_path / 'plan.toml'}: apertures f/1.4, f/6.7 are not offered by the camera "
+        "(offered: 2.8, 3.5, 4, 4.5, 5, 5.6, 6.3, 7.1, 8, 9, 10, 11, 13, 14, 16, 18, 20, 22)"]
+    assert not [line for line in lines if line.startswith(("G0", "G1", "G90", "$J", "$H"))], lines
+    if (tmp_path / "c.sqlite").exists():
+        assert sqlite3.connect(tmp_path / "c.sqlite").execute("SELECT count(*) FROM runs").fetchone()[0] == 0
+
+
+def _write_plan(tmp_path: Path, rig: str, capture: str, apertures: str = "5.6") -> Path:
+    """``plan.toml`` in tmp_path: the ``rig`` table, the Bernoulli target, ``apertures`` and the ``capture`` lines."""
     plan = tmp_path / "plan.toml"
-    plan.write_text(f'[rig]\n{rig}\n\n[target]\nkind = "bernoulli"\n\n[capture]\napertures = [5.6]\n{capture}\n')
-    return subprocess.run(
-        [sys.executable, "-m", "psfd", "run", str(plan), "--local", "--catalogue", str(tmp_path / "c.sqlite"),
-         "--workers", "1"],
-        env=env, capture_output=True, text=True, timeout=180)
+    plan.write_text(f'[rig]\n{rig}\n\n[target]\nkind = "bernoulli"\n\n[capture]\napertures = [{apertures}]\n'
+                    f'{capture}\n')
+    return plan
+
+
+def _psfd_on_virtual_camera(tmp_path: Path, *argv) -> subprocess.CompletedProcess:
+    """The whole ``psfd ARGV...`` process with libgphoto2's virtual camera (one JPEG in its store) attached."""
+    store = tmp_path / "vcamera"
+    if not store.exists():
+        store.mkdir()
+        (tmp_path / "home").mkdir()
+        assert cv2.imwrite(str(store / "frame.jpg"),
+                           (np.random.default_rng(1).random((48, 64)) * 255).astype(np.uint8))
+    env = dict(os.environ, VCAMERADIR=str(store), HOME=str(tmp_path / "home"), XDG_DATA_HOME=str(tmp_path / "data"))
+    return subprocess.run([sys.executable, "-m", "psfd", *map(str, argv), "--workers", "1"],
+                          env=env, capture_output=True, text=True, timeout=180)
+
+
+def _run_on_virtual_camera(tmp_path: Path, rig: str, capture: str, apertures: str = "5.6"
+                           ) -> subprocess.CompletedProcess:
+    """The whole `psfd run` process on libgphoto2's virtual camera and the ``rig`` table, into ``c.sqlite``."""
+    plan = _write_plan(tmp_path, rig, capture, apertures)
+    return _psfd_on_virtual_camera(tmp_path, "run", plan, "--local", "--catalogue", tmp_path / "c.sqlite")

@@ -276,10 +276,11 @@ class Runner:
         ------
         BadInputError
             ``resume`` with no unfinished run, or an unfinished run and neither ``resume`` nor ``new``;
-            a position the rail says it cannot reach (`rail_problems`).
+            a position the rail says it cannot reach (`rail_problems`), an aperture the camera does not
+            offer (`aperture_problems`).
         """
         try:
-            problems = rail_problems(plan, rail)
+            problems = rail_problems(plan, rail) + aperture_problems(plan, camera)
             if problems:  # refused before the run is opened and before any motion, not at the step
                 raise BadInputError(f"{plan.path}: {'; '.join(problems)}")
             with store_lock(self.frames_dir):
@@ -571,6 +572,27 @@ def rail_problems(plan: Plan, rail: Rail) -> list[str]:
     return check_rail(plan, info)
 
 
+def aperture_problems(plan: Plan, camera: Camera) -> list[str]:
+    """The plan's apertures that the camera does not offer, as one problem naming the offered ones.
+
+    Asked before the run opens: otherwise the run would pause at the first such step (overnight, perhaps)
+    and no resume could finish it. A camera that cannot list its apertures (an error, a recording that never
+    asked, a free-form setting) is left to refuse each step itself, as `_aperture_choice` does.
+    """
+    try:
+        choices = camera.choices("aperture")
+    except PsfdError as exc:
+        log.debug("camera not asked for its apertures: %s", exc)
+        return []
+    missing = [a for a in plan.apertures if _offered(choices, a) is None]
+    if not choices or not missing:
+        return []
+    named = ", ".join(f"f/{a:g}" for a in missing)
+    verb = "are" if len(missing) > 1 else "is"
+    return [f"aperture{'s' * (len(missing) > 1)} {named} {verb} not offered by the camera "
+            f"(offered: {', '.join(choices)})"]
+
+
 def prepare_camera(camera: Camera, plan: Plan) -> CameraReady:
     """Set the camera up for PSF work as the plan's ``[rig.camera]`` table asks (`CameraSetup`), before any motion."""
     return camera.prepare(CameraSetup.from_mapping(plan.rig.get("camera", {})))
@@ -734,14 +756,22 @@ def _aperture_choice(camera: Camera, aperture: float) -> str:
         choices = camera.choices("aperture")
     except CameraError:
         choices = []
-    for choice in choices:
-        number = camera_fnumber(choice)
-        if number is not None and abs(number - aperture) < 1e-6:
-            return choice
+    choice = _offered(choices, aperture)
+    if choice is not None:
+        return choice
     offered = ", ".join(choices)
     if choices:
         raise CameraError(f"aperture f/{aperture:g} is not offered by the camera (offered: {offered})")
     return f"{aperture:g}"
+
+
+def _offered(choices: list[str], aperture: float) -> str | None:
+    """The choice among a camera's ``choices`` that is f-number ``aperture``, or None."""
+    for choice in choices:
+        number = camera_fnumber(choice)
+        if number is not None and abs(number - aperture) < 1e-6:
+            return choice
+    return None
 
 
 def release_rig(camera: Camera, rail: Rail) -> None:
