@@ -78,9 +78,7 @@ def test_apertures_the_camera_does_not_offer_are_refused_before_the_run(tmp_path
         proc = psfd(*argv, "--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1")
         assert proc.returncode == 2, proc.stderr
         assert proc.stderr.splitlines() == [f"psfd: error: {message} {SIM_OFFERED}"]
-        if db.exists():
-            with Catalogue(db) as cat:
-                assert cat.runs() == []
+        assert not db.parent.exists()  # no catalogue, no folder for it, no frame store
     assert not (private_data_home / "psfd" / "sim-rig.json").exists()  # nothing moved, set or shot
 
 
@@ -92,6 +90,7 @@ def test_capture_through_the_service_refuses_an_aperture_not_offered(served, tmp
                                        f"{SIM_OFFERED}"]
     with Catalogue(db) as cat:
         assert cat.runs() == []
+    assert not (tmp_path / "cat-frames").exists()  # the service's frame store is made by its first run
     assert not (private_data_home / "psfd" / "sim-rig.json").exists()
     assert proc.poll() is None and client.request(sock, {"cmd": "status"})["state"] == "idle"
 

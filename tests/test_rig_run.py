@@ -199,8 +199,7 @@ def test_psfd_run_refuses_a_plan_outside_the_rails_travel_before_anything(tmp_pa
     assert "x = -400 outside the travel of the rail" in proc.stderr and "x: [-300, 0]" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert not [line for line in lines if line.startswith(("G0", "G1", "G90", "$J", "$H"))], lines
-    if (tmp_path / "c.sqlite").exists():  # the catalogue may be made by the checks before, but holds no run
-        assert sqlite3.connect(tmp_path / "c.sqlite").execute("SELECT count(*) FROM runs").fetchone()[0] == 0
+    assert not (tmp_path / "c.sqlite").exists() and not (tmp_path / "c-frames").exists()
 
 
 def test_psfd_run_refuses_apertures_the_camera_does_not_offer_before_anything(tmp_path):
@@ -217,8 +216,24 @@ def test_psfd_run_refuses_apertures_the_camera_does_not_offer_before_anything(tm
         f"psfd: error: {tmp_path / 'plan.toml'}: apertures f/1.4, f/6.7 are not offered by the camera "
         "(offered: 2.8, 3.5, 4, 4.5, 5, 5.6, 6.3, 7.1, 8, 9, 10, 11, 13, 14, 16, 18, 20, 22)"]
     assert not [line for line in lines if line.startswith(("G0", "G1", "G90", "$J", "$H"))], lines
-    if (tmp_path / "c.sqlite").exists():
-        assert sqlite3.connect(tmp_path / "c.sqlite").execute("SELECT count(*) FROM runs").fetchone()[0] == 0
+    assert not (tmp_path / "c.sqlite").exists() and not (tmp_path / "c-frames").exists()
+
+
+def test_a_rig_that_cannot_be_opened_leaves_no_catalogue_or_frame_store(tmp_path):
+    """The camera opens, the rail's port does not exist: one line, exit 4, and neither `psfd run` nor
+    `psfd capture` leaves the catalogue, its folders or the frame store (``--out`` too) it would have made."""
+    plan = _write_plan(tmp_path, 'rail_port = "/dev/psfd-no-such-port"', "x = [-40]")
+    kept = tmp_path / "kept"
+    kept.mkdir()  # a folder that was there before stays, and stays as it was
+    capture = ["capture", "--aperture", "5.6", "--rail", "X=-40", "--rail-port", "/dev/psfd-no-such-port",
+               "--socket", tmp_path / "none.sock"]
+    for argv in (["run", plan, "--local"], capture, [*capture, "--out", tmp_path / "new" / "frames"]):
+        for catalogue in (tmp_path / "new" / "deeper" / "c.sqlite", kept / "c.sqlite"):
+            proc = _psfd_on_virtual_camera(tmp_path, *argv, "--catalogue", catalogue)
+            assert proc.returncode == 4, proc.stderr
+            (line,) = proc.stderr.strip().splitlines()
+            assert line.startswith("psfd: error: ") and "/dev/psfd-no-such-port" in line, line
+            assert not (tmp_path / "new").exists() and list(kept.iterdir()) == []
 
 
 def _write_plan(tmp_path: Path, rig: str, capture: str, apertures: str = "5.6") -> Path:

@@ -144,10 +144,21 @@ def _again(args: argparse.Namespace, *command: str) -> str:
     return shlex.join(words)
 
 
-def writable_folder(path: Path, option: str) -> Path:
-    """Create ``path`` as a folder (parents too) or say in one line why it cannot be one."""
+def writable_folder(path: Path, option: str, create: bool = True) -> Path:
+    """Create ``path`` as a folder (parents too) or say in one line why it cannot be one.
+
+    With ``create`` false a missing ``path`` is only checked: a command the rig may still refuse makes it
+    later, so that a refusal leaves no empty folder behind.
+    """
     if path.exists() and not path.is_dir():
         raise BadInputError(f"{option} {path}: exists and is not a folder")
+    if not create and not path.exists():
+        parent = next(p for p in path.absolute().parents if p.exists())  # the one it would be made in
+        if not parent.is_dir():
+            raise BadInputError(f"{option} {path}: cannot create the folder ({parent} is a file, not a folder)")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise BadInputError(f"{option} {path}: cannot create the folder ({parent} is not writable)")
+        return path
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -244,7 +255,7 @@ def run_capture(args: argparse.Namespace) -> int:
         result = client.submit(sock, text, "capture", new=True, wait=True, oneshot=True)["result"]
     else:
         if args.out:
-            writable_folder(frames, "--out")
+            writable_folder(frames, "--out", create=False)  # made by the run, once the rig has answered
         result = run_here(plan, catalogue, frames, new=True, oneshot=True, rows=True, **runner).to_dict()
     code = _report(result, None)
     if result.get("rows"):

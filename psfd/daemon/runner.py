@@ -30,9 +30,9 @@ A frame or a commit the storage refuses (disk full, read-only file system) is a
 cannot be written, is left interrupted) and ``--resume`` continues once there is room.
 
 `run_plan` is the one way to run a plan: check what would refuse it before
-anything is created (`preflight`), take the frame store, open the catalogue and
-the plan's rig, run, and fetch the stored rows; the command line and the service
-both call it.
+anything is created (`preflight`), open the plan's rig and ask it what it cannot
+do (`check_rig`), take the frame store, open the catalogue, run, and fetch the
+stored rows; the command line and the service both call it.
 """
 
 from __future__ import annotations
@@ -276,13 +276,10 @@ class Runner:
         ------
         BadInputError
             ``resume`` with no unfinished run, or an unfinished run and neither ``resume`` nor ``new``;
-            a position the rail says it cannot reach (`rail_problems`), an aperture the camera does not
-            offer (`aperture_problems`).
+            a position the rail says it cannot reach or an aperture the camera does not offer (`check_rig`).
         """
         try:
-            problems = rail_problems(plan, rail) + aperture_problems(plan, camera)
-            if problems:  # refused before the run is opened and before any motion, not at the step
-                raise BadInputError(f"{plan.path}: {'; '.join(problems)}")
+            check_rig(plan, camera, rail)  # refused before the run is opened and before any motion, not at the step
             with store_lock(self.frames_dir):
                 run_id = self._open_run(plan, camera, rail, resume, new)
                 try:
@@ -559,6 +556,19 @@ def position_lost(rail: Rail, catalogue: Catalogue, run_id: int) -> str | None:
             f"{left_at} mm: the controller restarted (USB cable or power) and its position is lost; {fix}")
 
 
+def check_rig(plan: Plan, camera: Camera, rail: Rail) -> None:
+    """Refuse a plan the open rig says it cannot do: positions off the rail, apertures the camera lacks.
+
+    Raises
+    ------
+    BadInputError
+        The problems of `rail_problems` and `aperture_problems`, on one line.
+    """
+    problems = rail_problems(plan, rail) + aperture_problems(plan, camera)
+    if problems:
+        raise BadInputError(f"{plan.path}: {'; '.join(problems)}")
+
+
 def rail_problems(plan: Plan, rail: Rail) -> list[str]:
     """Positions of the plan that the rail says it cannot reach (`plan.check_rail`); none when it cannot say.
 
@@ -733,20 +743,28 @@ def run_plan(
 ) -> RunResult:
     """Run a plan on the rig its ``[rig]`` table names, into a catalogue and a frame store.
 
-    The one way to run a plan: `preflight`, then take the frame store (a path that
-    cannot be one is refused before a catalogue is created), open the catalogue
-    (created when missing) and the rig, `Runner.run` (``resume``, ``new`` and
-    ``oneshot`` as there), and with ``rows`` put the stored PSF rows (metadata,
-    no arrays) into the result. ``runner_options`` go to `Runner` (``workers``,
-    ``backlog``, ``control``, ``progress``, ``on_step``).
+    The one way to run a plan: `preflight`, open the rig and `check_rig`, then take
+    the frame store (a path that cannot be one is refused before a catalogue is
+    created), open the catalogue (created when missing), `Runner.run` (``resume``,
+    ``new`` and ``oneshot`` as there), and with ``rows`` put the stored PSF rows
+    (metadata, no arrays) into the result. ``runner_options`` go to `Runner`
+    (``workers``, ``backlog``, ``control``, ``progress``, ``on_step``).
+
+    A rig that cannot be opened, or refuses the plan, leaves no catalogue, catalogue
+    folder or frame store behind: none is made before the rig has answered. The rig
+    is released on every path.
     """
     preflight(plan, catalogue_path, frames_dir, resume, new)
-    with store_lock(Path(frames_dir)), Catalogue(catalogue_path) as catalogue:
-        camera, rail = open_rig(plan.rig_config())
-        result = Runner(catalogue, frames_dir, **runner_options).run(plan, camera, rail, resume=resume, new=new,
-                                                                     oneshot=oneshot)
-        if rows:
-            result.rows = [catalogue.psf(i)[1] for i in result.psf_ids]
+    camera, rail = open_rig(plan.rig_config())
+    try:
+        check_rig(plan, camera, rail)  # Runner.run asks again for its other callers: two queries, no motion
+        with store_lock(Path(frames_dir)), Catalogue(catalogue_path) as catalogue:
+            result = Runner(catalogue, frames_dir, **runner_options).run(plan, camera, rail, resume=resume,
+                                                                         new=new, oneshot=oneshot)
+            if rows:
+                result.rows = [catalogue.psf(i)[1] for i in result.psf_ids]
+    finally:
+        release_rig(camera, rail)  # Runner.run released it already, unless the store or catalogue refused
     return result
 
 
