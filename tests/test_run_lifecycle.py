@@ -17,6 +17,7 @@ import signal
 import sqlite3
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -27,7 +28,7 @@ from psfd.daemon.plan import parse_plan
 from psfd.daemon.runner import Control, Runner
 from psfd.daemon.store import frames_dir_for
 from psfd.drivers import open_rig
-from psfd.errors import StorageError
+from psfd.errors import EstimationError, StorageError
 
 from test_runner import check_complete, small_plan
 
@@ -379,3 +380,93 @@ def test_a_plan_edited_after_a_kill_is_still_its_plan_and_another_aperture_is_no
     with Catalogue(db, readonly=True) as cat:
         assert cat.run(1)["plan_text"] == SIX_STEPS and len(cat.steps(1)) == 6  # its own text and steps
     check_complete(db, frames_dir_for(db), plan)  # every position exactly once
+
+
+# -- 12. signals to the whole process group while an estimate is in a worker -----------------------------
+
+
+def held_run(tmp_path: Path, plan_path: Path, db: Path) -> subprocess.Popen:
+    """`psfd run` in its own session (as a terminal or systemd starts it), its first estimate held in its
+    worker until the test removes ``tmp_path/hold`` (tests/held_estimate.py)."""
+    (tmp_path / "hold").touch()
+    argv = [sys.executable, str(HERE / "held_estimate.py"), "run", str(plan_path), "--catalogue", str(db),
+            "--socket", str(tmp_path / "none.sock"), "--workers", "1"]
+    return subprocess.Popen(argv, env={**os.environ, "PSFD_HOLD": str(tmp_path)}, start_new_session=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def wait_for(proc: subprocess.Popen, ready, what: str):
+    """The first true ``ready()``, polled while ``proc`` runs (two minutes at most)."""
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        value = ready()
+        if value:
+            return value
+        time.sleep(0.01)
+    proc.kill()
+    raise AssertionError(f"never {what}: {proc.communicate()[1]}")
+
+
+def step_states(db: Path) -> dict[str, str]:
+    with Catalogue(db, readonly=True) as cat:
+        return {row["key"]: row["state"] for row in cat.steps(cat.runs()[0]["id"])}
+
+
+def held_pid(tmp_path: Path) -> int | None:
+    """The pid of the worker whose estimate is held, once it is."""
+    marker = tmp_path / "estimating"
+    return int(marker.read_text()) if marker.exists() else None
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_to_the_whole_group_mid_estimate_pauses_the_run_cleanly(tmp_path, signum):
+    """Ctrl-C (SIGINT to the terminal's process group) or `systemctl stop` (SIGTERM to the control group)
+    reaches the estimation workers too: it must act as if sent to psfd alone (the estimate in flight
+    finishes and is committed, the run pauses, exit 130 or 143), never a traceback or a failed step."""
+    plan_path = write_plan(tmp_path, small_plan())
+    plan = parse_plan(plan_path.read_text(), str(plan_path))
+    db = tmp_path / "cat.sqlite"
+    proc = held_run(tmp_path, plan_path, db)
+    wait_for(proc, lambda: held_pid(tmp_path), "estimating")
+    os.killpg(proc.pid, signum)
+    (tmp_path / "hold").unlink()
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signum, err
+    assert "Traceback" not in err and "failed" not in err, err
+    name = signal.Signals(signum).name
+    assert err.splitlines()[-1].startswith(f"run 1 paused (interrupted by {name}); continue with: psfd run"), err
+    steps = step_states(db)
+    assert steps[plan.steps()[0].key] == "done", steps  # the estimate in flight was committed
+    assert "failed" not in steps.values() and "running" not in steps.values(), steps
+    assert states(db) == ["paused"]
+    resumed = _psfd("run", plan_path, "--resume", "--catalogue", db, "--socket", tmp_path / "none.sock",
+                    "--workers", "1")
+    assert resumed.returncode == 0, resumed.stderr
+    check_complete(db, frames_dir_for(db), plan)
+
+
+def test_a_worker_killed_alone_fails_its_step_in_one_line_and_keeps_the_others(tmp_path):
+    """A worker that dies (SIGKILL, the OOM killer) takes its estimate with it: that step fails in one line
+    and the run pauses, resumable; the other steps already handed to the workers are still estimated."""
+    plan_path = write_plan(tmp_path, small_plan())
+    plan = parse_plan(plan_path.read_text(), str(plan_path))
+    keys = [s.key for s in plan.steps()]
+    db = tmp_path / "cat.sqlite"
+    proc = held_run(tmp_path, plan_path, db)
+    pid = wait_for(proc, lambda: held_pid(tmp_path), "estimating")
+    # the third step is being shot: the second one's estimate waits in the pool behind the held one
+    wait_for(proc, lambda: db.exists() and list(step_states(db).values()).count("running") >= 3, "shooting step 3")
+    os.kill(pid, signal.SIGKILL)
+    (tmp_path / "hold").unlink()
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == EstimationError.exit_code, err
+    assert "Traceback" not in err, err
+    errors = [line for line in err.splitlines() if "paused" in line]
+    assert len(errors) == 1 and errors[0].startswith(f"run 1 paused (step {keys[0]}: the estimation process "), err
+    steps = step_states(db)
+    assert steps[keys[0]] == "failed" and steps[keys[1]] == "done", steps  # the one in the pool was kept
+    assert list(steps.values()).count("failed") == 1 and "running" not in steps.values(), steps
+    resumed = _psfd("run", plan_path, "--resume", "--catalogue", db, "--socket", tmp_path / "none.sock",
+                    "--workers", "1")
+    assert resumed.returncode == 0, resumed.stderr
+    check_complete(db, frames_dir_for(db), plan)

@@ -175,6 +175,51 @@ def test_pause_resume_then_sigterm_mid_run_and_resume_from_the_cli(served, tmp_p
     check_complete(db, db.with_name("cat-frames"), plan)
 
 
+def wait_until(ready, proc: subprocess.Popen, what: str, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not ready():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            raise AssertionError(f"never {what} (service exit {proc.poll()})")
+        time.sleep(0.01)
+
+
+def test_sigterm_to_the_whole_group_mid_estimate_commits_it_and_pauses(tmp_path):
+    """`systemctl stop` sends SIGTERM to every process of the unit (KillMode=control-group), the estimation
+    workers too: the service still finishes the estimate in flight, commits it, pauses the run and exits 0,
+    with no failed step and no traceback in its log."""
+    sock, db, log_path = tmp_path / "run" / "control.sock", tmp_path / "cat.sqlite", tmp_path / "serve.log"
+    plan_path = tmp_path / "plan.toml"
+    plan_path.write_text(small_plan())
+    plan = parse_plan(plan_path.read_text(), str(plan_path))
+    (tmp_path / "hold").touch()  # the first estimate waits in its worker (tests/held_estimate.py)
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen([sys.executable, str(ROOT / "tests" / "held_estimate.py"), "serve", "--socket",
+                                 str(sock), "--catalogue", str(db), "--workers", "1"],
+                                env={**os.environ, "PSFD_HOLD": str(tmp_path)}, stderr=log, start_new_session=True)
+        try:
+            wait_until(lambda: sock.exists() and client.service_up(sock), proc, "listening")
+            client.request(sock, {"cmd": "submit", "plan": plan.text, "path": str(plan_path)})
+            wait_until((tmp_path / "estimating").exists, proc, "estimating")
+            os.killpg(proc.pid, signal.SIGTERM)
+            (tmp_path / "hold").unlink()
+            assert proc.wait(timeout=120) == 0
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+    text = log_path.read_text()
+    assert "Traceback" not in text and "failed" not in text, text
+    with Catalogue(db) as cat:
+        (run,) = cat.runs()
+        states = {row["key"]: row["state"] for row in cat.steps(run["id"])}
+    assert run["state"] == "paused" and states[plan.steps()[0].key] == "done", states  # the estimate in flight
+    assert "failed" not in states.values() and "running" not in states.values(), states
+    cli = subprocess.run([sys.executable, "-m", "psfd", "run", str(plan_path), "--resume", "--catalogue", str(db),
+                          "--socket", str(sock), "--workers", "1"], capture_output=True, text=True, timeout=300)
+    assert cli.returncode == 0, cli.stderr
+    check_complete(db, db.with_name("cat-frames"), plan)
+
+
 def test_cancel_closes_the_run(served, tmp_path):
     proc, sock, db, notes = served
     plan_path = tmp_path / "plan.toml"

@@ -14,7 +14,11 @@ and perhaps a frame file the catalogue does not know: `sweep_frames` removes
 those at the start of every run, so no file is orphaned and none is counted twice.
 A failed step (camera gone, rail alarm, no target in the frame) is marked
 ``failed`` with its reason, the estimates already under way are committed,
-the rig is released, and the run is ``paused``: ``--resume`` retries it.
+the rig is released, and the run is ``paused``: ``--resume`` retries it. A worker
+that dies (killed, out of memory) fails the step it was estimating so; the other
+steps handed to the workers are estimated again in new ones. Signals are the
+parent's alone (`work.init_worker`): Ctrl-C or SIGTERM sent to the whole process
+or control group stops the run exactly as when sent to psfd only.
 
 A run's journal says ``running`` only while its process holds the frame-store
 lock (`store.store_busy`): a ``running`` run whose store is free was killed, and is
@@ -201,6 +205,53 @@ def default_workers() -> int:
 _STDERR = object()  # the default progress stream: sys.stderr when the Runner is made
 
 
+class Estimators:
+    """A run's estimation processes: a pool of spawned workers, started afresh when one of them died.
+
+    Parameters
+    ----------
+    count : int
+        Worker processes.
+    estimate : callable
+        Module-level function run in the workers, signature of `work.estimate_step`.
+    kind, channels, options
+        Its arguments other than the frames: `Plan.kind`, `Plan.channels`, `Plan.estimator_options`.
+    """
+
+    def __init__(self, count: int, estimate: Callable[..., list], kind: str, channels: list[str],
+                 options: dict) -> None:
+        self.count, self.estimate = count, estimate
+        self.kind, self.channels, self.options = kind, channels, options
+        self.pool = self._start()
+
+    def _start(self) -> cf.ProcessPoolExecutor:
+        ctx = multiprocessing.get_context("spawn")  # no fork of a threaded service
+        pool = cf.ProcessPoolExecutor(self.count, mp_context=ctx, initializer=work.init_worker,
+                                      initargs=(os.getpid(),))
+        for _ in range(self.count):  # start every worker now, not on the first estimate
+            pool.submit(work.warm_up)
+        return pool
+
+    def submit(self, records: list[FrameRecord]) -> cf.Future:
+        """Hand the estimate of a step's frames to the workers.
+
+        Raises
+        ------
+        concurrent.futures.BrokenExecutor
+            A worker died since the pool was started (BrokenProcessPool): `restart` it.
+        """
+        return self.pool.submit(self.estimate, self.kind, [r.path for r in records], self.channels, self.options)
+
+    def restart(self) -> None:
+        """A new pool in place of a broken one (a worker that dies breaks its whole pool)."""
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        self.pool = self._start()
+
+    def close(self) -> None:
+        """Let the workers finish and end."""
+        self.pool.shutdown()
+
+
 class Runner:
     """Runs plans against one catalogue and one frame store.
 
@@ -251,6 +302,7 @@ class Runner:
         self.backlog = 4 * self.workers if backlog is None else check_count(backlog, "backlog", BACKLOG_MAX)
         self._frame_bytes = 0  # the largest frame this run stored: the room the store needs for the next
         self.ready: CameraReady | None = None  # what `Camera.prepare` did for the current run
+        self._estimators: Estimators | None = None  # the current run's workers
 
     # -- public -------------------------------------------------------------------------------
 
@@ -332,11 +384,8 @@ class Runner:
         options = plan.estimator_options()
         focal = camera.info().focal_length_mm
         inflight: list[tuple[Step, list, cf.Future]] = []
-        ctx = multiprocessing.get_context("spawn")  # no fork of a threaded service
-        with cf.ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=work.init_worker,
-                                    initargs=(os.getpid(),)) as pool:
-            for _ in range(self.workers):  # start every worker now, not on the first estimate
-                pool.submit(work.warm_up)
+        self._estimators = Estimators(self.workers, self.estimate, plan.kind, plan.channels, options)
+        with contextlib.closing(self._estimators):
             try:
                 try:
                     self._apply_settings(camera, plan.rig.get("settings", {}))
@@ -361,9 +410,7 @@ class Runner:
                         self._fail(result, run_id, step.key, _step_error(exc))
                         break
                     result.capture_s += time.monotonic() - t0
-                    paths = [r.path for r in records]
-                    future = pool.submit(self.estimate, plan.kind, paths, plan.channels, options)
-                    inflight.append((step, records, future))
+                    self._hand_over(run_id, focal, step, records, inflight, result, bar)
                     # The rig waits only when the backlog of unestimated frames is full.
                     t0 = time.monotonic()
                     while len(inflight) > self.backlog:
@@ -461,6 +508,20 @@ class Runner:
             if record.sha256 not in known:
                 Path(record.path).unlink(missing_ok=True)
 
+    def _hand_over(self, run_id: int, focal: float | None, step: Step, records: list, inflight: list,
+                   result: RunResult, bar: Progress) -> None:
+        """Give a step's estimate to the workers; a pool that broke since the last one first settles the
+        steps it held (`_commit_first` fails the one a dead worker ran and restarts it)."""
+        while True:
+            try:
+                inflight.append((step, records, self._estimators.submit(records)))
+                return
+            except cf.BrokenExecutor:  # BrokenProcessPool
+                if not inflight:  # a worker died idle: no estimate went with it
+                    self._estimators.restart()
+                else:  # commits what was estimated before the break, then restarts the pool (`_commit_first`)
+                    self._commit_first(run_id, focal, inflight, result, bar)
+
     def _commit_ready(self, run_id, focal, inflight, result, bar) -> None:
         while inflight and inflight[0][2].done():
             self._commit_first(run_id, focal, inflight, result, bar)
@@ -471,12 +532,19 @@ class Runner:
         step, records, future = inflight.pop(0)
         try:
             estimates = future.result()
+        except cf.BrokenExecutor:  # BrokenProcessPool
+            # A worker died (SIGKILL, the OOM killer) and its pool failed every estimate in it. The oldest
+            # is the one a worker was running (exactly so with one worker): its step fails; the others
+            # are redone in a new pool, their frames are stored.
+            error = EstimationError("the estimation process ended abruptly (killed, or out of memory?)")
+            self._estimators.restart()
+            inflight[:] = [(s, r, self._estimators.submit(r)) for s, r, _ in inflight]
+            self._fail_step(result, run_id, step, records, bar, error)
+            return
         except Exception as exc:  # noqa: BLE001 - any failure of one step pauses the run, it never aborts it
             error = exc if isinstance(exc, PsfdError) else EstimationError(
                 f"estimation failed ({type(exc).__name__}: {exc})")
-            self._fail(result, run_id, step.key, error)
-            self._discard(records)
-            bar.show(step.key, f"failed: {error}")
+            self._fail_step(result, run_id, step, records, bar, error)
             return
         exif = records[-1].exif or {}  # a pair's PSF is the far frame's (its focus and focal length)
         meta = {
@@ -488,9 +556,7 @@ class Runner:
         try:
             ids = self.catalogue.commit_step(run_id, step.key, records, [(psf, dict(meta)) for psf in estimates])
         except StorageError as exc:  # rolled back whole: the step is redone on resume, its frames are not kept
-            self._fail(result, run_id, step.key, exc)
-            self._discard(records)
-            bar.show(step.key, f"failed: {exc}")
+            self._fail_step(result, run_id, step, records, bar, exc)
             return
         self.on_step(step.key, "done", None)
         result.steps_done += 1
@@ -498,6 +564,13 @@ class Runner:
         result.psfs += len(ids)
         result.psf_ids += list(ids)
         bar.step(step.key)
+
+    def _fail_step(self, result: RunResult, run_id: int, step: Step, records: list, bar: Progress,
+                   error: PsfdError) -> None:
+        """Fail a captured step that was not committed; its frames go (the retry shoots new ones)."""
+        self._fail(result, run_id, step.key, error)
+        self._discard(records)
+        bar.show(step.key, f"failed: {error}")
 
 
 def _step_error(exc: PsfdError | OSError) -> PsfdError:

@@ -9,6 +9,7 @@ numerical libraries to one thread each before numpy, scipy and OpenCV load
 from __future__ import annotations
 
 import os
+import signal
 import threading
 import time
 
@@ -18,17 +19,26 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"
 
 
 def init_worker(parent_pid: int) -> None:
-    """Pin libraries to one thread and exit when the parent process is gone.
+    """Pin libraries to one thread, leave signals to the parent, and exit when the parent process is gone.
 
-    A parent killed with SIGKILL cannot shut its pool down; without the watch
-    the workers would wait on their queue forever.
+    Ctrl-C reaches the terminal's whole process group and `systemctl stop` the whole control group: a
+    worker that died of either would take the estimate in flight with it, while the parent, which
+    finishes the current frame and commits what is being estimated, needs it. So SIGINT is ignored and
+    SIGTERM is held for the watch thread, which ends the worker only when the parent sent it: the pool
+    terminates its workers so when one of them died. A parent killed with SIGKILL cannot shut its pool
+    down; without the watch the workers would wait on their queue forever.
     """
     for name in THREAD_VARIABLES:
         os.environ[name] = "1"
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # blocked before any thread starts, so that every thread inherits it and only the watch takes it
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
 
     def watch() -> None:
         while os.getppid() == parent_pid:
-            time.sleep(0.5)
+            sent = signal.sigtimedwait({signal.SIGTERM}, 0.5)
+            if sent is not None and sent.si_pid == parent_pid:
+                break
         os._exit(1)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
