@@ -45,16 +45,24 @@ def test_capture_near_far_pair(tmp_path, capsys):
 
 
 def test_capture_goes_through_the_service_when_it_is_up(served, tmp_path):  # noqa: F811
+    """The service stores into its own catalogue: another --catalogue or --frames is refused, not ignored (the
+    user would look for the PSFs there); the service's own, or none, goes through it."""
     proc, sock, db, notes = served
-    cli = subprocess.run([sys.executable, "-m", "psfd", "capture", "--aperture", "8", "--simulate",
-                          "--rail", "Y=0", "--channels", "g1", "--socket", str(sock),
-                          "--catalogue", str(tmp_path / "ignored.sqlite")],
-                         capture_output=True, text=True, timeout=300)
+    capture = [sys.executable, "-m", "psfd", "capture", "--aperture", "8", "--simulate", "--rail", "Y=0",
+               "--channels", "g1", "--socket", str(sock)]
+    plan = tmp_path / "plan.toml"
+    assert psfd("plan", "init", "--simulate", plan).returncode == 0
+    for argv in (capture + ["--catalogue", tmp_path / "mine.sqlite"], capture + ["--frames", tmp_path / "mine"],
+                 [sys.executable, "-m", "psfd", "run", plan, "--socket", sock, "--catalogue", tmp_path / "mine.sqlite"]):
+        refused = subprocess.run(list(map(str, argv)), capture_output=True, text=True, timeout=300)
+        assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stderr
+        assert f"the service at {sock} stores into {tmp_path}/cat" in refused.stderr, refused.stderr
+    assert not list(tmp_path.glob("mine*")) and client.request(sock, {"cmd": "status"})["last"] is None
+    cli = subprocess.run(list(map(str, capture + ["--catalogue", db])), capture_output=True, text=True, timeout=300)
     assert cli.returncode == 0, cli.stderr
     assert "done: 1 step," in cli.stdout
-    with Catalogue(db) as cat:  # stored in the service's catalogue, not the one on the command line
+    with Catalogue(db) as cat:
         assert [r["aperture"] for r in cat.query().rows] == [8.0]
-    assert not (tmp_path / "ignored.sqlite").exists()
     assert client.request(sock, {"cmd": "status"})["last"]["state"] == "done"
 
 

@@ -177,6 +177,7 @@ def run_plan_file(args: argparse.Namespace) -> int:
     catalogue, frames, sock = options.paths(args)
     plan = plans.load_plan(args.plan)
     if not args.local and client.service_up(sock):
+        check_service_paths(args, sock, "or add --local to run in this process")
         answer = client.submit(sock, plan.text, str(Path(args.plan).resolve()), resume=args.resume, new=args.new)
         follow = "psfd status" + (f" --socket {args.socket}" if args.socket else "")
         print(f"submitted {args.plan} to the service at {sock} ({answer['queued']} queued); "
@@ -185,6 +186,17 @@ def run_plan_file(args: argparse.Namespace) -> int:
     runner = options.runner_options(args)
     result = run_here(plan, catalogue, frames, resume=args.resume, new=args.new, **runner)
     return _report(result.to_dict(), _again(args, "run", args.plan, "--resume"))
+
+
+def check_service_paths(args: argparse.Namespace, sock: Path, otherwise: str) -> None:
+    """Refuse a --catalogue or --frames other than the service's own: a run through the service stores there
+    only, and the user would look for the PSFs in the other place."""
+    answer = client.request(sock, {"cmd": "status"})
+    for option, given, key in (("--catalogue", args.catalogue, "catalogue"), ("--frames", args.frames, "frames")):
+        theirs = answer.get(key)
+        if given and theirs and os.path.abspath(given) != theirs:
+            raise BadInputError(f"{option} {given}: the service at {sock} stores into {theirs}; leave {option} out, "
+                                f"{otherwise}")
 
 
 def capture_plan(args: argparse.Namespace) -> str:
@@ -252,6 +264,7 @@ def run_capture(args: argparse.Namespace) -> int:
     if client.service_up(sock):
         if args.out:
             raise BadInputError("--out cannot be used through the service (it writes to its own frame store)")
+        check_service_paths(args, sock, "or stop the service")
         result = client.submit(sock, text, "capture", new=True, wait=True, oneshot=True)["result"]
     else:
         if args.out:

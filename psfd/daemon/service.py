@@ -113,8 +113,9 @@ class Service:
 
     def __init__(self, catalogue_path: str | os.PathLike, frames_dir: str | os.PathLike,
                  socket_path: str | os.PathLike, runner_options: dict[str, int] | None = None) -> None:
-        self.catalogue_path = Path(catalogue_path)
-        self.frames_dir = Path(frames_dir)
+        # absolute: clients in other folders read these paths from `status`
+        self.catalogue_path = Path(os.path.abspath(catalogue_path))
+        self.frames_dir = Path(os.path.abspath(frames_dir))
         self.socket_path = Path(socket_path)
         self.runner_options = runner_options or {}
         self.jobs: queue.Queue[Job | None] = queue.Queue()
@@ -339,7 +340,7 @@ class Service:
             state = "running" if self.current else ("paused" if self.paused else "idle")
             answer = {"state": state, "current": self.current, "last": self.last, "queued": self.queued,
                       "paused_plan": self.paused.path if self.paused else None,
-                      "catalogue": str(self.catalogue_path)}
+                      "catalogue": str(self.catalogue_path), "frames": str(self.frames_dir)}
         # the catalogue's paused and interrupted runs (not the one running now): what --resume continues
         answer["unfinished"] = [r for r in unfinished_runs(self.catalogue_path, self.frames_dir)
                                 if r["state"] != "running"]
