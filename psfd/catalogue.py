@@ -44,7 +44,8 @@ from psfd import __version__
 from psfd.drivers.base import CameraInfo
 from psfd.errors import BadInputError, CatalogueError, StorageError, path_reason, user_name
 from psfd.estimator.kernels import PSF
-from psfd.vocabulary import BERNOULLI, SHARP_EDGE, camera_fnumber, data_dir, method_name, parse_fnumber
+from psfd.vocabulary import (BERNOULLI, SHARP_EDGE, camera_fnumber, data_dir, method_name, parse_fnumber,
+                             plan_content)
 
 STEP_STATES = ("pending", "running", "done", "failed")
 RUN_STATES = ("running", "done", "paused", "cancelled", "failed")
@@ -634,8 +635,6 @@ class Catalogue:
         A run is of this plan when its text says the same (`plan_content`): a plan whose comments or layout
         were edited after a stop is still the plan of its runs, so that no position is measured twice.
         """
-        from psfd.daemon.plan import plan_content  # here: the readers (psfd query, report) never parse a plan
-
         sql = ("SELECT u.id, u.state, u.started, u.finished, u.plan_text, "
                "(SELECT count(*) FROM psfs p WHERE p.run_id = u.id) AS psfs FROM runs u")
         params: list[Any] = []

@@ -19,8 +19,10 @@ catalogues, so an old plan must still parse and resume).
 
 from __future__ import annotations
 
+import json
 import math
 import os
+import tomllib
 import numbers
 from collections.abc import Mapping
 from pathlib import Path
@@ -201,3 +203,29 @@ def data_dir() -> Path:
     base = os.environ.get("XDG_DATA_HOME", "")
     root = Path(base) if base and os.path.isabs(base) else Path.home() / ".local" / "share"
     return root / "psfd"
+
+
+def plan_content(text: str) -> str:
+    """What a plan's text says, as one canonical string: two texts are the same plan when theirs are equal.
+
+    The parsed TOML as JSON with sorted keys, so comments, blank lines, layout, key order, quoting and the
+    spelling of a number (5.6 or 5.60, 4 or 4.0) do not count; every key and value, and the order of a
+    list, does. A text that is not TOML (a catalogue may hold one) is only itself: a JSON list of it,
+    which the content of no TOML text is.
+    """
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError:
+        return json.dumps([text])
+    return json.dumps(_canonical(data), sort_keys=True, default=repr)
+
+
+def _canonical(value: Any) -> Any:
+    """A parsed TOML value with each whole float as an int: a plan reads 4.0 as it reads 4 (booleans stay)."""
+    if isinstance(value, dict):
+        return {key: _canonical(v) for key, v in value.items()}
+    if isinstance(value, list):
+        return [_canonical(v) for v in value]
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value

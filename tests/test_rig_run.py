@@ -8,8 +8,6 @@ any motion through the whole ``psfd run`` process.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 import sqlite3
 import subprocess

@@ -57,7 +57,8 @@ from psfd.drivers import RAIL_DRIVERS, REAL_KEYS, SIM_KEYS
 from psfd.drivers.base import CameraSetup, RailInfo, target_distance
 from psfd.errors import BadInputError
 from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, DEFAULT_SOLVER, PLAN_BYTES_MAX,
-                             SOLVERS, TWO_PHOTO, check_grid, check_s, check_solver, check_steps, check_support)
+                             SOLVERS, TWO_PHOTO, check_grid, check_s, check_solver, check_steps, check_support,
+                             plan_content)
 
 # [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys), our
 # camera settings, applied once before the first step, and the camera's setup for PSF work
@@ -164,32 +165,6 @@ def plan_text(tables: dict[str, dict[str, Any]]) -> str:
     for name, table in tables.items():
         lines += [f"[{name}]", *(f"{key} = {_toml(value)}" for key, value in table.items()), ""]
     return "\n".join(lines)
-
-
-def plan_content(text: str) -> str:
-    """What a plan's text says, as one canonical string: two texts are the same plan when theirs are equal.
-
-    The parsed TOML as JSON with sorted keys, so comments, blank lines, layout, key order, quoting and the
-    spelling of a number (5.6 or 5.60, 4 or 4.0) do not count; every key and value, and the order of a
-    list, does. A text that is not TOML (a catalogue may hold one) is only itself: a JSON list of it,
-    which the content of no TOML text is.
-    """
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError:
-        return json.dumps([text])
-    return json.dumps(_canonical(data), sort_keys=True, default=repr)
-
-
-def _canonical(value: Any) -> Any:
-    """A parsed TOML value with each whole float as an int: a plan reads 4.0 as it reads 4 (booleans stay)."""
-    if isinstance(value, dict):
-        return {key: _canonical(v) for key, v in value.items()}
-    if isinstance(value, list):
-        return [_canonical(v) for v in value]
-    if isinstance(value, float) and value.is_integer():
-        return int(value)
-    return value
 
 
 def plan_changes(old: str, new: str) -> list[str]:
