@@ -100,6 +100,9 @@ def test_write_estimates_files_round_trip(tmp_path):
     metrics = estimates[1].metrics()
     assert float(rows[1]["mtf50_x [cycles/px]"]) == pytest.approx(metrics["mtf50_x"], rel=1e-5)
     assert float(rows[1]["fwhm_y [channel px]"]) == pytest.approx(metrics["fwhm_y"], rel=1e-5)
+    predicted = estimates[1].prediction_error  # None here: empty, as every unknown
+    assert rows[1]["prediction_error [cross-validated residual / noise level]"] == (
+        "" if predicted is None else format(predicted, ".6g"))
     assert rows[1]["window x0 y0 x1 y1 [channel px]"] == "320 0 640 480"
     assert rows[0]["mtf50_x [lp/mm]"] == ""  # no pitch known for this source: empty, never a guess
     # no temporary folder left beside the output

@@ -181,6 +181,10 @@ def test_query_csv_and_units(capsys, catalogue):
         for row in rows:
             stored = cat.psf(int(row["id"]))[1]
             assert float(row["mtf50_x [cycles/px]"]) == pytest.approx(stored["mtf50_x"], rel=1e-5)
+            # every number the table and JSON give, the prediction error too
+            predicted = row["prediction_error [cross-validated residual / noise level]"]
+            assert (predicted == "" if stored["prediction_error"] is None else
+                    float(predicted) == pytest.approx(stored["prediction_error"], rel=1e-5))
             assert row["aperture [f-number]"] == format(stored["aperture"], ".6g") and row["camera"] == "Canon EOS 400D"
     code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--channel", "b", "--csv")
     assert code == 1 and len(out.splitlines()) == 1 and "no PSF matches" in err  # the header alone

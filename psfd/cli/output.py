@@ -379,6 +379,7 @@ CSV_COLUMNS = (
     ("fwhm_x", "fwhm_x [channel px]"), ("fwhm_y", "fwhm_y [channel px]"),
     ("noise_floor", "noise_floor [L2 norm of the unit-sum kernel's error]"),
     ("residual", "residual [normalised data units, RMS]"),
+    ("prediction_error", "prediction_error [cross-validated residual / noise level]"),
     ("pixel_pitch_um", "pixel_pitch [um]"), ("image_height_px", "image_height [px]"),
     ("run_id", "run_id"), ("step", "step"), ("source", "source"), ("created", "created [UTC]"),
 )
