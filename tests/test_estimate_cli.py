@@ -619,3 +619,24 @@ def test_edges_show_progress_on_a_terminal(tmp_path):
     assert done.returncode == 0
     assert "edges.png mono:" in drawn.decode() and "100%" in drawn.decode()
     assert "%" not in done.stdout.split("\n", 1)[0]  # the table's header, no bar
+
+
+def test_an_empty_read_only_out_folder_is_refused_not_replaced(tmp_path):
+    """An empty folder is replaced by the one psfd writes beside it; one the user made read-only must stay so
+    (its mode, owner and ACLs would be lost), so it is refused like any folder psfd cannot write."""
+    out = tmp_path / "ro"
+    out.mkdir()
+    out.chmod(0o555)
+    command = [sys.executable, "-m", "psfd", "estimate", "bernoulli", str(Path(__file__).parent / "data" /
+                                                                          "img_example.pgm"), "--out", str(out)]
+    if os.geteuid() == 0:  # root writes anywhere: drop that capability, which a user's process does not have
+        import shutil
+
+        if shutil.which("setpriv") is None:
+            pytest.skip("running as root without setpriv")
+        command = ["setpriv", "--bounding-set=-dac_override,-dac_read_search",
+                   "--inh-caps=-dac_override,-dac_read_search", *command]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stderr == f"psfd: error: {out}: not a writable folder\n", done.stderr
+    assert stat.S_IMODE(out.stat().st_mode) == 0o555 and not any(out.iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ro"]  # no staging folder left beside it

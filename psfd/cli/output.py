@@ -87,6 +87,9 @@ def check_out_dir(out_dir: str | os.PathLike, force: bool = False,
         raise BadInputError(f"{parent}: {'not a folder' if parent.exists() else 'no such folder'}")
     if not os.access(parent, os.W_OK):
         raise BadInputError(f"{parent}: not a writable folder")
+    if out_dir.is_dir() and not os.access(out_dir, os.W_OK):
+        # an empty folder is replaced by the one written beside it: one the user made read-only stays so
+        raise BadInputError(f"{out_dir}: not a writable folder")
     return out_dir
 
 
