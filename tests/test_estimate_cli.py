@@ -224,6 +224,10 @@ BAD = [
     (["pair", "{in}/whole.dng", "{in}/missing.pgm"], "no such file"),
     (["edges", "{in}/notes.pgm", "--weight", "x"], "--weight"),
     (["edges", "{in}/whole.dng", "--grid", "2x"], "--grid"),
+    # bounds named as the command line spells the option (not the plan's [nx, ny], not a bare "weight")
+    (["target", "{in}/whole.dng", "--grid", "33x1"], "--grid: N and M from 1 to 32, got 33x1"),
+    (["edges", "{in}/whole.dng", "--weight", "-1"], "--weight: expected a number >= 0"),
+    (["edges", "{in}/whole.dng", "--radius", "0"], "--radius: expected a positive number"),
 ]
 
 

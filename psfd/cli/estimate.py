@@ -185,6 +185,10 @@ def run_sharp_edge(args: argparse.Namespace) -> int:
     settings = _settings(args, SHARP_EDGE)
     weight = None if args.weight is None else options.parse_float(args.weight, "--weight")
     radius = None if args.radius is None else options.parse_float(args.radius, "--radius")
+    if weight is not None and weight < 0:
+        raise BadInputError(f"--weight: expected a number >= 0, got {args.weight}")
+    if radius is not None and radius <= 0:
+        raise BadInputError(f"--radius: expected a positive number of channel pixels, got {args.radius}")
     frames = _load_all(args.frames, args.channel)
     from psfd.cli import output
     from psfd.estimator import sharpedge

@@ -106,7 +106,10 @@ def parse_grid(text: str) -> tuple[int, int]:
     match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(text))
     if not match:
         raise BadInputError(f"--grid: expected NxM, N windows across and M down (e.g. 3x2), got {text!r}")
-    return int(match[1]), int(match[2])
+    grid = int(match[1]), int(match[2])
+    if not all(1 <= n <= vocabulary.GRID_MAX for n in grid):
+        raise BadInputError(f"--grid: N and M from 1 to {vocabulary.GRID_MAX}, got {text.strip()}")
+    return grid
 
 
 def sizes(args: argparse.Namespace, method: str) -> dict:
