@@ -391,7 +391,7 @@ def test_warns_outside_the_imaging_scale_range(tmp_path):
 
 def test_real_photograph(data_dir):
     """img_example.pgm: a Canon 400D-class green channel at f/5.6 (no ground truth)."""
-    frame = raw.load_frame(data_dir / "img_example.pgm", "g1")
+    frame = raw.load_frame(data_dir / "img_example.pgm", "mono")
     (est,) = bernoulli.estimate_target(frame)
     h = est.psf
     assert h.min() >= 0 and h.sum() == pytest.approx(1.0)
@@ -421,8 +421,8 @@ def test_real_photograph(data_dir):
 
 def test_a_noise_pattern_that_is_not_the_photographed_one_is_refused(data_dir):
     """The real photo shows the published noise: another realisation must not yield a "PSF"."""
-    frame = raw.load_frame(data_dir / "img_example.pgm", "g1")
-    with pytest.raises(EstimationError, match=r"img_example.pgm \(g1\): the photographed noise does not follow"):
+    frame = raw.load_frame(data_dir / "img_example.pgm", "mono")
+    with pytest.raises(EstimationError, match=r"img_example.pgm \(mono\): the photographed noise does not follow"):
         bernoulli.estimate_target(frame, noise=target.seeded_noise(7))
 
 
@@ -876,7 +876,7 @@ def photo_records() -> tuple[list, list]:
         equations.append(args)
         return normal(*args)
 
-    frame = raw.load_frame(Path(__file__).parent / "data" / "img_example.pgm", "g1")
+    frame = raw.load_frame(Path(__file__).parent / "data" / "img_example.pgm", "mono")
     patch = pytest.MonkeyPatch()
     patch.setattr(bernoulli, "nnls_normal", recorded_solve)
     patch.setattr(bernoulli, "normal_equations", recorded_normal)

@@ -8,7 +8,10 @@ Bernoulli pattern needs no penalty and recovers them.
 
 from __future__ import annotations
 
+import csv
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -235,8 +238,8 @@ def real_pair_alone():
     from psfd.estimator import raw, twoscale
     from psfd.vocabulary import DEFAULT_S, SHARP_EDGE, TWO_PHOTO
 
-    far = raw.load_frame(DATA / "IMG_0602_v1_CUT.pgm", "g1")
-    near = raw.load_frame(DATA / "IMG_0608_v1.pgm", "g1")
+    far = raw.load_frame(DATA / "IMG_0602_v1_CUT.pgm", "mono")
+    near = raw.load_frame(DATA / "IMG_0608_v1.pgm", "mono")
     [pair] = twoscale.estimate_pair(far, near, s=DEFAULT_S[TWO_PHOTO])
     alone = [("two-photo IMG_0602_v1_CUT.pgm+IMG_0608_v1.pgm", pair)]
     for frame in (far, near):
@@ -373,3 +376,26 @@ def test_the_worker_waiting_for_a_message_ends_when_the_parent_sends_none():
                         pending.get(timeout=30)
         finally:
             compare._BESIDE = None
+
+
+def psfd_cli(*argv) -> subprocess.CompletedProcess:
+    """The whole `python -m psfd` process, as a user runs it."""
+    return subprocess.run([sys.executable, "-m", "psfd", *map(str, argv)], capture_output=True, text=True)
+
+
+def test_compare_of_a_single_channel_image_is_mono(tmp_path):
+    """A PGM is its own plane, mono, in the file names, each estimate's JSON and metrics.csv (a Bayer label
+    would halve its lp/mm); asked for a Bayer channel it is refused in one line, nothing written."""
+    out = tmp_path / "cmp"
+    done = psfd_cli("compare", DATA / "img_example.pgm", "--out", out)
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in out.glob("*.npy")) == ["img_example_bernoulli_mono_w00.npy",
+                                                         "img_example_sharp-edge_mono_w00.npy"]
+    assert [json.loads(p.read_text())["channel"] for p in sorted(out.glob("img_example_*.json"))] == ["mono"] * 2
+    with open(out / "metrics.csv", newline="") as fh:
+        assert [row["channel"] for row in csv.DictReader(fh)] == ["mono"] * 2
+    never = tmp_path / "never"
+    done = psfd_cli("compare", DATA / "img_example.pgm", "--channel", "g1", "--out", never)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1
+    assert done.stderr.startswith(f"psfd: error: {DATA / 'img_example.pgm'}: ") and "mono" in done.stderr
+    assert not never.exists()

@@ -273,6 +273,21 @@ def test_pair_channels_must_match(bad_files, capsys, data_dir):
     assert code == 2 and "same channels" in stderr and stderr.count("\n") == 1
 
 
+@pytest.mark.parametrize("suffix, channel", [(".pgm", c) for c in raw.CHANNELS] + [(".png", "g1"), (".tif", "b")])
+def test_a_single_channel_image_has_no_bayer_channel(tmp_path, data_dir, suffix, channel):
+    """A one-plane image is its own plane, mono: asked for a Bayer channel it is refused in one line naming
+    the file and what it has, not relabelled (a Bayer label would halve its lp/mm, `mtf.channel_pitch_mm`)."""
+    image = tmp_path / f"target{suffix}"
+    cv2.imwrite(str(image), cv2.imread(str(data_dir / "img_example.pgm"), cv2.IMREAD_UNCHANGED))
+    out = tmp_path / "never"
+    done = subprocess.run([sys.executable, "-m", "psfd", "estimate", "bernoulli", str(image), "--channel", channel,
+                           "--out", str(out)], capture_output=True, text=True)
+    assert done.returncode == 2
+    assert done.stderr.startswith(f"psfd: error: {image}: ") and done.stderr.count("\n") == 1
+    assert f"no {channel} channel" in done.stderr and "mono" in done.stderr
+    assert done.stdout == "" and not out.exists()
+
+
 # ---------------------------------------------------------------- end to end
 
 

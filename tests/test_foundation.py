@@ -45,11 +45,13 @@ def test_other_cfa_phases_keep_their_names(tmp_path):
     assert planes == {"g1": (0, 0), "b": (0, 1), "r": (1, 0), "g2": (1, 1)}
 
 
-def test_pgm_is_one_plane_named_by_the_caller(data_dir):
-    frame = raw.load_frame(data_dir / "img_example.pgm", "g1")
-    assert frame.channel == "g1" and frame.shape == (292, 328) and frame.white == 255
+def test_pgm_is_one_plane_named_mono(data_dir):
+    frame = raw.load_frame(data_dir / "img_example.pgm")
+    assert frame.channel == "mono" and frame.shape == (292, 328) and frame.white == 255
     assert not frame.from_mosaic
     assert raw.load_frames(data_dir / "img_example.pgm")[0].channel == "mono"
+    with pytest.raises(BadInputError, match=r"img_example.pgm: has no g1 channel \(a single-channel image"):
+        raw.load_frame(data_dir / "img_example.pgm", "g1")
 
 
 def test_sixteen_bit_pgm_white_level_comes_from_its_header(tmp_path):

@@ -213,7 +213,7 @@ def test_the_nearest_edge_points_are_the_k_d_trees():
     (or none within the bound) as by the k-d tree, wherever the nearest is not an exact tie."""
     from psfd.estimator import sharpedge
 
-    frame = raw.load_frame(DATA / "IMG_0608_v1.pgm", "g1")
+    frame = raw.load_frame(DATA / "IMG_0608_v1.pgm", "mono")
     crop = frame.data[300:600, 700:1100] / frame.white
     edges = sharpedge.detect_edges(crop, noise=sharpedge.noise_sigma(crop))
     assert len(edges) > 1000
@@ -236,7 +236,7 @@ def test_the_sharp_edge_estimate_is_the_scipy_paths(photo, target_form, monkeypa
     on both paths: the same bits)."""
     from psfd.estimator import sharpedge
 
-    frame = raw.load_frame(DATA / photo, "g1")
+    frame = raw.load_frame(DATA / photo, "mono")
     with bernoulli._one_blas_thread():
         [new] = sharpedge.estimate_edges(frame, target_form=target_form)
         with monkeypatch.context() as patch:

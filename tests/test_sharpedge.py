@@ -198,7 +198,7 @@ def test_the_target_form_does_not_depend_on_the_order_of_its_edge_points(smooth_
     another order)."""
     from psfd.estimator import raw
 
-    frame = smooth_frame if form == "edge target" else raw.load_frame(DATA / "img_example.pgm", "g1")
+    frame = smooth_frame if form == "edge target" else raw.load_frame(DATA / "img_example.pgm", "mono")
     pattern = sharpedge.locate_pattern(frame)
     [forward] = sharpedge.estimate_edges(frame, s=S, pattern=pattern)
     edges = sharpedge._target_edges
@@ -419,7 +419,7 @@ def test_tiled_prediction_gives_the_dense_normal_equations(smooth_frame, form):
     """
     from psfd.estimator import raw
 
-    frame = smooth_frame if form != "Bernoulli marks" else raw.load_frame(DATA / "img_example.pgm", "g1")
+    frame = smooth_frame if form != "Bernoulli marks" else raw.load_frame(DATA / "img_example.pgm", "mono")
     known = None if form == "blind" else sharpedge.locate_pattern(frame)
     rows, cols = frame.data.shape
     window = (cols // 5, rows // 6, cols - cols // 4, rows - rows // 7)  # margins cut on all four sides
@@ -441,7 +441,7 @@ def test_tiles_predicted_on_two_threads_give_the_one_thread_equations(smooth_fra
     from psfd import workers
     from psfd.estimator import raw
 
-    frame = smooth_frame if form != "Bernoulli marks" else raw.load_frame(DATA / "img_example.pgm", "g1")
+    frame = smooth_frame if form != "Bernoulli marks" else raw.load_frame(DATA / "img_example.pgm", "mono")
     image = np.asarray(frame.data, dtype=np.float64) / float(frame.white)
     known = None if form == "blind" else sharpedge.locate_pattern(frame)
     rows, cols = frame.data.shape

@@ -118,9 +118,8 @@ def test_psf_from_kernel_inverts_the_inter_image_relation():
 
 def test_real_pair_in_either_order(data_dir):
     near_path, far_path = data_dir / "IMG_0608_v1.pgm", data_dir / "IMG_0602_v1_CUT.pgm"
-    # named g1 as the user would: single-channel images are never compared as sensors
-    a = raw.load_frame(data_dir / "IMG_0602_v1_CUT.pgm", "g1")
-    b = raw.load_frame(data_dir / "IMG_0608_v1.pgm", "g1")
+    a = raw.load_frame(data_dir / "IMG_0602_v1_CUT.pgm", "mono")
+    b = raw.load_frame(data_dir / "IMG_0608_v1.pgm", "mono")
     [ab] = twoscale.estimate_pair(a, b, s=S, support=13)
     [ba] = twoscale.estimate_pair(b, a, s=S, support=13)
     for est in (ab, ba):

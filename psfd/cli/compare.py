@@ -21,7 +21,7 @@ from typing import Any, Callable, Iterable, NamedTuple
 
 from psfd.cli import options, summary
 from psfd.errors import BadInputError, EstimationError, PsfdError
-from psfd.vocabulary import BERNOULLI, DEFAULT_S, SHARP_EDGE, TWO_PHOTO
+from psfd.vocabulary import BERNOULLI, CHANNELS, DEFAULT_S, MONO, SHARP_EDGE, TWO_PHOTO
 from psfd.workers import concurrently, usable_cores, worker_signals
 
 
@@ -52,7 +52,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help=f"true PSF on the -s grid (default s {DEFAULT_S[BERNOULLI]})")
     parser.add_argument("--out", metavar="DIR", help="write compare.png, compare.json and the estimates here")
     parser.add_argument("--force", action="store_true", help="replace --out if it holds an earlier comparison")
-    parser.add_argument("--channel", default="g1", help="Bayer plane of RAW files: r, g1, g2 or b (default g1)")
+    parser.add_argument("--channel", help="Bayer plane of RAW files: r, g1, g2 or b (default g1; a single-channel "
+                                          "image is its own plane, mono)")
     options.add_size_options(parser, grid=False)
     parser.add_argument("--weights", default="2",
                         help="comma-separated sharp-edge regularisation weights (default 2, the paper's)")
@@ -65,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
     weights = [options.parse_float(w, "--weights") for w in str(args.weights).split(",") if w.strip()]
     if not weights or any(w < 0 for w in weights):
         raise BadInputError("--weights: expected non-negative numbers separated by commas")
-    options.parse_channel(args.channel)
+    if args.channel is not None:  # None: each file's default plane (`psfd.estimator.raw.load_frame`)
+        options.parse_channel(args.channel, allowed=(*CHANNELS, MONO))
     inputs = [*args.frames, *([args.truth] if args.truth else [])]  # never deleted by --force
     if args.out is not None:
         from psfd.cli import output

@@ -41,8 +41,7 @@ class Frame:
     data : ndarray of float64
         Linear values, black level subtracted.
     channel : str
-        ``r``, ``g1``, ``g2``, ``b`` for a RAW plane, or the name given to a
-        single-channel image (``mono`` by default).
+        ``r``, ``g1``, ``g2``, ``b`` for a RAW plane, ``mono`` for a single-channel image.
     white : float
         Saturation level in the units of ``data``.
     saturated : ndarray of bool
@@ -54,8 +53,7 @@ class Frame:
     sensor_shape : tuple of int
         Shape of the full sensor (for a single-channel image, its own shape).
     from_mosaic : bool
-        True for a plane split from a RAW Bayer mosaic, False for a single-channel image
-        (whose ``channel`` is only the name the caller gave it).
+        True for a plane split from a RAW Bayer mosaic, False for a single-channel image.
     """
 
     data: np.ndarray
@@ -81,8 +79,8 @@ def load_frames(path: str | os.PathLike, channel: str = "all") -> list[Frame]:
         A RAW file that LibRaw reads (DNG, CR2, NEF, ARW, ...) or an 8/16-bit
         single-channel PGM, PNG or TIFF.
     channel : str
-        ``all``, or one of ``r``, ``g1``, ``g2``, ``b``. For a single-channel
-        image the channel names the plane (``all`` names it ``mono``).
+        ``all``, or one of ``r``, ``g1``, ``g2``, ``b`` of a RAW file, or ``mono``, the one
+        plane of a single-channel image (which ``all`` gives too).
 
     Returns
     -------
@@ -91,7 +89,8 @@ def load_frames(path: str | os.PathLike, channel: str = "all") -> list[Frame]:
     Raises
     ------
     BadInputError
-        Missing, unreadable, truncated or colour (non-RAW) files, or an unknown channel.
+        Missing, unreadable, truncated or colour (non-RAW) files, an unknown channel, or a
+        channel the file does not have (a Bayer channel of a single-channel image).
     """
     path = Path(path)
     if channel != "all" and channel not in CHANNELS and channel != MONO:
@@ -101,10 +100,10 @@ def load_frames(path: str | os.PathLike, channel: str = "all") -> list[Frame]:
     if not path.is_file():
         raise BadInputError(f"{path}: no such file")
     if path.suffix.lower() in IMAGE_SUFFIXES:
-        frame = _load_single_channel(path)
-        if channel != "all":
-            frame.channel = channel
-        return [frame]
+        # never relabelled: a Bayer name would make its pitch twice the photosite's (mtf.channel_pitch_mm)
+        if channel not in ("all", MONO):
+            raise BadInputError(f"{path}: has no {channel} channel (a single-channel image: its one plane is mono)")
+        return [_load_single_channel(path)]
     planes = _load_raw(path, None if channel == "all" else channel)
     if channel == "all":
         return [planes[c] for c in CHANNELS if c in planes]
@@ -113,8 +112,11 @@ def load_frames(path: str | os.PathLike, channel: str = "all") -> list[Frame]:
     return [planes[channel]]
 
 
-def load_frame(path: str | os.PathLike, channel: str = "g1") -> Frame:
-    """Load one channel plane; see `load_frames`. A single-channel image is named ``channel``."""
+def load_frame(path: str | os.PathLike, channel: str | None = None) -> Frame:
+    """Load one channel plane; see `load_frames`. ``channel`` None: a RAW file's ``g1``, a single-channel
+    image's own plane (``mono``)."""
+    if channel is None:
+        channel = MONO if Path(path).suffix.lower() in IMAGE_SUFFIXES else "g1"
     return load_frames(path, channel)[0]
 
 
