@@ -399,3 +399,35 @@ def test_compare_of_a_single_channel_image_is_mono(tmp_path):
     assert done.returncode == 2 and done.stderr.count("\n") == 1
     assert done.stderr.startswith(f"psfd: error: {DATA / 'img_example.pgm'}: ") and "mono" in done.stderr
     assert not never.exists()
+
+
+def test_band_errors_are_exact_and_one_value_per_pair_across_grids():
+    """Kernels on grids of different s are compared on one frequency grid, each MTF evaluated there exactly:
+    a kernel against its own samples on a twice finer grid (zeros between them: the same samples at the same
+    positions, so the same MTF) differs by nothing, and the error does not depend on which kernel comes first."""
+    coarse = simulate.gaussian_psf(0.5, 0.35, theta=0.3, s=2, support=9)
+    fine = np.zeros((17, 17))
+    fine[::2, ::2] = coarse
+    for first, second in (((coarse, 2), (fine, 4)), ((fine, 4), (coarse, 2))):
+        errors = band_errors(*first, *second)
+        assert errors[LOW] < 1e-12 and errors[HIGH] < 1e-12, errors
+    pair = simulate.gaussian_psf(0.55, s=3, support=13)
+    edges = simulate.gaussian_psf(0.4, 0.6, theta=0.2, s=4, support=17)
+    assert band_errors(pair, 3, edges, 4) == band_errors(edges, 4, pair, 3)
+
+
+def test_compare_errors_between_methods_are_one_value_per_pair(tmp_path):
+    """The real pair: the two-photo estimate (s 3) and the sharp-edge one (s 4) have one MTF error whichever
+    comes first, in the table and in compare.json; the footnote gives the band limit's unit, not the error's."""
+    out = tmp_path / "cmp"
+    done = psfd_cli("compare", DATA / "IMG_0608_v1.pgm", DATA / "IMG_0602_v1_CUT.pgm", "--out", out)
+    assert done.returncode == 0, done.stderr
+    errors = json.loads((out / "compare.json").read_text())["errors"]
+    pairs = [(a, b) for a in errors for b in errors[a]]
+    assert len(pairs) == 2
+    for a, b in pairs:
+        assert errors[a][b] == errors[b][a]
+    shown = [line.split("MTF err")[1] for line in done.stdout.splitlines() if line.lstrip().startswith("vs ")]
+    assert len(shown) == 2 and shown[0] == shown[1]
+    assert "cycles per channel pixel (Nyquist 0.5)." not in done.stdout
+    assert "MTF error: RMS difference of the x and y MTF profiles (unitless)" in done.stdout

@@ -419,8 +419,8 @@ def print_table(estimates: list[Estimate], table: dict, with_truth: bool, stream
         for w in e.psf.warnings:  # on the log (stderr), not inside the table
             logging.getLogger("psfd.compare").warning("%s: %s", e.label, w)
     if shown:
-        print("MTF error: RMS difference of the x and y MTF profiles, cycles per channel pixel (Nyquist 0.5).",
-              file=stream)
+        print("MTF error: RMS difference of the x and y MTF profiles (unitless), up to and above the Nyquist "
+              "frequency, 0.5 cycles per channel pixel.", file=stream)
     if any(e.psf is not None for e in estimates):  # a noise figure was printed
         print("noise: each estimate's noise floor over its kernel's L2 norm (its relative error from sensor noise).",
               file=stream)

@@ -76,18 +76,34 @@ def band_errors(psf: np.ndarray, s: int, reference: np.ndarray, s_ref: int) -> d
     The bands are [0, 0.5] (`LOW`) and (0.5, s/2] (`HIGH`) cycles per channel
     pixel (the second only exists for a sub-pixel kernel; it is the part the
     thesis shows a gradient penalty removes, Delbracio PhD thesis 2013, Fig. 1.3).
-    The kernels may lie on grids of different ``s``: both are compared up to
-    the lower of their top frequencies.
+    The kernels may lie on grids of different ``s``. Both MTFs are evaluated
+    exactly (`_profiles_at`) on one frequency grid: the finer of their two
+    `profiles` grids (``min(s, s_ref) / PAD`` apart) up to ``min(s, s_ref) / 2``,
+    the band both kernels represent. The error of a pair is thus one value,
+    whichever kernel comes first.
     """
-    f, mx, my = profiles(psf, s)
-    fr, rx, ry = profiles(reference, s_ref)
-    top = min(f[-1], fr[-1])
-    grid = f[f <= top]
-    diff = np.concatenate([np.interp(grid, f, mx) - np.interp(grid, fr, rx),
-                           np.interp(grid, f, my) - np.interp(grid, fr, ry)])
+    grid = np.arange(PAD // 2 + 1) * min(s, s_ref) / PAD
+    mx, my = _profiles_at(psf, s, grid)
+    rx, ry = _profiles_at(reference, s_ref, grid)
+    diff = np.concatenate([mx - rx, my - ry])
     band = np.concatenate([grid, grid])
     low = band <= 0.5
     return {LOW: _rms(diff[low]), HIGH: _rms(diff[~low])}
+
+
+def _profiles_at(psf: np.ndarray, s: int, freqs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The x and y MTF profiles of `profiles` at any ``freqs`` (cycles per channel pixel).
+
+    Exact at every frequency, not interpolated between FFT bins: the discrete-time Fourier
+    transform of the kernel's projections on the x and y axes (Fourier slice theorem, as in
+    `profiles`), whose samples lie 1/s channel pixel apart.
+    """
+    psf = np.asarray(psf, dtype=np.float64)
+    phase = np.exp(-2j * np.pi * np.outer(freqs, np.arange(max(psf.shape))) / s)
+    otf_x = phase[:, : psf.shape[1]] @ psf.sum(axis=0)
+    otf_y = phase[:, : psf.shape[0]] @ psf.sum(axis=1)
+    dc = max(abs(float(psf.sum())), 1e-300)
+    return np.abs(otf_x) / dc, np.abs(otf_y) / dc
 
 
 def _rms(values: np.ndarray) -> float:
