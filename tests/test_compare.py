@@ -159,6 +159,8 @@ def test_compare_cli_with_truth(edge_dng, capsys):
     summary = json.loads((out / "compare.json").read_text())
     errors = summary["errors"]
     assert summary["against"] == "truth"
+    # the grid the truth was read on is said: without -s, the Bernoulli s (4), whatever each method's own s
+    assert summary["truth_s"] == 4 and "truth: read on the s = 4 grid" in text
     # the strong penalty's high-frequency error is the larger one (see the test above)
     assert errors["sharp-edge target w=2e+06 edges.dng"][HIGH] > errors["sharp-edge target w=2 edges.dng"][HIGH]
     figure = cv2.imread(str(out / "compare.png"))
@@ -431,3 +433,27 @@ def test_compare_errors_between_methods_are_one_value_per_pair(tmp_path):
     assert len(shown) == 2 and shown[0] == shown[1]
     assert "cycles per channel pixel (Nyquist 0.5)." not in done.stdout
     assert "MTF error: RMS difference of the x and y MTF profiles (unitless)" in done.stdout
+
+
+@pytest.mark.parametrize("kind, words", [
+    ("complex", "real"), ("strings", "real"), ("three-d", "2-D"), ("even", "odd"), ("nan", "finite"),
+    ("negative", "positive mass"), ("missing", "no such file"), ("folder", "is a folder"),
+])
+def test_compare_refuses_a_truth_that_is_no_psf(tmp_path, kind, words):
+    """A --truth that is not a real, finite, 2-D, odd-sized array of positive mass is one line (exit 2), no
+    warning text (numpy's ComplexWarning on a complex array), nothing written; a missing one is "no such file",
+    as every other file psfd reads."""
+    truth = tmp_path / f"{kind}.npy"
+    arrays = {"complex": np.ones((17, 17)) * (1 + 1j) / 289, "strings": np.full((17, 17), "1"),
+              "three-d": np.ones((3, 17, 17)), "even": np.ones((16, 16)), "nan": np.full((17, 17), np.nan),
+              "negative": -np.ones((17, 17))}
+    if kind in arrays:
+        np.save(truth, arrays[kind])
+    if kind == "folder":
+        truth.mkdir()
+    out = tmp_path / "never"
+    done = psfd_cli("compare", DATA / "img_example.pgm", "--truth", truth, "--out", out)
+    assert done.returncode == 2
+    assert done.stderr.startswith(f"psfd: error: {truth}: ") and done.stderr.count("\n") == 1, done.stderr
+    assert words in done.stderr and "Warning" not in done.stderr
+    assert done.stdout == "" and not out.exists()

@@ -49,7 +49,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("frames", nargs="+", metavar="FRAME", help="RAW file or single-channel image")
     parser.add_argument("--truth", metavar="PSF.npy",
-                        help=f"true PSF on the -s grid (default s {DEFAULT_S[BERNOULLI]})")
+                        help=f"true PSF (.npy) on the -s grid (without -s: s {DEFAULT_S[BERNOULLI]}, whatever "
+                             "each method's own s)")
     parser.add_argument("--out", metavar="DIR", help="write compare.png, compare.json and the estimates here")
     parser.add_argument("--force", action="store_true", help="replace --out if it holds an earlier comparison")
     parser.add_argument("--channel", help="Bayer plane of RAW files: r, g1, g2 or b (default g1; a single-channel "
@@ -85,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
         raise EstimationError(f"no method could estimate a PSF ({reasons})")
     table = mtf.error_table({e.label: (e.psf.psf, e.psf.s) for e in done},
                             None if truth is None else (truth, truth_s))
-    print_table(estimates, table, truth is not None)
+    print_table(estimates, table, truth is not None, truth_s=truth_s)
     if args.out is not None:
         write_outputs(Path(args.out), done, table, truth, truth_s, force=args.force, inputs=inputs)
         print(f"wrote the comparison to {args.out}")
@@ -93,20 +94,29 @@ def run(args: argparse.Namespace) -> int:
 
 
 def load_truth(path: str, s: int):
-    """A true PSF from .npy: 2-D, odd-sized, finite, with positive mass."""
+    """A true PSF from .npy: real, 2-D, odd-sized, finite, with positive mass."""
     import numpy as np
 
     from psfd.vocabulary import check_image_size
 
+    if Path(path).is_dir():
+        raise BadInputError(f"{path}: is a folder, not a .npy array")
+    if not Path(path).is_file():  # the wording of every other file psfd reads
+        raise BadInputError(f"{path}: no such file")
     try:  # mapped, not read: the header's shape is checked before anything is allocated
         psf = np.load(path, allow_pickle=False, mmap_mode="r")
     except (OSError, ValueError) as exc:
         raise BadInputError(f"{path}: not a readable .npy array ({type(exc).__name__})") from None
+    shape = "a real, finite 2-D array of odd size"
+    # integers or floats only: a cast from complex drops the imaginary part (with a ComplexWarning), one
+    # from text parses it, from booleans gives 0 and 1
+    if psf.dtype.kind not in "iuf":
+        raise BadInputError(f"{path}: a PSF must be {shape} on the {s}-times grid, not of {psf.dtype} values")
     if psf.ndim == 2:
         check_image_size(psf.shape[1], psf.shape[0], path)
     psf = np.array(psf, dtype=np.float64)
     if psf.ndim != 2 or psf.shape[0] % 2 == 0 or psf.shape[1] % 2 == 0 or not np.all(np.isfinite(psf)):
-        raise BadInputError(f"{path}: a PSF must be a finite 2-D array of odd size on the {s}-times grid")
+        raise BadInputError(f"{path}: a PSF must be {shape} on the {s}-times grid")
     if psf.sum() <= 0:
         raise BadInputError(f"{path}: the PSF has no positive mass")
     return psf / psf.sum()
@@ -388,7 +398,9 @@ class _Message:
 # ---------------------------------------------------------------- table, figure and files
 
 
-def print_table(estimates: list[Estimate], table: dict, with_truth: bool, stream=None) -> None:
+def print_table(estimates: list[Estimate], table: dict, with_truth: bool, stream=None,
+                truth_s: int | None = None) -> None:
+    """The comparison table on ``stream`` (stdout); ``truth_s``: the s grid the truth was read on, said under it."""
     from psfd.cli.output import fmt
     from psfd.estimator.mtf import HIGH, LOW
 
@@ -421,6 +433,9 @@ def print_table(estimates: list[Estimate], table: dict, with_truth: bool, stream
     if shown:
         print("MTF error: RMS difference of the x and y MTF profiles (unitless), up to and above the Nyquist "
               "frequency, 0.5 cycles per channel pixel.", file=stream)
+    if with_truth and truth_s is not None:  # without -s not every method's own s: a truth on another is misread
+        print(f"truth: read on the s = {truth_s} grid (samples 1/{truth_s} channel pixel apart); -s sets it.",
+              file=stream)
     if any(e.psf is not None for e in estimates):  # a noise figure was printed
         print("noise: each estimate's noise floor over its kernel's L2 norm (its relative error from sensor noise).",
               file=stream)
@@ -439,6 +454,7 @@ def write_outputs(out: Path, estimates: list[Estimate], table: dict, truth, s: i
     summary = {
         "errors": table,
         "against": "truth" if truth is not None else "each other",
+        **({"truth_s": s} if truth is not None else {}),
         "methods": {e.label: {"method": e.psf.method, "params": e.psf.params, "warnings": e.psf.warnings,
                               **e.psf.metrics()} for e in estimates},
     }
