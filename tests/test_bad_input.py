@@ -95,7 +95,7 @@ def test_the_pixel_bound_admits_the_largest_sensors():
 @pytest.mark.parametrize("argv, words", [
     (["estimate", "bernoulli", TARGET, "-s", "1000"], "-s must be"),
     (["estimate", "bernoulli", TARGET, "--support", "100001"], "--support must be"),
-    (["estimate", "bernoulli", TARGET, "--grid", "100000x1"], "--grid must be"),
+    (["estimate", "bernoulli", TARGET, "--grid", "100000x1"], "--grid: N and M from 1 to 32"),
     (["estimate", "bernoulli", TARGET, "-s", "99999999999999999999999"], "-s must be"),
     (["capture", "--aperture", "5.6", "--simulate", "--workers", "100000"], "--workers"),
     (["capture", "--aperture", "5.6", "--simulate", "--backlog", "100000000"], "--backlog"),

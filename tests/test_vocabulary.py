@@ -43,7 +43,7 @@ def test_sizes_at_their_bounds_pass():
 @pytest.mark.parametrize("argv, message", [
     (["estimate", "bernoulli", "x.dng", "-s", "1000"], "-s must be a positive integer up to 8"),
     (["estimate", "two-photo", "a.dng", "b.dng", "--support", "100001"], "--support must be an odd integer"),
-    (["estimate", "sharp-edge", "x.dng", "--grid", "100000x1"], "--grid must be [nx, ny]"),
+    (["estimate", "sharp-edge", "x.dng", "--grid", "100000x1"], "--grid: N and M from 1 to 32, got 100000x1"),
     (["compare", "x.dng", "-s", "9"], "-s must be a positive integer up to 8"),
 ])
 def test_huge_sizes_are_refused_on_the_command_line_before_any_file_is_read(argv, message, capsys):
