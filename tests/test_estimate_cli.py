@@ -659,3 +659,16 @@ def test_an_empty_read_only_out_folder_is_refused_not_replaced(tmp_path):
     assert done.returncode == 2 and done.stderr == f"psfd: error: {out}: not a writable folder\n", done.stderr
     assert stat.S_IMODE(out.stat().st_mode) == 0o555 and not any(out.iterdir())
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ro"]  # no staging folder left beside it
+
+
+@pytest.mark.parametrize("method", ["bernoulli", "sharp-edge", "two-photo"])
+def test_an_image_too_small_for_any_estimate_is_one_bad_input_line_naming_it(tmp_path, method):
+    """Every method refuses it alike, before any work: exit 2, the file named (it was exit 2 without the file
+    from one method and exit 3, "0 usable pixels", from another)."""
+    tiny = tmp_path / "tiny.pgm"
+    assert cv2.imwrite(str(tiny), np.full((8, 12), 128, np.uint8))
+    frames = [tiny, tiny] if method == "two-photo" else [tiny]
+    done = subprocess.run([sys.executable, "-m", "psfd", "estimate", method, *map(str, frames)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr == f"psfd: error: {tiny}: 12x8 pixels, too small for any estimate (at least 16x16)\n"

@@ -56,8 +56,8 @@ def test_pgm_is_one_plane_named_mono(data_dir):
 
 def test_sixteen_bit_pgm_white_level_comes_from_its_header(tmp_path):
     path = tmp_path / "w.pgm"
-    body = np.full((4, 5), 4095, dtype=">u2")
-    path.write_bytes(b"P5\n5 4\n4095\n" + body.tobytes())
+    body = np.full((16, 20), 4095, dtype=">u2")  # the smallest plane psfd reads (raw.MIN_SIDE)
+    path.write_bytes(b"P5\n20 16\n4095\n" + body.tobytes())
     frame = raw.load_frame(path, "mono")
     assert frame.white == 4095 and frame.saturated.all()
 

@@ -103,13 +103,28 @@ def load_frames(path: str | os.PathLike, channel: str = "all") -> list[Frame]:
         # never relabelled: a Bayer name would make its pitch twice the photosite's (mtf.channel_pitch_mm)
         if channel not in ("all", MONO):
             raise BadInputError(f"{path}: has no {channel} channel (a single-channel image: its one plane is mono)")
-        return [_load_single_channel(path)]
+        return _large_enough(path, [_load_single_channel(path)])
     planes = _load_raw(path, None if channel == "all" else channel)
     if channel == "all":
-        return [planes[c] for c in CHANNELS if c in planes]
+        return _large_enough(path, [planes[c] for c in CHANNELS if c in planes])
     if channel not in planes:
         raise BadInputError(f"{path}: has no {channel} channel (has {', '.join(planes)})")
-    return [planes[channel]]
+    return _large_enough(path, [planes[channel]])
+
+
+# channel pixels a plane needs on each side for any estimate (the target detector's smallest image)
+MIN_SIDE = 16
+
+
+def _large_enough(path: Path, frames: list[Frame]) -> list[Frame]:
+    """``frames``, or the one bad-input error of a file too small for any method, naming it."""
+    for frame in frames:
+        rows, cols = frame.shape
+        if min(rows, cols) < MIN_SIDE:
+            plane = "" if frame.channel == MONO else f" ({frame.channel} plane)"
+            raise BadInputError(f"{path}: {cols}x{rows} pixels{plane}, too small for any estimate (at least "
+                                f"{MIN_SIDE}x{MIN_SIDE})")
+    return frames
 
 
 def load_frame(path: str | os.PathLike, channel: str | None = None) -> Frame:
