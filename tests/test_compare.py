@@ -233,6 +233,20 @@ def test_a_failed_comparison_figure_leaves_no_output_folder(tmp_path, monkeypatc
     assert list(tmp_path.iterdir()) == []
 
 
+def test_compare_that_cannot_write_prints_one_error_line_and_no_table(tmp_path, monkeypatch, capsys):
+    """As `estimate`: the results are written before the table is printed, so a full disk gives the one error
+    line, not a table of results that were never written followed by the error."""
+    def disk_full(curves, against_truth=False):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(figures, "comparison_figure", disk_full)
+    example = Path(__file__).parent / "data" / "img_example.pgm"
+    code = main(["compare", str(example), "--out", str(tmp_path / "cmp")])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == "" and err.count("\n") == 1 and "No space left on device" in err
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.fixture(scope="module")
 def real_pair_alone():
     """The real pair's frames and each method run alone in this process: the two-photo estimate, then the

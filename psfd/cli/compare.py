@@ -86,9 +86,10 @@ def run(args: argparse.Namespace) -> int:
         raise EstimationError(f"no method could estimate a PSF ({reasons})")
     table = mtf.error_table({e.label: (e.psf.psf, e.psf.s) for e in done},
                             None if truth is None else (truth, truth_s))
+    if args.out is not None:  # written before anything is printed: a write that fails leaves one error line only
+        write_outputs(Path(args.out), done, table, truth, truth_s, force=args.force, inputs=inputs)
     print_table(estimates, table, truth is not None, truth_s=truth_s)
     if args.out is not None:
-        write_outputs(Path(args.out), done, table, truth, truth_s, force=args.force, inputs=inputs)
         print(f"wrote the comparison to {args.out}")
     return 0
 
