@@ -19,10 +19,8 @@ catalogues, so an old plan must still parse and resume).
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import tomllib
 import numbers
 from collections.abc import Mapping
 from pathlib import Path
@@ -213,6 +211,9 @@ def plan_content(text: str) -> str:
     list, does. A text that is not TOML (a catalogue may hold one) is only itself: a JSON list of it,
     which the content of no TOML text is.
     """
+    import json  # here, not at the top: every command imports this module, `psfd --version` included,
+    import tomllib  # and these two cost ~18 ms that only the commands comparing plans need
+
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError:
