@@ -33,6 +33,9 @@ interleaved with it, so the machine's load weighs on both alike:
 figure on extracted planes, 2.1 s per 1953 x 1301 plane (issue 11), times
 the four Bayer planes.
 
+The ``--out`` cases time the same commands writing their results (every PSF's
+files and figure, or ``--no-figures``), as a user keeps them.
+
 The peak resident memory of each command (median over the runs, MB) is
 printed beside its time.
 
@@ -42,6 +45,7 @@ Usage: python bench/bench_frames.py [--repeat N] [--reference CHECKOUT] [--keep 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import statistics
 import subprocess
@@ -55,10 +59,15 @@ import whole  # noqa: E402
 C_PLANE_SECONDS = 2.1  # published C program, whole process, one 1953x1301 plane on this kind of machine
 SENSOR = (4000, 6000)
 FRAMES = {"advised": 0.3, "large": 1.05}  # name: channel pixels per cell
-CASES = [  # (case, frame, extra arguments, goal in seconds)
+OUT = ["--out", "results", "--force"]  # in the frames' folder, replaced by each run
+CASES = [  # (case, frame, extra arguments, goal in seconds or None)
     ("advised", "advised", ["--channel", "all"], 2.5),
     ("large", "large", ["--channel", "all", "--grid", "10x10"], 5.0),
     ("large -s 2", "large", ["--channel", "all", "--grid", "10x10", "-s", "2"], 5.0),
+    # the same with the results written, as a user keeps them: a figure per PSF, or none
+    ("advised --out", "advised", ["--channel", "all", *OUT], None),
+    ("large --out", "large", ["--channel", "all", "--grid", "10x10", *OUT], None),
+    ("large --no-figures", "large", ["--channel", "all", "--grid", "10x10", *OUT, "--no-figures"], None),
 ]
 
 
@@ -73,9 +82,14 @@ def make_frame(path: Path, pixels_per_cell: float) -> None:
     subprocess.run([sys.executable, "-c", code, str(path)], check=True)
 
 
-def timed(command: list[str], env: dict, cwd: Path) -> tuple[float, float]:
-    """Wall seconds and peak resident memory (MB, the largest of the process and the workers it waited for)."""
+def timed(command: list[str], env: dict, cwd: Path, reference: bool = False) -> tuple[float, float]:
+    """Wall seconds and peak resident memory (MB, the largest of the process and the workers it waited for).
+
+    A reference checkout that fails (an older one without the case's option) gives NaN; ours stops the run.
+    """
     done = whole.run(command, env, str(cwd))
+    if done.code and reference:
+        return math.nan, math.nan
     if done.code:
         sys.exit(f"{' '.join(command)} failed:\n{done.error}")
     return done.wall, done.peak_mib
@@ -102,7 +116,7 @@ def main() -> None:
         folder.mkdir(parents=True, exist_ok=True)
         our_env = checkout_env(Path(__file__).resolve().parents[1])
         reference_env = checkout_env(Path(args.reference)) if args.reference else None
-        print(f"{'case':>10} {'psfd s':>7} {'ref s':>7} {'ratio':>6} {'goal s':>7} {'psfd MB':>8} {'ref MB':>7}   reference")
+        print(f"{'case':>18} {'psfd s':>7} {'ref s':>7} {'ratio':>6} {'goal s':>7} {'psfd MB':>8} {'ref MB':>7}   reference")
         for name, frame_name, extra, goal in CASES:
             frame = folder / f"{frame_name}.dng"
             if not frame.exists():
@@ -112,14 +126,16 @@ def main() -> None:
             for _ in range(args.repeat):  # interleaved: both see the same load
                 ours.append(timed(command, our_env, folder))
                 if reference_env is not None:
-                    theirs.append(timed(command, reference_env, folder))
+                    theirs.append(timed(command, reference_env, folder, reference=True))
             mine, mine_mb = (statistics.median(run[j] for run in ours) for j in (0, 1))
             if reference_env is not None:
                 ref, ref_mb = (statistics.median(run[j] for run in theirs) for j in (0, 1))
                 label = f"psfd at {args.reference}"
             else:
                 ref, ref_mb, label = 4 * C_PLANE_SECONDS, float("nan"), "C program, 4 planes (issue 11)"
-            print(f"{name:>10} {mine:7.2f} {ref:7.2f} {mine / ref:6.2f} {goal:7.1f} {mine_mb:8.0f} {ref_mb:7.0f}   {label}")
+            goal_text = "-" if goal is None else f"{goal:.1f}"
+            print(f"{name:>18} {mine:7.2f} {ref:7.2f} {mine / ref:6.2f} {goal_text:>7} {mine_mb:8.0f} {ref_mb:7.0f}   "
+                  f"{label}")
 
 
 if __name__ == "__main__":

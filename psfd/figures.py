@@ -33,7 +33,7 @@ if TYPE_CHECKING:  # pragma: no cover - types only
     from matplotlib.figure import Figure
 
 __all__ = ["FORMATS", "Sensor", "array_figure", "can_write", "comparison_figure", "pixel_borders", "psf_figure",
-           "report_figure", "save", "save_array", "save_comparison", "save_psf", "save_report"]
+           "report_figure", "PSFFigures", "save", "save_array", "save_comparison", "save_psf", "save_report"]
 
 # Suffixes matplotlib writes without extra libraries: raster for viewing, vector for papers and print.
 FORMATS = ("png", "pdf", "svg", "eps", "jpg", "jpeg", "tif", "tiff", "webp")
@@ -132,11 +132,9 @@ def pixel_borders(size: int, s: int) -> list[float]:
     return [m + 0.5 for m in range(-math.ceil(half) - 1, math.ceil(half) + 1) if abs(m + 0.5) < half - 1e-9]
 
 
-def _draw_pixel_grid(ax: Any, shape: tuple[int, int], s: int) -> None:
-    for x in pixel_borders(shape[1], s):
-        ax.axvline(x, color="0.75", lw=0.6, alpha=0.7)
-    for y in pixel_borders(shape[0], s):
-        ax.axhline(y, color="0.75", lw=0.6, alpha=0.7)
+def _draw_pixel_grid(ax: Any, shape: tuple[int, int], s: int) -> list:
+    lines = [ax.axvline(x, color="0.75", lw=0.6, alpha=0.7) for x in pixel_borders(shape[1], s)]
+    return lines + [ax.axhline(y, color="0.75", lw=0.6, alpha=0.7) for y in pixel_borders(shape[0], s)]
 
 
 def _kernel_axes(ax: Any, title: str) -> None:
@@ -171,46 +169,97 @@ def psf_figure(est: PSF, pitch_um: float | None = None) -> Figure:
 
     ``pitch_um``: the photosite pitch, for a second frequency axis in line pairs per mm.
     """
-    from matplotlib.colors import LogNorm, Normalize
+    panels = _PSFPanels(*_psf_layout(est, pitch_um))
+    panels.show(est)
+    return panels.fig
 
-    psf, s = est.psf, est.s
-    fig = _figure(16.5, 5.2)
-    fig.subplots_adjust(left=0.05, right=0.985, bottom=0.11, top=0.83, wspace=0.42)
-    ax_lin, ax_log, ax_mtf = fig.subplots(1, 3, width_ratios=[1, 1, 1.3])
-    extent = kernel_extent(psf.shape, s)
-    peak = float(psf.max())
-    negative = bool((psf < 0).any())
 
-    image = ax_lin.imshow(psf, cmap=_cmap("inferno", under="black"), norm=Normalize(0.0, peak), extent=extent,
-                          interpolation="nearest")
-    _draw_pixel_grid(ax_lin, psf.shape, s)
-    _kernel_axes(ax_lin, "linear scale" + (" (negative values drawn as 0)" if negative else ""))
-    bar = fig.colorbar(image, ax=ax_lin, shrink=0.85, extend="min" if negative else "neither")
-    bar.set_label(VALUE_LABEL)
+def _psf_layout(est: PSF, pitch_um: float | None) -> tuple:
+    """What a PSF figure's axes, ticks and labels depend on: estimates that agree on it share all but their
+    data (`PSFFigures`). The MTF axis grows above 1 only for a kernel with negative lobes."""
+    _, mx, my = mtf.profiles(est.psf, est.s)
+    # an MTF above 1 (negative lobes) is shown, not clipped; the axis grows in tenths, which most such kernels share
+    top = max(1.0, math.ceil(max(float(mx.max()), float(my.max())) * 10.0 - 1e-9) / 10.0)
+    lp_mm = mtf.lp_per_mm(1.0, pitch_um, est.channel) if pitch_um else None
+    return est.psf.shape, est.s, lp_mm, top, bool((est.psf < 0).any())
 
-    floor = peak * 10.0 ** -LOG_DECADES
-    image = ax_log.imshow(np.where(psf > 0, psf, np.nan), cmap=_cmap("inferno", under="black", bad=NEGATIVE),
-                          norm=LogNorm(floor, peak), extent=extent, interpolation="nearest")
-    _draw_pixel_grid(ax_log, psf.shape, s)
-    _kernel_axes(ax_log, f"log scale, {LOG_DECADES} decades\n(black: below, blue: negative or 0)")
-    bar = fig.colorbar(image, ax=ax_log, shrink=0.85, extend="min")
-    bar.set_label(VALUE_LABEL)
-    per_sample = _per_sample(est)
-    if per_sample and floor < per_sample < peak:
-        bar.ax.axhline(per_sample, color="white", lw=2)
-        bar.set_label(VALUE_LABEL + "\nwhite line: noise floor per sample")
 
-    _mtf_axes(ax_mtf, est, pitch_um)
-    m = est.metrics()
-    fig.suptitle(
-        f"{est.method} PSF, channel {est.channel}, field ({est.field[0]:.2f}, {est.field[1]:.2f}) of "
-        f"{', '.join(Path(p).name for p in est.sources) or 'an image'}\n"
-        f"s = {s} (grid lines: channel pixels), support {psf.shape[0]} samples = {psf.shape[0] / s:.2f} px;  "
-        f"FWHM x {_num(m['fwhm_x'], '.2f')} y {_num(m['fwhm_y'], '.2f')} px;  "
-        f"noise floor {_num(est.relative_noise, '.1%')} of the kernel's L2 norm ({_num(per_sample, '.1e')} per sample)",
-        fontsize=10,
-    )
-    return fig
+class _PSFPanels:
+    """One `psf_figure` laid out for a `_psf_layout`, and the artists that show an estimate on it.
+
+    `show` puts an estimate's data into the artists it returns, in the order they are drawn; everything
+    else (axes, ticks, labels, the pixel grid's place, the Nyquist line) is the same for every estimate of
+    the layout. The z-orders put the artists an estimate changes above the ones it does not, so that
+    drawing them over the rest (`PSFFigures`) gives the figure drawn whole.
+    """
+
+    def __init__(self, shape: tuple[int, int], s: int, lp_mm: float | None, top: float, negative: bool):
+        from matplotlib.colors import LogNorm, Normalize
+        from matplotlib.patches import Rectangle
+
+        self.fig = fig = _figure(16.5, 5.6)
+        # room at the top for the two lines of the title above the MTF axes' title and lp/mm axis
+        fig.subplots_adjust(left=0.05, right=0.985, bottom=0.1, top=0.79, wspace=0.42)
+        self.ax_lin, self.ax_log, self.ax_mtf = fig.subplots(1, 3, width_ratios=[1, 1, 1.3])
+        extent = kernel_extent(shape, s)
+        blank = np.ones(shape)
+        self.linear = self.ax_lin.imshow(blank, cmap=_cmap("inferno", under="black"), norm=Normalize(0.0, 1.0),
+                                         extent=extent, interpolation="nearest")
+        _kernel_axes(self.ax_lin, "linear scale" + (" (negative values drawn as 0)" if negative else ""))
+        self.bar_lin = fig.colorbar(self.linear, ax=self.ax_lin, shrink=0.85, extend="min" if negative else "neither")
+        self.bar_lin.set_label(VALUE_LABEL)
+        self.log = self.ax_log.imshow(blank, cmap=_cmap("inferno", under="black", bad=NEGATIVE),
+                                      norm=LogNorm(10.0 ** -LOG_DECADES, 1.0), extent=extent, interpolation="nearest")
+        _kernel_axes(self.ax_log, f"log scale, {LOG_DECADES} decades\n(black: below, blue: negative or 0)")
+        self.bar_log = fig.colorbar(self.log, ax=self.ax_log, shrink=0.85, extend="min")
+        self.bar_log.set_label(VALUE_LABEL + "\nwhite line: noise floor per sample")
+        self.white = self.bar_log.ax.axhline(1.0, color="white", lw=2)
+        self.grid = [*_draw_pixel_grid(self.ax_lin, shape, s), *_draw_pixel_grid(self.ax_log, shape, s)]
+        # the noise floor band across the whole axes (as axhspan draws it, whose patch type changed in matplotlib 3.9)
+        self.band = self.ax_mtf.add_patch(Rectangle((0.0, 0.0), 1.0, 1.0, transform=self.ax_mtf.get_yaxis_transform(),
+                                                    color="0.6", alpha=0.35, lw=0, zorder=1.6))
+        self.curves = [self.ax_mtf.plot([], [], style, lw=1.8)[0] for style in ("-", "--")]
+        self.marks = [self.ax_mtf.plot([], [], "o", color=line.get_color(), ms=5)[0] for line in self.curves]
+        self.nyquist = _mtf_axes(self.ax_mtf, s, top, lp_mm)
+        self.title = fig.suptitle(" ", fontsize=10)
+
+    def show(self, est: PSF) -> list:
+        """Show ``est`` (of this layout) on the figure; the artists that changed, in drawing order."""
+        psf, s = est.psf, est.s
+        peak = float(psf.max())
+        self.linear.set_data(psf)
+        self.linear.norm.vmax = peak
+        floor = peak * 10.0 ** -LOG_DECADES
+        self.log.set_data(np.where(psf > 0, psf, np.nan))
+        self.log.norm.vmin, self.log.norm.vmax = floor, peak
+        per_sample = _per_sample(est)
+        self.white.set_ydata([per_sample or floor] * 2)
+        self.white.set_visible(bool(per_sample and floor < per_sample < peak))
+        band = mtf_noise_band(est)
+        self.band.set_visible(band is not None)
+        self.band.set_height(band or 0.0)
+        self.band.set_label(f"noise floor (1 sigma = {band:.3f})" if band is not None else "_band")
+        freqs, mx, my = mtf.profiles(psf, s)
+        for values, line, mark, name in zip((mx, my), self.curves, self.marks,
+                                            ("x (horizontal frequency)", "y (vertical frequency)")):
+            value = mtf.mtf50(freqs, values)
+            line.set_data(freqs, values)
+            line.set_label(f"{name}: MTF50 {_num(value, '.3f')}")
+            mark.set_data([value], [0.5])
+            mark.set_visible(math.isfinite(value))
+        legend = self.ax_mtf.legend(handles=[self.band, *self.curves, self.nyquist][0 if band is not None else 1:],
+                                    fontsize=8, loc="upper right")
+        m = est.metrics()
+        self.title.set_text(
+            f"{est.method} PSF, channel {est.channel}, field ({est.field[0]:.2f}, {est.field[1]:.2f}) of "
+            f"{', '.join(Path(p).name for p in est.sources) or 'an image'}\n"
+            f"s = {s} (grid lines: channel pixels), support {psf.shape[0]} samples = {psf.shape[0] / s:.2f} px;  "
+            f"FWHM x {_num(m['fwhm_x'], '.2f')} y {_num(m['fwhm_y'], '.2f')} px;  "
+            f"noise floor {_num(est.relative_noise, '.1%')} of the kernel's L2 norm ({_num(per_sample, '.1e')} per sample)"
+        )
+        spines = [*self.ax_lin.spines.values(), *self.ax_log.spines.values(), *self.ax_mtf.spines.values()]
+        return [self.linear, self.log, *self.grid, self.band, *self.curves, *self.marks, *spines,
+                self.bar_lin.ax, self.bar_log.ax, legend, self.title]
 
 
 def _per_sample(est: PSF) -> float | None:
@@ -222,31 +271,60 @@ def _num(value: float | None, spec: str) -> str:
     return "n/a" if value is None or not math.isfinite(value) else format(value, spec)
 
 
-def _mtf_axes(ax: Any, est: PSF, pitch_um: float | None) -> None:
-    """Horizontal (x) and vertical (y) MTF profiles up to s/2, Nyquist, MTF50 and the noise floor band."""
-    freqs, mx, my = mtf.profiles(est.psf, est.s)
-    band = mtf_noise_band(est)
-    if band is not None:
-        ax.axhspan(0.0, band, color="0.6", alpha=0.35, lw=0, label=f"noise floor (1 sigma = {band:.3f})")
-    for values, style, name in ((mx, "-", "x (horizontal frequency)"), (my, "--", "y (vertical frequency)")):
-        value = mtf.mtf50(freqs, values)
-        line, = ax.plot(freqs, values, style, lw=1.8, label=f"{name}: MTF50 {_num(value, '.3f')}")
-        if math.isfinite(value):
-            ax.plot([value], [0.5], "o", color=line.get_color(), ms=5)
-    ax.axhline(0.5, color="0.5", lw=0.6, ls=":")
-    ax.axvline(0.5, color="0.3", lw=0.8, ls="-.", label="Nyquist (0.5)")
-    top = max(1.0, float(mx.max()), float(my.max()))  # an MTF above 1 (negative lobes) is shown, not clipped
-    ax.set_xlim(0, freqs[-1])
+def _mtf_axes(ax: Any, s: int, top: float, lp_mm: float | None) -> Any:
+    """The MTF axes up to s/2 and ``top``, the 0.5 level and the lp/mm axis (``lp_mm``: lp/mm per cycle per
+    pixel); the Nyquist line, returned for the legend."""
+    # below the band and the curves (z-order 1.6 and 2), above the grid (1.5): see `_PSFPanels`
+    ax.axhline(0.5, color="0.5", lw=0.6, ls=":", zorder=1.55)
+    nyquist = ax.axvline(0.5, color="0.3", lw=0.8, ls="-.", label="Nyquist (0.5)", zorder=1.55)
+    ax.set_xlim(0, s / 2.0)
     ax.set_ylim(0, 1.05 * top)
     ax.set_xlabel(FREQ_LABEL)
     ax.set_ylabel("MTF")
     ax.set_title("MTF profiles", fontsize=10)
     ax.grid(alpha=0.25)
-    ax.legend(fontsize=8, loc="upper right")
-    if pitch_um:
-        scale = mtf.lp_per_mm(1.0, pitch_um, est.channel)
-        top_axis = ax.secondary_xaxis("top", functions=(lambda f: f * scale, lambda f: f / scale))
+    if lp_mm:
+        top_axis = ax.secondary_xaxis("top", functions=(lambda f: f * lp_mm, lambda f: f / lp_mm))
         top_axis.set_xlabel("line pairs per mm", fontsize=9)
+    return nyquist
+
+
+class PSFFigures:
+    """Writes `psf_figure`s of many estimates, drawing for each only what is its own.
+
+    Estimates of one `_psf_layout` (kernel shape, s, pitch, MTF range) share a figure: its axes, ticks
+    and labels are drawn once, and each estimate draws its data over a copy of them (Agg blitting, as
+    matplotlib's animation does: a whole figure costs 0.6 s of ticks and text, an estimate's part of it
+    0.2 s, mostly its colour bars and text). PNG files only; other formats are drawn whole (`save_psf`).
+    """
+
+    def __init__(self) -> None:
+        self._layouts: dict[tuple, tuple[_PSFPanels, Any]] = {}
+
+    def save(self, est: PSF, path: str | Path, pitch_um: float | None = None) -> None:
+        """Write the figure of ``est`` to ``path``, as `save_psf` does."""
+        path = Path(path)
+        if path.suffix.lower() != ".png":
+            save_psf(est, path, pitch_um)
+            return
+        layout = _psf_layout(est, pitch_um)
+        if layout not in self._layouts:
+            panels = _PSFPanels(*layout)
+            for artist in panels.show(est):
+                artist.set_animated(True)
+            panels.fig.canvas.draw()
+            self._layouts[layout] = panels, panels.fig.canvas.copy_from_bbox(panels.fig.bbox)
+        panels, background = self._layouts[layout]
+        canvas = panels.fig.canvas
+        canvas.restore_region(background)
+        for artist in panels.show(est):
+            artist.set_animated(True)  # a new legend
+            panels.fig.draw_artist(artist)
+        # the canvas is opaque: RGB, with the metadata `save` writes (compression 3: 40 % of level 6's time)
+        from matplotlib.image import imsave
+
+        imsave(path, np.asarray(canvas.buffer_rgba())[..., :3], format="png", dpi=DPI, metadata={"Creator": "psfd"},
+               pil_kwargs={"compress_level": 3})
 
 
 # ---------------------------------------------------------------- arrays beside an estimate

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import math
@@ -109,26 +110,37 @@ def test_write_estimates_files_round_trip(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
-def test_write_estimates_is_atomic(tmp_path, monkeypatch):
-    calls = {"n": 0}
-    real = figures.psf_figure
+def test_figures_drawn_by_forked_workers_are_each_estimates_own(tmp_path):
+    """Six estimates: two forked workers draw three figures each, every one the figure of its own estimate."""
+    estimates = [dataclasses.replace(synthetic(0), psf=gaussian(0.4 + 0.1 * n, 0.9)) for n in range(6)]
+    output.write_estimates(estimates, tmp_path / "out")
+    for n, est in enumerate(estimates):
+        figures.save_psf(est, tmp_path / "whole.png")
+        drawn = cv2.imread(str(tmp_path / "out" / f"IMG_0001_bernoulli_g1_w{n:02d}.png"))
+        assert np.array_equal(drawn, cv2.imread(str(tmp_path / "whole.png"))), n
 
-    def failing(est, pitch_um=None):
+
+@pytest.mark.parametrize("count", [2, 6])  # six: the figures are drawn by forked workers, which fail there
+def test_write_estimates_is_atomic(tmp_path, monkeypatch, count):
+    calls = {"n": 0}
+    real = figures.PSFFigures.save
+
+    def failing(self, est, path, pitch_um=None):
         calls["n"] += 1
         if calls["n"] == 2:
             raise OSError(28, "No space left on device")
-        return real(est, pitch_um)
+        return real(self, est, path, pitch_um)
 
-    monkeypatch.setattr(figures, "psf_figure", failing)
+    monkeypatch.setattr(figures.PSFFigures, "save", failing)
     with pytest.raises(BadInputError, match="cannot write results"):
-        output.write_estimates([synthetic(0), synthetic(1)], tmp_path / "new")
+        output.write_estimates([synthetic(n % 2) for n in range(count)], tmp_path / "new")
     assert list(tmp_path.iterdir()) == []  # neither the folder nor a temporary one
     existing = tmp_path / "old"
     existing.mkdir()
     (existing / "keep.txt").write_text("x")
     calls["n"] = 0
     with pytest.raises(BadInputError):
-        output.write_estimates([synthetic(0), synthetic(1)], existing)
+        output.write_estimates([synthetic(n % 2) for n in range(count)], existing)
     assert [p.name for p in existing.iterdir()] == ["keep.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
 
@@ -389,6 +401,20 @@ def test_target_end_to_end_on_simulated_dng(tmp_path, capsys):
     for channel in raw.CHANNELS:
         estimate = np.load(out / f"sim_bernoulli_{channel}_w00.npy")
         assert relative_error(estimate, truth) < DNG_TOLERANCE, channel
+
+
+def test_no_figures_writes_the_psf_files_and_metrics_only(tmp_path, capsys, data_dir):
+    out = tmp_path / "out"
+    code, stdout, stderr = run(capsys, "estimate", "bernoulli", data_dir / "img_example.pgm", "--out", out,
+                               "--no-figures")
+    assert code == 0, stderr
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [f"img_example_bernoulli_mono_w00.{ext}" for ext in ("npy", "tif", "json")] + ["metrics.csv"])
+    assert "wrote 4 files" in stdout
+    # without --out there is nothing to leave figures out of: one line, before any work
+    code, stdout, stderr = run(capsys, "estimate", "bernoulli", data_dir / "img_example.pgm", "--no-figures")
+    assert code == 2 and stdout == "" and stderr == "psfd: error: --no-figures leaves figures out of --out: " \
+        "give --out DIR too\n"
 
 
 def box_gaussian(sigma: float, s: int = 4, support: int = 17) -> np.ndarray:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 from matplotlib.collections import PathCollection, TriMesh
@@ -90,6 +91,22 @@ def test_psf_figure_linear_log_and_mtf_with_noise_band():
     assert len(top) == 1
     assert "channel g1" in fig._suptitle.get_text() and "s = 4" in fig._suptitle.get_text()
     assert figures.mtf_noise_band(estimate(psf, noise_floor=None)) is None
+
+
+def test_psf_figures_drawn_in_turn_match_each_figure_drawn_whole(tmp_path):
+    """`PSFFigures` draws an estimate's own artists over the axes its layout shares: every pixel as the whole
+    figure (`save_psf`), whatever the estimates before it left on the canvas."""
+    sharpened = 1.6 * gaussian(0.5, 0.5) - 0.6 * gaussian(1.2, 1.2)  # MTF above 1: a taller MTF axis
+    kernels = [estimate(gaussian(0.6, 0.9)), estimate(gaussian(1.1, 0.5), noise_floor=None),
+               estimate(gaussian(0.3, 0.3), noise_floor=2e-2), estimate(sharpened / sharpened.sum()),
+               estimate(gaussian(0.6, 0.9))]
+    drawer = figures.PSFFigures()
+    for n, est in enumerate(kernels):
+        drawer.save(est, tmp_path / f"turn{n}.png", pitch_um=4.0)
+        figures.save_psf(est, tmp_path / f"whole{n}.png", pitch_um=4.0)
+        turn, whole = (cv2.imread(str(tmp_path / f"{k}{n}.png")) for k in ("turn", "whole"))
+        assert turn.shape == whole.shape and np.array_equal(turn, whole), n
+    assert len(drawer._layouts) == 2  # the Gaussians shared one: all but the first were drawn over it
 
 
 def test_comparison_figure_does_not_clip_and_its_legend_matches_the_lines():
@@ -232,7 +249,15 @@ def test_nothing_is_cut_off_at_the_figure_edges():
     truth = gaussian(0.5, 0.5, support=33)
     assert inside_figure(figures.comparison_figure([("truth", truth, 4), (label, gaussian(0.7, 0.6, support=33), 4)],
                                                    against_truth=True)) == []
-    assert inside_figure(figures.psf_figure(estimate(gaussian(0.6, 0.9)), pitch_um=4.0)) == []
+    fig = figures.psf_figure(estimate(gaussian(0.6, 0.9)), pitch_um=4.0)
+    assert inside_figure(fig) == []
+    # the title's two lines (of a frame with a long name) clear every panel's title and the lp/mm axis
+    renderer = fig.canvas.get_renderer()
+    fig._suptitle.set_text(fig._suptitle.get_text().replace("IMG_0001.dng", "IMG_0001_with_a_long_name.CR2"))
+    title = fig._suptitle.get_window_extent(renderer)
+    below = [ax.title.get_window_extent(renderer) for ax in fig.axes if ax.get_title()]
+    below += [child.get_tightbbox(renderer) for ax in fig.axes for child in ax.child_axes]
+    assert len(below) == 4 and not any(box.overlaps(title) for box in below)
     rows, arrays = rows_for((4.0, 11.0), [(x, y) for y in (0.2, 0.5, 0.8) for x in (0.15, 0.5, 0.85)])
     assert inside_figure(figures.report_figure(rows, arrays, "g1")) == []
 

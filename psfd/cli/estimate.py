@@ -77,12 +77,17 @@ def _common(p: argparse.ArgumentParser, method: str) -> None:
     options.add_size_options(p, method)
     p.add_argument("--out", metavar="DIR", help="write .npy, .tif, .json, .png figures and metrics.csv here")
     p.add_argument("--force", action="store_true", help="replace --out if it holds earlier results")
+    p.add_argument("--no-figures", action="store_true",
+                   help="write the PSF files and metrics.csv in --out without the .png figures, which take most "
+                        "of the time of a large --grid")
     p.add_argument("--json", action="store_true", help="print one JSON object per estimate per line")
 
 
 def _settings(args: argparse.Namespace, method: str) -> dict:
     """The options every method shares, checked; the output folder checked before any work."""
     settings = options.sizes(args, method)
+    if args.no_figures and args.out is None:
+        raise BadInputError("--no-figures leaves figures out of --out: give --out DIR too")
     if args.out is not None:
         from psfd.cli import output
 
@@ -125,7 +130,8 @@ def _report(args: argparse.Namespace, estimates: list) -> int:
     from psfd.cli import output
 
     if args.out is not None:
-        files = output.write_estimates(estimates, args.out, force=args.force, inputs=_inputs(args))
+        files = output.write_estimates(estimates, args.out, force=args.force, inputs=_inputs(args),
+                                       drawn=not args.no_figures)
     output.log_warnings(estimates)
     if args.json:
         output.print_json(estimates)

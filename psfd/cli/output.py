@@ -33,6 +33,7 @@ import numpy as np
 from psfd.errors import BadInputError, NoMatchError, path_reason
 from psfd.estimator.kernels import PSF
 from psfd.vocabulary import ALIASES, CHANNELS, METHODS, MONO
+from psfd.workers import forked_map, in_worker, usable_cores
 
 
 
@@ -209,27 +210,48 @@ def base_names(estimates: list[PSF]) -> list[str]:
     return names
 
 
-def _write_one(folder: Path, name: str, est: PSF, sensor: Any) -> list[str]:
+def _write_one(folder: Path, name: str, est: PSF, sensor: Any, drawn: bool) -> list[str]:
+    """The files of one estimate but its PSF figure (`_write_figures`); its other figures when ``drawn``."""
     import tifffile  # only the writers need these
 
     from psfd import figures
 
-    files = [f"{name}.npy", f"{name}.tif", f"{name}.png", f"{name}.json"]
+    files = [f"{name}.npy", f"{name}.tif", f"{name}.json"]
     np.save(folder / files[0], est.psf)
     meta = {"method": est.method, "channel": est.channel, "s": est.s, "field": [float(v) for v in est.field]}
     tifffile.imwrite(folder / files[1], est.psf.astype(np.float32), metadata=meta)
-    figures.save_psf(est, folder / files[2], sensor.pitch_um if sensor else None)
     # the provenance and metrics beside the arrays, so a folder of results describes itself
-    (folder / files[3]).write_text(json.dumps(estimate_json(est, sensor), allow_nan=False) + "\n")
+    (folder / files[2]).write_text(json.dumps(estimate_json(est, sensor), allow_nan=False) + "\n")
     for key, array in est.figures.items():
         label = re.sub(r"[^A-Za-z0-9._+-]", "_", key)
         array = np.asarray(array)
         np.save(folder / f"{name}.{label}.npy", array)
         files.append(f"{name}.{label}.npy")
-        if array.ndim == 2 and array.size:
+        if drawn and array.ndim == 2 and array.size:
             figures.save_array(array, folder / f"{name}.{label}.png", key, est)
             files.append(f"{name}.{label}.png")
     return files
+
+
+def _write_figures(jobs: list[tuple[PSF, Path, float | None]]) -> None:
+    """The PSF figures (estimate, path, pitch), on every usable core when there are several to share.
+
+    Each core draws one run of them with a `psfd.figures.PSFFigures`, whose first figure of a layout costs
+    three times the next ones: four figures are the fewest worth a fork.
+    """
+    from matplotlib.backends import backend_agg  # noqa: F401 - imported once here (0.7 s), not in every worker
+
+    from psfd import figures
+
+    workers = 1 if in_worker() or len(jobs) < 4 else min(usable_cores(), len(jobs) // 2)
+    runs = np.array_split(np.arange(len(jobs)), workers)
+
+    def draw(n: int) -> None:
+        drawer = figures.PSFFigures()
+        for i in runs[n]:
+            drawer.save(*jobs[i])
+
+    forked_map(draw, len(runs), workers)
 
 
 def write_estimates(
@@ -238,6 +260,7 @@ def write_estimates(
     extra: dict[str, Callable[[Path], None]] | None = None,
     force: bool = False,
     inputs: Iterable[str | os.PathLike] = (),
+    drawn: bool = True,
 ) -> list[Path]:
     """Write every estimate as .npy, 32-bit float .tif and a .png figure, plus its extra figures.
 
@@ -250,6 +273,7 @@ def write_estimates(
     ``extra`` maps further file names to functions that write them at the path
     given (e.g. a comparison figure), so they join the same atomic folder
     (`write_folder`: nothing is left half-written). ``force`` and ``inputs``: as for `check_out_dir`.
+    ``drawn=False`` leaves out the estimates' figures (the PNG files), the slowest part of a large grid.
 
     Returns
     -------
@@ -257,15 +281,21 @@ def write_estimates(
         The files written, in ``out_dir``.
     """
 
-    sensors = {path: source_sensor(path) for est in estimates for path in est.sources[:1]}
+    sensors = {path: source_sensor(path) for path in {est.sources[0] for est in estimates if est.sources}}
 
     def write(folder: Path) -> list[str]:
         files = []
         records = []
+        jobs = []
         for name, est in zip(base_names(estimates), estimates):
             sensor = sensors.get(est.sources[0]) if est.sources else None
-            files += _write_one(folder, name, est, sensor)
+            files += _write_one(folder, name, est, sensor, drawn)
             records.append({**estimate_record(est, sensor), "file": f"{name}.npy"})
+            if drawn:
+                jobs.append((est, folder / f"{name}.png", sensor.pitch_um if sensor else None))
+                files.append(f"{name}.png")
+        if jobs:
+            _write_figures(jobs)
         with open(folder / "metrics.csv", "w", newline="", encoding="utf-8") as stream:
             write_csv(records, stream)
         files.append("metrics.csv")
@@ -446,7 +476,7 @@ def estimate_json(est: PSF, sensor: Any = None) -> dict:
 def print_json(estimates: list[PSF], stream: TextIO | None = None) -> None:
     """One JSON object per estimate per line (`estimate_json`)."""
     stream = sys.stdout if stream is None else stream
-    sensors = {path: source_sensor(path) for est in estimates for path in est.sources[:1]}
+    sensors = {path: source_sensor(path) for path in {est.sources[0] for est in estimates if est.sources}}
     for est in estimates:
         sensor = sensors.get(est.sources[0]) if est.sources else None
         stream.write(json.dumps(estimate_json(est, sensor), allow_nan=False) + "\n")

@@ -22,6 +22,7 @@ well conditioned because the target u is Bernoulli(0.5) white noise
 from __future__ import annotations
 
 import contextlib
+import functools
 from typing import Callable
 
 import numpy as np
@@ -33,7 +34,7 @@ from psfd.estimator.kernels import PSF
 from psfd.estimator.nnls import _cholesky_solve, nnls_normal
 from psfd.estimator.raw import Frame
 from psfd.vocabulary import BERNOULLI, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, check_sizes, check_solver
-from psfd.workers import concurrently, usable_cores, worker_signals
+from psfd.workers import concurrently, forked_map, usable_cores
 
 __all__ = [
     "PatternBand", "WindowBand", "band_reach", "cross_validated", "estimate_frames", "estimate_plane",
@@ -1215,9 +1216,6 @@ def _correct(plane: _TargetPlane, noise: np.ndarray, s: int, support: int) -> _T
     return plane
 
 
-# Set in the parent before the workers fork, read by `_solve_group` in them: the
-# planes and bands are inherited, never pickled.
-_WORK: tuple = ()
 # s-grid samples of all windows together below which forking workers costs more than it gains
 _MIN_PARALLEL_SAMPLES = 200_000
 
@@ -1231,35 +1229,14 @@ def _run_windows(planes: list[_TargetPlane], bands: dict, groups: list[list[tupl
     what is returned (a `PSF`) where the window was solved: in a worker, in
     parallel, and only the records cross back to the parent, a group at a time.
     """
-    global _WORK
     if workers is None:
         samples = sum(_area(planes[i].windows[k]) * planes[i].s ** 2 for group in groups for i, k in group)
         workers = min(usable_cores(), len(groups)) if samples >= _MIN_PARALLEL_SAMPLES else 1
-    workers = max(1, min(int(workers), len(groups)))
-    if workers > 1:
-        import multiprocessing  # here, not at the top: 13 ms of the start-up of a one-window estimate
-
-        workers = workers if "fork" in multiprocessing.get_all_start_methods() else 1
-    _WORK = (planes, bands, groups, solver, record)
-    try:
-        if workers == 1:
-            return [_solve_group(n) for n in range(len(groups))]
-        pool = multiprocessing.get_context("fork").Pool(workers, initializer=worker_signals)
-        try:
-            results = pool.map(_solve_group, range(len(groups)), chunksize=1)
-            pool.close()
-        except BaseException:
-            pool.terminate()
-            raise
-        finally:
-            pool.join()
-        return results
-    finally:
-        _WORK = ()
+    return forked_map(functools.partial(_solve_group, planes, bands, groups, solver, record), len(groups), workers)
 
 
-def _solve_group(n: int) -> list:
-    planes, bands, groups, solver, record = _WORK
+def _solve_group(planes: list[_TargetPlane], bands: dict, groups: list[list[tuple[int, int]]], solver: str,
+                 record: Callable[[_TargetPlane, dict], object] | None, n: int) -> list:
     for band in bands.values():
         band.forget()
     out = []
