@@ -436,6 +436,12 @@ class Catalogue:
     def close(self) -> None:
         """Close the connection; a writer then keeps the WAL files readers without write access need."""
         with self._lock:
+            if not self.readonly:
+                # SQLite checkpoints the WAL into the file at close only when no other connection is
+                # open: with a reader open (a query, Datasette) the rows written would stay in the -wal
+                # alone, and a copy of the catalogue file would lack them. PASSIVE never waits.
+                with contextlib.suppress(sqlite3.Error):
+                    self.db.execute("PRAGMA wal_checkpoint(PASSIVE)")
             self.db.close()
             if not self.readonly:
                 self._keep_wal_files()
