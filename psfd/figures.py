@@ -438,9 +438,14 @@ def sagittal_meridional(psf: np.ndarray, s: int, field: tuple[float, float], asp
 
 
 def _group_rows(rows: list[dict]) -> dict[tuple, list[dict]]:
+    """Rows by (camera, lens, method, aperture). The camera names its body's serial: two bodies of one model
+    are two rows of the report, never tiles drawn over each other or MTF50 interpolated between them."""
     groups: dict[tuple, list[dict]] = {}
     for row in rows:
-        key = (row.get("camera") or "", row.get("lens") or "", row["method"], row.get("aperture") or 0.0)
+        camera = row.get("camera") or ""
+        if row.get("serial"):
+            camera = f"{camera} #{row['serial']}"
+        key = (camera, row.get("lens") or "", row["method"], row.get("aperture") or 0.0)
         groups.setdefault(key, []).append(row)
     return dict(sorted(groups.items()))
 
@@ -656,7 +661,8 @@ def _height_chart(ax: Any, bands: list, channel: str) -> None:
             means = [value[bins == b].mean() for b in np.unique(bins)]
             ax.plot(heights, means, style, color=colour, lw=1.3)
         label = f"f/{aperture:g}" if aperture else "f/?"
-        handles.append(Line2D([], [], color=colour, lw=2, label=f"{label} {method}"))
+        rig = f" {camera} {lens}" if len({band[0][:2] for band in bands}) > 1 else ""
+        handles.append(Line2D([], [], color=colour, lw=2, label=f"{label} {method}{rig}"))
     handles += [Line2D([], [], color="0.2", ls="-", marker="o", label="sagittal"),
                 Line2D([], [], color="0.2", ls="--", marker="s", mfc="none", label="meridional")]
     ax.set_xlabel("image height: distance from the image centre (photosites)")
