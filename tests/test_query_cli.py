@@ -65,6 +65,21 @@ def assert_one_line_error(code, err, expected_code, text):
     assert err.startswith("psfd: error:") and err.count("\n") == 1 and text in err
 
 
+def test_the_table_names_the_body_when_two_bodies_of_one_model_answer(capsys, catalogue):
+    with Catalogue(catalogue) as cat:  # a second body of the same model and lens, measured at the centre
+        rig = cat.add_rig(CameraInfo("Canon EOS 400D", "0777", "EF 50mm f/1.8", 50.0))
+        run = cat.start_run("other.toml", "other plan", rig, [("f5.6", {})])
+        cat.commit_step(run, "f5.6", [], [(PSF(gaussian(3.0), 4, "bernoulli", "g1", ["y.dng"], (0.5, 0.5),
+                                                (0, 0, 64, 64)), {"aperture": 5.6})])
+    code, out, _ = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "5.6", "--channel", "g1",
+                           "--near", "0.5,0.5")
+    header, *rows, _ = out.splitlines()
+    assert code == 0 and header.split()[:3] == ["id", "camera", "serial"]
+    assert sorted(row.split()[4] for row in rows) == ["0420", "0777"]  # after "Canon EOS 400D"
+    code, out, _ = run_cli(capsys, "query", "--catalogue", catalogue, "--camera", "0420", "--limit", "1")
+    assert code == 0 and "serial" not in out.splitlines()[0]  # one body: no column for it
+
+
 def test_query_table_and_note(capsys, catalogue):
     code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "5.6", "--channel", "g1")
     lines = out.splitlines()

@@ -580,6 +580,9 @@ def format_rows(rows: list[dict]) -> str:
     """Aligned text table of catalogue PSF rows (MTF50 in cycles per channel pixel, FWHM in channel pixels;
     MTF50 in lp/mm too when the rows carry it, `units`). Their units line is `units_line`."""
     columns = list(ROW_COLUMNS)
+    if len({(r["camera"], r.get("serial")) for r in rows}) > len({r["camera"] for r in rows}):
+        # two bodies of one model (`--near` keeps the nearest PSF of each): the serial tells their rows apart
+        columns.insert(2, ("serial", lambda r: r.get("serial") or "-"))
     if _has_lp_mm(rows):
         columns.insert(-1, ("lp/mm x/y", lambda r: f"{fmt(r.get('mtf50_x_lp_mm'), '.1f')}/"
                                                   f"{fmt(r.get('mtf50_y_lp_mm'), '.1f')}"))
