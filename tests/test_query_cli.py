@@ -80,6 +80,17 @@ def test_the_table_names_the_body_when_two_bodies_of_one_model_answer(capsys, ca
     assert code == 0 and "serial" not in out.splitlines()[0]  # one body: no column for it
 
 
+def test_metadata_describes_a_catalogue_and_refuses_what_is_not_one(capsys, catalogue, tmp_path):
+    code, out, err = run_cli(capsys, "metadata", "--catalogue", catalogue)
+    assert code == 0 and "cat" in json.loads(out)["databases"]
+    garbage = tmp_path / "notes.sqlite"
+    garbage.write_text("not a database")
+    for path in (tmp_path / "mistyped.sqlite", garbage):
+        code, out, err = run_cli(capsys, "metadata", "--catalogue", str(path), "--out", str(tmp_path / "m.json"))
+        assert_one_line_error(code, err, 5, path.name)
+        assert out == "" and not (tmp_path / "m.json").exists()
+
+
 def test_query_table_and_note(capsys, catalogue):
     code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "5.6", "--channel", "g1")
     lines = out.splitlines()

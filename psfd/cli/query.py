@@ -218,9 +218,11 @@ def run_report(args: argparse.Namespace) -> int:
 
 
 def run_metadata(args: argparse.Namespace) -> int:
-    from psfd.catalogue import datasette_metadata, default_path
+    from psfd.catalogue import Catalogue, datasette_metadata, default_path
 
     path = Path(args.catalogue) if args.catalogue else default_path()
+    # only a catalogue this psfd reads is described: a mistyped path or a newer schema is an error, not metadata
+    Catalogue(path, readonly=True).close()
     text = json.dumps(datasette_metadata(path.stem), indent=2) + "\n"
     if args.out is None:
         sys.stdout.write(text)
