@@ -436,15 +436,21 @@ class Catalogue:
     def close(self) -> None:
         """Close the connection; a writer then keeps the WAL files readers without write access need."""
         with self._lock:
-            if not self.readonly:
-                # SQLite checkpoints the WAL into the file at close only when no other connection is
-                # open: with a reader open (a query, Datasette) the rows written would stay in the -wal
-                # alone, and a copy of the catalogue file would lack them. PASSIVE never waits.
-                with contextlib.suppress(sqlite3.Error):
-                    self.db.execute("PRAGMA wal_checkpoint(PASSIVE)")
+            self._checkpoint()
             self.db.close()
             if not self.readonly:
                 self._keep_wal_files()
+
+    def _checkpoint(self) -> None:
+        """Copy the WAL's committed pages into the catalogue file, without waiting for readers (PASSIVE).
+
+        SQLite does it at close only when no other connection is open: with a reader open (a query,
+        Datasette), or in the service that keeps the catalogue open, the rows written would stay in the
+        -wal alone, and a copy of the catalogue file would lack them.
+        """
+        if not self.readonly:
+            with contextlib.suppress(sqlite3.Error):
+                self.db.execute("PRAGMA wal_checkpoint(PASSIVE)")
 
     def _keep_wal_files(self) -> None:
         """Re-create the ``-wal`` and ``-shm`` files SQLite deleted at the last close (see the class notes),
@@ -675,6 +681,9 @@ class Catalogue:
             )
             if cursor.rowcount == 0:
                 raise CatalogueError(f"no run {run_id}")
+        if state != "running":  # a run that stops leaves the catalogue file whole, whoever keeps it open
+            with self._lock:
+                self._checkpoint()
 
     def close_finished_runs(self) -> list[int]:
         """Close as ``done`` every run journalled ``running`` that has no step left: a process killed between

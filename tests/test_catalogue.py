@@ -609,6 +609,24 @@ def test_a_copy_of_the_file_alone_holds_every_row_even_when_a_reader_was_open(tm
         reader.close()
 
 
+def test_a_run_that_ends_leaves_the_file_whole_while_the_catalogue_stays_open(tmp_path):
+    # the service keeps its catalogue open between runs: once a run has ended, a copy of the file holds it
+    path = tmp_path / "cat.sqlite"
+    Catalogue(path).close()
+    reader = sqlite3.connect(f"{path.absolute().as_uri()}?mode=ro", uri=True)
+    try:
+        assert reader.execute("SELECT count(*) FROM psfs").fetchone() == (0,)
+        with Catalogue(path) as cat:
+            run = new_run(cat, keys=("a",))
+            cat.commit_step(run, "a", [frame(1)], [(make_psf(), {"aperture": 5.6})])
+            cat.finish_run(run, "done")
+            copy = tmp_path / "copy.sqlite"
+            copy.write_bytes(path.read_bytes())  # the file alone, without its -wal
+            assert count(copy, "psfs") == 1 and count(copy, "runs") == 1
+    finally:
+        reader.close()
+
+
 def test_migration_to_relative_frame_paths_reads_old_absolute_paths(tmp_path):
     """A catalogue written before relative paths: absolute paths inside its folder become relative, others stay."""
     path = tmp_path / "old.sqlite"
