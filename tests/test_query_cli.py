@@ -118,7 +118,7 @@ def test_query_json_near(capsys, catalogue):
             np.testing.assert_array_equal(np.array(row["psf"]), cat.psf(row["id"])[0])
 
 
-@pytest.mark.parametrize("fmt", ["npy", "tiff", "json"])
+@pytest.mark.parametrize("fmt", ["npy", "tiff", "json", "tif", "TIFF"])  # tif: as the files are named
 def test_export_formats(capsys, catalogue, tmp_path, fmt):
     out_dir = tmp_path / "export"
     code, _, _ = run_cli(capsys, "export", "--catalogue", catalogue, "--channel", "g1", "--aperture", "8",
@@ -132,7 +132,7 @@ def test_export_formats(capsys, catalogue, tmp_path, fmt):
             path = out_dir / entry["file"]
             if fmt == "npy":
                 np.testing.assert_array_equal(np.load(path), expected)
-            elif fmt == "tiff":
+            elif fmt.lower() in ("tiff", "tif"):
                 with tifffile.TiffFile(path) as tif:
                     assert tif.pages[0].dtype == np.float32
                     assert json.loads(tif.pages[0].description)["id"] == entry["id"]

@@ -162,7 +162,8 @@ def run_export(args: argparse.Namespace) -> int:
     from psfd.catalogue import default_path
     from psfd.cli import output
 
-    if args.format not in EXPORT_FORMATS:
+    fmt = "tiff" if args.format.lower() in ("tif", "tiff") else args.format.lower()  # as the files are named
+    if fmt not in EXPORT_FORMATS:
         raise BadInputError(f"unknown export format {args.format!r} (one of {', '.join(EXPORT_FORMATS)})")
     filters = query_options(args)
     out = Path(args.out)
@@ -177,7 +178,7 @@ def run_export(args: argparse.Namespace) -> int:
             for row in rows:
                 array, meta = cat.psf(row["id"])
                 meta = output.plain({**row, **meta})
-                index.append({"file": _write_psf(folder, _file_stem(row), array, meta, args.format), **meta})
+                index.append({"file": _write_psf(folder, _file_stem(row), array, meta, fmt), **meta})
             (folder / "index.json").write_text(json.dumps({"note": result.note, "psfs": index}, indent=1))
             with open(folder / "metrics.csv", "w", newline="", encoding="utf-8") as stream:
                 output.write_csv(index, stream)
