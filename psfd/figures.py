@@ -107,9 +107,9 @@ def save_comparison(curves: list[tuple[str, np.ndarray, int]], path: str | Path,
 
 
 def save_report(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: str, path: str | Path,
-                sensors: Mapping[int, Sensor | None] | None = None) -> None:
+                sensors: Mapping[int, Sensor | None] | None = None, note: str | None = None) -> None:
     """`report_figure` of catalogue rows, written to ``path``."""
-    save(report_figure(rows, arrays, channel, sensors), path)
+    save(report_figure(rows, arrays, channel, sensors, note), path)
 
 
 # ---------------------------------------------------------------- kernels
@@ -515,7 +515,7 @@ def _sensor_axes(ax: Any, sensor: Sensor, title: str, *, show_x: bool, show_y: b
 
 
 def report_figure(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: str,
-                  sensors: Mapping[int, Sensor | None] | None = None) -> Figure:
+                  sensors: Mapping[int, Sensor | None] | None = None, note: str | None = None) -> Figure:
     """The field report: one row of panels per (camera, lens, method, aperture), and MTF50 against image height.
 
     Each row shows the PSFs of every channel at their measured field positions on the whole sensor
@@ -534,6 +534,8 @@ def report_figure(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: s
         The channel whose MTF50 is mapped and charted.
     sensors : mapping, optional
         `Sensor` of each row id (None or absent: inferred from the windows, no pitch).
+    note : str, optional
+        What the reader must know of the rows (a run not done, an aperture replaced), under the title.
     """
     from matplotlib import patheffects, tri
     from matplotlib.colors import LogNorm, Normalize
@@ -627,8 +629,9 @@ def report_figure(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: s
     if len(rigs) == 1:
         about = f"{' '.join(next(iter(rigs))).strip()}. {about}"
     width = int(fig.get_figwidth() * 13)  # characters of 9-point text across the figure
+    notes = textwrap.wrap(f"Note: {note}.", width) if note else []
     fig.suptitle("\n".join([f"Field report: PSFs of {', '.join(channels)} and MTF50 of {channel} over the sensor, "
-                            "per aperture", *textwrap.wrap(about, width)]), fontsize=9)
+                            "per aperture", *textwrap.wrap(about, width), *notes]), fontsize=9)
     return fig
 
 

@@ -80,6 +80,33 @@ def test_the_table_names_the_body_when_two_bodies_of_one_model_answer(capsys, ca
     assert code == 0 and "serial" not in out.splitlines()[0]  # one body: no column for it
 
 
+def test_readers_say_when_a_run_is_not_done(capsys, catalogue, tmp_path):
+    """A run stopped part-way (killed, paused, cancelled): query, export and report say that its other
+    PSFs are missing, on stderr, in index.json and under the report's title; a whole run says nothing."""
+    with Catalogue(catalogue) as cat:
+        rig = cat.add_rig(CameraInfo("Canon EOS 400D", "0420", "EF 50mm f/1.8", 50.0))
+        run = cat.start_run("part.toml", "part", rig, [("f11", {}), ("f16", {}), ("f22", {})])
+        cat.commit_step(run, "f11", [], [(PSF(gaussian(3.0), 4, "bernoulli", "g1", ["y.dng"], (0.5, 0.5),
+                                              (0, 0, 64, 64)), {"aperture": 11.0})])
+        cat.finish_run(run, "paused")
+    note = f"run {run} is not done (paused, 1 of 3 steps): the PSFs of its other steps are missing"
+    code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--channel", "g1")
+    assert code == 0 and err == f"psfd: note: {note}\n"
+    code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "5.6")
+    assert code == 0 and err == ""  # the rows of the whole run only
+    code, _, err = run_cli(capsys, "export", "--catalogue", catalogue, "--aperture", "11", "--out",
+                           str(tmp_path / "ex"))
+    assert code == 0 and note in err
+    assert json.loads((tmp_path / "ex" / "index.json").read_text())["note"] == note
+    code, _, err = run_cli(capsys, "report", "--catalogue", catalogue, "--out", str(tmp_path / "r.png"))
+    assert code == 0 and note in err
+    with Catalogue(catalogue, readonly=True) as cat:
+        rows = cat.query().rows
+        arrays = {row["id"]: cat.psf(row["id"])[0] for row in rows}
+    title = figures.report_figure(rows, arrays, "g1", note=note)._suptitle.get_text()
+    assert f"Note: {note}." in title.replace("\n", " ")
+
+
 def test_metadata_describes_a_catalogue_and_refuses_what_is_not_one(capsys, catalogue, tmp_path):
     code, out, err = run_cli(capsys, "metadata", "--catalogue", catalogue)
     assert code == 0 and "cat" in json.loads(out)["databases"]

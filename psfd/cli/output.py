@@ -307,16 +307,16 @@ def write_estimates(
     return write_folder(out_dir, write, force, inputs)
 
 
-def write_report(catalogue: Any, rows: list[dict], channel: str, out: Path) -> None:
+def write_report(catalogue: Any, rows: list[dict], channel: str, out: Path, note: str | None = None) -> None:
     """The field report (`psfd.figures.report_figure`) of the catalogue rows, every channel's PSFs and the
-    MTF50 of ``channel``, written to ``out`` (PNG, PDF, SVG... by its suffix)."""
+    MTF50 of ``channel``, written to ``out`` (PNG, PDF, SVG... by its suffix), with the query's ``note``."""
     from psfd import figures
 
     if not any(r["channel"] == channel for r in rows):
         raise NoMatchError(f"no PSF of channel {channel} to report")
     arrays = {row["id"]: catalogue.psf(row["id"])[0] for row in rows}
     sensors = catalogue_sensors(catalogue, rows)
-    write_file(out, lambda path: figures.save_report(rows, arrays, channel, path, sensors))
+    write_file(out, lambda path: figures.save_report(rows, arrays, channel, path, sensors, note))
 
 
 # ---------------------------------------------------------------- sensors and units

@@ -90,11 +90,26 @@ def run_filters(cat, options: dict[str, Any], nothing: str = ""):
     Raises NoMatchError (exit 1, as for every reader) when no PSF matches; ``nothing`` ends its message.
     """
     result = cat.query(**options)
+    notes = [result.note] if result.note else []
+    notes += unfinished_runs(cat, result.rows)
+    result.note = "; ".join(notes) or None
     if result.note:
         print(f"psfd: note: {result.note}", file=sys.stderr)
     if not result.rows:
         raise NoMatchError(f"no PSF matches the query{nothing}")
     return result
+
+
+def unfinished_runs(cat, rows: list[dict]) -> list[str]:
+    """A note per run of ``rows`` with steps not done: its PSFs are a part of the plan's (a run under way,
+    stopped, killed, cancelled or failed)."""
+    notes = []
+    for run_id in sorted({row["run_id"] for row in rows if row.get("run_id") is not None}):
+        summary = cat.run_summary(run_id)
+        if summary["done"] < summary["total"]:
+            notes.append(f"run {run_id} is not done ({summary['state']}, {summary['done']} of {summary['total']} "
+                         "steps): the PSFs of its other steps are missing")
+    return notes
 
 
 # -- query -------------------------------------------------------------------------
@@ -213,7 +228,7 @@ def run_report(args: argparse.Namespace) -> int:
         result = run_filters(cat, filters, "; nothing to report")
         if channel and not any(r["channel"] == channel for r in result.rows):
             raise NoMatchError(f"no PSF of channel {channel} matches the query; nothing to report")
-        output.write_report(cat, result.rows, pick_channel(result.rows, channel), out)
+        output.write_report(cat, result.rows, pick_channel(result.rows, channel), out, result.note)
     print(f"report written to {out}")
     return 0
 
