@@ -766,16 +766,24 @@ class Catalogue:
             raise CatalogueError(f"run {run_id} has no step {key!r}")
         return row
 
-    def set_step_state(self, run_id: int, key: str, state: str, reason: str | None = None) -> None:
-        """Move a step to ``state`` with an optional reason; entering ``running`` counts an attempt."""
+    def set_step_state(self, run_id: int, key: str, state: str, reason: str | None = None) -> bool:
+        """Move a step to ``state`` with an optional reason; entering ``running`` counts an attempt.
+
+        A ``done`` step stays done (returns False): its PSFs are committed, and another process on this
+        catalogue (one with another frame store, which the store's lock does not hold back) may have
+        committed it since the caller read its steps; shooting it again would store its PSFs twice.
+        """
         if state not in STEP_STATES:
             raise BadInputError(f"unknown step state {state!r} (one of {', '.join(STEP_STATES)})")
         with self._write() as db:
             step = self._step(db, run_id, key)
+            if step["state"] == "done":
+                return False
             db.execute(
                 "UPDATE steps SET state = ?, reason = ?, updated = ?, attempts = attempts + ? WHERE id = ?",
                 [state, reason, _now(), int(state == "running"), step["id"]],
             )
+        return True
 
     def commit_step(
         self, run_id: int, key: str, frames: list[FrameRecord], psfs: list[tuple[PSF, dict]]

@@ -470,3 +470,36 @@ def test_a_worker_killed_alone_fails_its_step_in_one_line_and_keeps_the_others(t
                     "--workers", "1")
     assert resumed.returncode == 0, resumed.stderr
     check_complete(db, frames_dir_for(db), plan)
+
+
+# -- 13. two processes on one run ------------------------------------------------------------------------
+
+
+def test_a_step_done_by_another_process_on_the_run_is_not_shot_and_stored_again(tmp_path):
+    """The frame store's lock keeps two runs of one store apart, not two runs of one catalogue: a second
+    `psfd run --resume` with another `--frames` (or the catalogue through a symbolic link, whose default store
+    is another folder) resumes the run the first is shooting. Here it finishes the run while the first is in
+    its first step; the first then finds the second step done and must neither mark it running again nor
+    store its PSFs a second time (it stored 3 PSFs for 2 steps)."""
+    plan_path = write_plan(tmp_path, TWO_STEPS)
+    plan = parse_plan(TWO_STEPS, str(plan_path))
+    db = tmp_path / "cat.sqlite"
+    other = tmp_path / "other-frames"
+
+    def second_process(key: str, state: str, reason: str | None) -> None:
+        if state == "running" and not other.exists():  # the first step is under way in the first run
+            with Catalogue(db) as cat:
+                camera, rail = open_rig(plan.rig_config())
+                done = Runner(cat, other, workers=1, progress=None).run(plan, camera, rail, resume=True)
+            assert done.state == "done" and done.steps_done == 2
+
+    with Catalogue(db) as cat:
+        camera, rail = open_rig(plan.rig_config())
+        first = Runner(cat, frames_dir_for(db), workers=1, progress=None, on_step=second_process)
+        result = first.run(plan, camera, rail)
+    assert result.state == "done" and result.error is None
+    with Catalogue(db, readonly=True) as cat:
+        assert cat.integrity_check() == []
+        assert sorted(r["step"] for r in cat.query().rows) == sorted(s.key for s in plan.steps())  # each once
+        assert [s["attempts"] for s in cat.steps(1)] == [2, 1]  # the second step was shot by one process only
+        assert [r["state"] for r in cat.runs()] == ["done"]

@@ -404,7 +404,8 @@ class Runner:
                     step = Step.from_payload(row["payload"])
                     t0 = time.monotonic()
                     try:
-                        self._set_state(run_id, step.key, "running")
+                        if not self._set_state(run_id, step.key, "running"):
+                            continue  # committed meanwhile by another process on this catalogue: never twice
                         records = self._capture(plan, step, camera, rail)
                     except (PsfdError, OSError) as exc:  # camera gone, rail alarm, disk full
                         self._fail(result, run_id, step.key, _step_error(exc))
@@ -439,9 +440,12 @@ class Runner:
                 result.state, result.error, result.reason = "paused", exc, f"closing the run: {exc}"
         return result
 
-    def _set_state(self, run_id: int, key: str, state: str, reason: str | None = None) -> None:
-        self.catalogue.set_step_state(run_id, key, state, reason)
+    def _set_state(self, run_id: int, key: str, state: str, reason: str | None = None) -> bool:
+        """False, and nothing changed, when the step is done (`Catalogue.set_step_state`)."""
+        if not self.catalogue.set_step_state(run_id, key, state, reason):
+            return False
         self.on_step(key, state, reason)
+        return True
 
     def _fail(self, result: RunResult, run_id: int, key: str, exc: PsfdError) -> None:
         log.warning("run %d step %s failed: %s", run_id, key, exc)
