@@ -275,6 +275,30 @@ SCHEMA_VERSION = len(MIGRATIONS)
 # Helpers
 
 
+def catalogue_exists(path: str | os.PathLike) -> bool:
+    """Whether a catalogue is at ``path``: False when the file is missing, and also when it is a database no
+    psfd ever wrote to (no table, `PRAGMA user_version` 0): SQLite makes the file as soon as it is opened, so a
+    run killed (or a power cut) before the schema's first commit leaves such a file. It holds no run: readers
+    treat it as no catalogue, and the next writer makes the catalogue in it (`Catalogue._check_is_catalogue`)."""
+    path = Path(path)
+    try:
+        if path.stat().st_size == 0:
+            return False
+    except OSError:
+        return False
+    try:
+        conn = sqlite3.connect(f"{path.absolute().as_uri()}?mode=ro", uri=True)
+    except sqlite3.Error:
+        return True  # let the catalogue's own opening say what is wrong
+    try:
+        return bool(conn.execute("PRAGMA user_version").fetchone()[0]
+                    or conn.execute("SELECT count(*) FROM sqlite_master").fetchone()[0])
+    except sqlite3.Error:
+        return True
+    finally:
+        conn.close()
+
+
 def check_owner(path: Path, what: str) -> None:
     """Refuse to write into ``path`` (a catalogue, a frame store), when it exists, unless this process's user
     owns it: files this user made there would be theirs, and the owner (e.g. the service's user) could then

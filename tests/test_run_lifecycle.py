@@ -503,3 +503,29 @@ def test_a_step_done_by_another_process_on_the_run_is_not_shot_and_stored_again(
         assert sorted(r["step"] for r in cat.query().rows) == sorted(s.key for s in plan.steps())  # each once
         assert [s["attempts"] for s in cat.steps(1)] == [2, 1]  # the second step was shot by one process only
         assert [r["state"] for r in cat.runs()] == ["done"]
+
+
+# -- 14. a run killed while it created its catalogue -------------------------------------------------------
+
+
+def test_a_catalogue_whose_creation_was_killed_is_created_by_the_next_run(tmp_path, capsys):
+    """SQLite makes the catalogue's file when it opens it; a run killed (or a power cut) before the schema's
+    first commit leaves an empty file, or one with WAL mode set and no table. Every command refused it
+    ('is empty, not a psfd catalogue', exit 5), a new `psfd run` included, until someone deleted it by hand:
+    it is a catalogue not made yet, which the next run makes and `status` shows as no catalogue."""
+    plan_path = write_plan(tmp_path, ONE_STEP)
+    plan = parse_plan(ONE_STEP, str(plan_path))
+    for name, wal in (("zero.sqlite", False), ("wal.sqlite", True)):
+        db = tmp_path / name
+        conn = sqlite3.connect(db)  # what Catalogue() had done when it was killed
+        if wal:
+            conn.execute("PRAGMA journal_mode = WAL")
+        conn.close()
+        common = ("--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1")
+        code, out, err = cli(capsys, "status", *common[:4])
+        assert code == 0 and "no catalogue at" in out, err
+        code, out, err = cli(capsys, "run", plan_path, "--resume", *common)
+        assert code == 2 and "no unfinished run" in err, err  # nothing was journalled
+        code, out, err = cli(capsys, "run", plan_path, *common)
+        assert code == 0, err
+        check_complete(db, frames_dir_for(db), plan)

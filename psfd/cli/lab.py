@@ -288,7 +288,7 @@ def status(args: argparse.Namespace) -> dict:
     """What `psfd status` shows, in one shape whether or not the service runs (`STATUS_KEYS`):
     ``service`` (None when no service answers, else `SERVICE_KEYS`), the ``catalogue`` whose latest runs
     are listed (the service's own when it says which) and those ``runs`` (newest first, at most 10)."""
-    from psfd.catalogue import Catalogue
+    from psfd.catalogue import Catalogue, catalogue_exists
     from psfd.daemon.store import frames_dir_for, shown_state
     from psfd.errors import CatalogueError
 
@@ -301,7 +301,8 @@ def status(args: argparse.Namespace) -> dict:
             catalogue = Path(answer["catalogue"])
             frames = frames_dir_for(catalogue)
     runs: list[dict] = []
-    if catalogue.exists():
+    exists = catalogue_exists(catalogue)  # not an empty file a run killed while creating it left
+    if exists:
         try:
             with Catalogue(catalogue, readonly=True) as cat:
                 runs = [cat.run_summary(r["id"]) for r in cat.runs()[:10]]
@@ -310,7 +311,7 @@ def status(args: argparse.Namespace) -> dict:
                 raise
     for run in runs:  # a run its process no longer holds was killed: say so, it is resumable
         run["state"] = shown_state(run["state"], frames)
-    return {"service": service, "catalogue": str(catalogue) if catalogue.exists() else None, "runs": runs}
+    return {"service": service, "catalogue": str(catalogue) if exists else None, "runs": runs}
 
 
 def run_status(args: argparse.Namespace) -> int:

@@ -56,7 +56,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Any, Callable
 
-from psfd.catalogue import UNFINISHED_STATES, Catalogue, FrameRecord, check_owner
+from psfd.catalogue import UNFINISHED_STATES, Catalogue, FrameRecord, catalogue_exists, check_owner
 from psfd.daemon import work
 from psfd.daemon.plan import Plan, Step, check_rail, plan_changes
 from psfd.daemon.store import (INCOMING, check_room, shown_state, storage_error, store_frame, store_lock,
@@ -777,7 +777,7 @@ def preflight(plan: Plan, catalogue_path: str | os.PathLike, frames_dir: str | o
     catalogue_path, frames_dir = Path(catalogue_path), Path(frames_dir)
     _check_folder(catalogue_path.parent, "the catalogue's folder")
     _check_folder(frames_dir, "the frame store")
-    if catalogue_path.exists():
+    if catalogue_exists(catalogue_path):  # an empty file a killed run left is made a catalogue by this one
         with Catalogue(catalogue_path, readonly=True) as catalogue:
             check_owner(catalogue_path, "the catalogue")
             start_check(catalogue, plan, resume, new, frames_dir)
@@ -798,7 +798,7 @@ def _check_folder(folder: Path, what: str) -> None:
 def unfinished_runs(catalogue_path: str | os.PathLike, frames_dir: str | os.PathLike) -> list[dict]:
     """The catalogue's runs that are not closed, newest first, as `Catalogue.run_summary` with their state
     as a user reads it (`shown_state`: ``running``, ``paused`` or ``interrupted``); none without a catalogue."""
-    if not Path(catalogue_path).exists():
+    if not catalogue_exists(catalogue_path):
         return []
     with Catalogue(catalogue_path, readonly=True) as catalogue:
         runs = [catalogue.run_summary(r["id"]) for r in catalogue.runs() if r["state"] in UNFINISHED_STATES]
