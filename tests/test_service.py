@@ -271,3 +271,26 @@ def test_udev_rule_gives_the_psfd_group_camera_and_rail():
         for part in (p.strip() for p in rule.split(", ")):
             key = part.split("=")[0].rstrip("+!:").split("{")[0]
             assert key in {"SUBSYSTEM", "ENV", "ATTRS", "ATTR", "GROUP", "MODE", "SYMLINK"}, part
+
+
+def test_a_plan_submitted_twice_while_queued_is_measured_once(served, tmp_path):
+    """Two plain submits of one plan while the service is busy with another both waited in the queue, and the
+    service then measured every position of the plan twice (two runs): run locally, the second `psfd run` is
+    refused while the first run is unfinished. The second submit is refused in one line, exit code 2, until
+    the first has ended; `--new` still asks for another run on purpose."""
+    proc, sock, db, notes = served
+    busy, twice = tmp_path / "busy.toml", tmp_path / "twice.toml"
+    busy.write_text(small_plan())
+    twice.write_text(small_plan().replace("apertures = [4, 11]", "apertures = [8]"))
+    client.submit(sock, busy.read_text(), str(busy))
+    wait_status(sock, lambda s: s["current"] is not None)
+    assert client.submit(sock, twice.read_text(), str(twice))["queued"] == 1
+    again = subprocess.run([sys.executable, "-m", "psfd", "run", str(twice), "--socket", str(sock)],
+                           capture_output=True, text=True, timeout=60)
+    assert again.returncode == BadInputError.exit_code, again.stdout + again.stderr
+    assert "already submitted" in again.stderr and len(again.stderr.strip().splitlines()) == 1, again.stderr
+    assert client.submit(sock, twice.read_text(), str(twice), new=True)["queued"] == 2  # on purpose
+    wait_status(sock, lambda s: s["current"] is None and s["queued"] == 0, timeout=300)
+    with Catalogue(db, readonly=True) as cat:
+        runs = [r for r in cat.runs() if r["plan_path"] == str(twice)]
+    assert [r["state"] for r in runs] == ["done", "done"]  # the first submit and the --new one

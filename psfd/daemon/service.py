@@ -53,7 +53,7 @@ from psfd.daemon.client import MAX_REQUEST
 from psfd.daemon.plan import Plan, check_text, parse_plan
 from psfd.daemon.runner import Control, preflight, run_plan, unfinished_runs
 from psfd.errors import BadInputError, PsfdError, ServiceError, path_reason, user_name
-from psfd.vocabulary import REQUEST_DEPTH_MAX
+from psfd.vocabulary import REQUEST_DEPTH_MAX, plan_content
 
 SOCKET_MODE = 0o660
 log = logging.getLogger(__name__)
@@ -126,6 +126,7 @@ class Service:
         self.last: dict[str, Any] | None = None
         self.paused: Plan | None = None
         self.queued = 0
+        self.waiting: list[Job] = []  # submitted, not ended: another plain submit of one of their plans is refused
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -220,6 +221,8 @@ class Service:
                 return
             if self.stopping.is_set():
                 job.result = {"state": "not started", "reason": "the service is stopping"}
+                with self.lock:
+                    self.waiting.remove(job)
                 job.done.set()
                 continue
             with self.lock:
@@ -244,6 +247,8 @@ class Service:
                 last = {k: v for k, v in job.result.items() if k not in ("rows", "psf_ids")}
                 self.last, self.current = {"plan": job.plan.path, **last}, None
             notify(f"STATUS=idle; last run {job.result.get('run_id', '-')}: {job.result['state']}")
+            with self.lock:
+                self.waiting.remove(job)
             job.done.set()
 
     def _on_step(self, key: str, state: str, reason: str | None) -> None:
@@ -312,6 +317,11 @@ class Service:
         preflight(plan, self.catalogue_path, self.frames_dir, resume, new)  # refuse now what the runner would later
         job = Job(plan, resume, wait, new=new, oneshot=oneshot)
         with self.lock:
+            # preflight cannot see a queued plan (its run is not journalled yet): the second would measure it again
+            if not (new or resume or oneshot) and any(same_plan(j.plan.text, plan.text) for j in self.waiting):
+                raise BadInputError(f"plan {plan.path} is already submitted and its run not ended: `psfd status` "
+                                    "follows it; add --new to measure it again")
+            self.waiting.append(job)
             self.queued += 1
             queued = self.queued  # as submitted: the runner thread may take the job at once
         self.jobs.put(job)
@@ -367,6 +377,11 @@ class Service:
             raise ServiceError("no paused run to resume")
         log.info("resume asked on the control socket: %s", self.paused.path)
         return self._enqueue(self.paused, True, bool(req.get("wait")))
+
+
+def same_plan(a: str, b: str) -> bool:
+    """Whether two plan texts are one plan (`plan_content`: comments and layout do not count)."""
+    return a == b or plan_content(a) == plan_content(b)
 
 
 def _refused(exc: PsfdError) -> dict:
