@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -31,6 +32,22 @@ def test_capture_locally_adds_the_psfs_to_the_catalogue(tmp_path, capsys):
         assert all(r["aperture"] == 5.6 and r["method"] == "bernoulli" for r in rows)
         (frame,) = cat.psf_frames(rows[0]["id"])
     assert frame["path"].startswith(str(out)) and frame["path"].endswith(f"{frame['sha256']}.dng")
+
+
+def test_two_catalogues_sharing_a_frame_folder_keep_each_others_frames(tmp_path, capsys):
+    """A frame the catalogue does not hold is a crash's leftover only if stored since its interrupted run
+    began: the first catalogue's frame was deleted by the second's capture, its rows pointing at nothing."""
+    shots = tmp_path / "shots"
+    for name, aperture in (("a", "5.6"), ("b", "8")):
+        assert main(["capture", "--aperture", aperture, "--simulate", "--channels", "g1", "--out", str(shots),
+                     "--catalogue", str(tmp_path / f"{name}.sqlite"), "--socket", str(tmp_path / "none.sock"),
+                     "--workers", "1"]) == 0
+    capsys.readouterr()
+    for name in ("a", "b"):
+        with Catalogue(tmp_path / f"{name}.sqlite", readonly=True) as cat:
+            (row,) = cat.query().rows
+            (frame,) = cat.psf_frames(row["id"])
+        assert Path(frame["path"]).is_file(), name
 
 
 def test_capture_near_far_pair(tmp_path, capsys):

@@ -171,11 +171,14 @@ def shown_state(state: str, frames_dir: str | os.PathLike) -> str:
     return "interrupted" if state == "running" and not store_busy(frames_dir) else state
 
 
-def sweep_frames(frames_dir: Path, known: set[str]) -> list[Path]:
+def sweep_frames(frames_dir: Path, known: set[str], since: float = 0.0) -> list[Path]:
     """Remove what a crash left in the store: temporary folders and frames the catalogue does not hold.
 
     Only files named like stored frames (sha256 + suffix) are touched; ``known``
-    holds the catalogued hashes. Returns the removed paths.
+    holds the catalogued hashes, ``since`` (a `time.time`) the start of the runs a crash
+    may have interrupted: a frame stored before it (its inode changed last before it: a
+    rename into the store changes it, whatever time the camera gave the file) is another
+    catalogue's, when two share a folder, and is kept. Returns the removed paths.
     """
     removed: list[Path] = []
     if not frames_dir.is_dir():
@@ -184,7 +187,7 @@ def sweep_frames(frames_dir: Path, known: set[str]) -> list[Path]:
         shutil.rmtree(incoming, ignore_errors=True)
         removed.append(incoming)
     for path in frames_dir.glob("??/*"):
-        if FRAME_NAME.match(path.name) and path.name.split(".")[0] not in known:
+        if FRAME_NAME.match(path.name) and path.name.split(".")[0] not in known and path.stat().st_ctime >= since:
             path.unlink()
             removed.append(path)
     return removed
