@@ -591,38 +591,26 @@ def test_frame_paths_are_relative_to_the_catalogue_folder_so_it_can_move(tmp_pat
     assert paths == [str(moved / "cat-frames" / "ab" / "1.dng"), str(outside)]
 
 
-def test_a_copy_of_the_file_alone_holds_every_row_even_when_a_reader_was_open(tmp_path):
-    # A reader open when the writer closes (a query, Datasette) stops SQLite's own checkpoint at close:
-    # the rows would stay in the -wal only, and `cp catalogue.sqlite` would copy none of them.
+def test_a_copy_of_the_file_alone_holds_every_ended_run_even_when_a_reader_is_open(tmp_path):
+    # A reader open (a query, Datasette) stops SQLite's own checkpoint at close: the rows would stay in the
+    # -wal only, and `cp catalogue.sqlite` would copy none of them. The service keeps its catalogue open
+    # between runs: a run that ends leaves the file whole too.
     path = tmp_path / "cat.sqlite"
     Catalogue(path).close()
     reader = sqlite3.connect(f"{path.absolute().as_uri()}?mode=ro", uri=True)
+    copy = tmp_path / "copy.sqlite"
     try:
         assert reader.execute("SELECT count(*) FROM psfs").fetchone() == (0,)
         with Catalogue(path) as cat:
-            run = new_run(cat, keys=("a",))
-            cat.commit_step(run, "a", [frame(1)], [(make_psf(), {"aperture": 5.6})])
-        copy = tmp_path / "copy.sqlite"
-        copy.write_bytes(path.read_bytes())  # the file alone, without its -wal
-        assert count(copy, "psfs") == 1 and count(copy, "runs") == 1
-    finally:
-        reader.close()
-
-
-def test_a_run_that_ends_leaves_the_file_whole_while_the_catalogue_stays_open(tmp_path):
-    # the service keeps its catalogue open between runs: once a run has ended, a copy of the file holds it
-    path = tmp_path / "cat.sqlite"
-    Catalogue(path).close()
-    reader = sqlite3.connect(f"{path.absolute().as_uri()}?mode=ro", uri=True)
-    try:
-        assert reader.execute("SELECT count(*) FROM psfs").fetchone() == (0,)
-        with Catalogue(path) as cat:
-            run = new_run(cat, keys=("a",))
-            cat.commit_step(run, "a", [frame(1)], [(make_psf(), {"aperture": 5.6})])
-            cat.finish_run(run, "done")
-            copy = tmp_path / "copy.sqlite"
-            copy.write_bytes(path.read_bytes())  # the file alone, without its -wal
-            assert count(copy, "psfs") == 1 and count(copy, "runs") == 1
+            for n, key in enumerate(("a", "b")):
+                run = new_run(cat, keys=(key,))
+                cat.commit_step(run, key, [frame(n + 1)], [(make_psf(), {"aperture": 5.6})])
+                if key == "a":
+                    cat.finish_run(run, "done")
+                    copy.write_bytes(path.read_bytes())  # the file alone, without its -wal
+                    assert count(copy, "psfs") == 1 and count(copy, "runs") == 1
+        copy.write_bytes(path.read_bytes())  # closed: the run left unfinished too
+        assert count(copy, "psfs") == 2 and count(copy, "runs") == 2
     finally:
         reader.close()
 
