@@ -281,7 +281,7 @@ def write_estimates(
         The files written, in ``out_dir``.
     """
 
-    sensors = {path: source_sensor(path) for path in {est.sources[0] for est in estimates if est.sources}}
+    sensors = estimate_sensors(estimates)
 
     def write(folder: Path) -> list[str]:
         files = []
@@ -320,6 +320,11 @@ def write_report(catalogue: Any, rows: list[dict], channel: str, out: Path, note
 
 
 # ---------------------------------------------------------------- sensors and units
+
+
+def estimate_sensors(estimates: list[PSF]) -> dict[str, Any]:
+    """The `source_sensor` of each estimate's first source, its EXIF read once per file (not per window)."""
+    return {path: source_sensor(path) for path in {est.sources[0] for est in estimates if est.sources}}
 
 
 def source_sensor(path: str | os.PathLike, pitch_um: float | None = None) -> Any:
@@ -476,7 +481,7 @@ def estimate_json(est: PSF, sensor: Any = None) -> dict:
 def print_json(estimates: list[PSF], stream: TextIO | None = None) -> None:
     """One JSON object per estimate per line (`estimate_json`)."""
     stream = sys.stdout if stream is None else stream
-    sensors = {path: source_sensor(path) for path in {est.sources[0] for est in estimates if est.sources}}
+    sensors = estimate_sensors(estimates)
     for est in estimates:
         sensor = sensors.get(est.sources[0]) if est.sources else None
         stream.write(json.dumps(estimate_json(est, sensor), allow_nan=False) + "\n")
