@@ -50,6 +50,15 @@ def test_two_catalogues_sharing_a_frame_folder_keep_each_others_frames(tmp_path,
         assert Path(frame["path"]).is_file(), name
 
 
+def test_quiet_capture_prints_no_progress(tmp_path, capsys):
+    argv = ["capture", "--aperture", "5.6", "--simulate", "--channels", "g1", "--catalogue", str(tmp_path / "c.sqlite"),
+            "--socket", str(tmp_path / "none.sock"), "--workers", "1"]
+    assert main(argv) == 0
+    assert "1/1 steps" in capsys.readouterr().err  # the progress line, on stderr
+    assert main(["-q", *argv]) == 0
+    assert capsys.readouterr().err == ""  # `psfd -q`: only errors
+
+
 def test_capture_near_far_pair(tmp_path, capsys):
     db = tmp_path / "cat.sqlite"
     assert main(["capture", "--aperture", "8", "--target", "pair", "--simulate", "--channels", "g1",

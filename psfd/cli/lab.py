@@ -86,8 +86,9 @@ def _service_options(p: argparse.ArgumentParser) -> None:
 # -- running a plan here -------------------------------------------------------------------------
 
 
-def run_here(plan, catalogue: Path, frames: Path, **flags):
-    """`run_plan` in this process; the first Ctrl-C or SIGTERM pauses after the current frame."""
+def run_here(plan, catalogue: Path, frames: Path, quiet: int = 0, **flags):
+    """`run_plan` in this process; the first Ctrl-C or SIGTERM pauses after the current frame. ``quiet``
+    (`psfd -q`): no progress lines."""
     from psfd.daemon.runner import Control, run_plan
 
     control = Control()
@@ -99,6 +100,8 @@ def run_here(plan, catalogue: Path, frames: Path, **flags):
         stopped.append(signum)
         control.request("pause")
 
+    if quiet:
+        flags["progress"] = None
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         result = run_plan(plan, catalogue, frames, control=control, **flags)
@@ -184,7 +187,7 @@ def run_plan_file(args: argparse.Namespace) -> int:
               f"follow it with: {follow}")
         return 0
     runner = options.runner_options(args)
-    result = run_here(plan, catalogue, frames, resume=args.resume, new=args.new, **runner)
+    result = run_here(plan, catalogue, frames, args.quiet, resume=args.resume, new=args.new, **runner)
     return _report(result.to_dict(), _again(args, "run", args.plan, "--resume"))
 
 
@@ -269,7 +272,7 @@ def run_capture(args: argparse.Namespace) -> int:
     else:
         if args.out:
             writable_folder(frames, "--out", create=False)  # made by the run, once the rig has answered
-        result = run_here(plan, catalogue, frames, new=True, oneshot=True, rows=True, **runner).to_dict()
+        result = run_here(plan, catalogue, frames, args.quiet, new=True, oneshot=True, rows=True, **runner).to_dict()
     code = _report(result, None)
     if result.get("rows"):
         print(output.format_rows(result["rows"]))
@@ -475,7 +478,8 @@ def run_demo(args: argparse.Namespace) -> int:
         resume = unfinished is not None
         print(f"demo: {plural(len(plan.steps()), 'step')} on the simulated rig into {catalogue}"
               + (f" (resuming run {unfinished})" if resume else ""))
-        result = run_here(plan, catalogue, frames_dir_for(catalogue), resume=resume, new=not resume, **runner)
+        result = run_here(plan, catalogue, frames_dir_for(catalogue), args.quiet, resume=resume, new=not resume,
+                          **runner)
         code = _report(result.to_dict(), _again(args, "demo", "--workdir", str(workdir)))
     _demo_outputs(catalogue, workdir)
     return code
