@@ -15,9 +15,10 @@ from fake_grbl import FakeGrbl
 
 from psfd.catalogue import Catalogue
 from psfd.daemon.plan import parse_plan
-from psfd.daemon.runner import Control, Runner
+from psfd.daemon.runner import Control, Runner, start_check
 from psfd.daemon.store import frames_dir_for, shown_state, store_busy, store_frame, store_lock, sweep_frames
 from psfd.drivers import open_rig
+from psfd.drivers.base import CameraInfo
 from psfd.drivers.grbl import GrblRail
 from psfd.drivers.sim import SimRig
 from psfd.errors import BadInputError, CameraError, EstimationError, RailAlarm, RailError
@@ -96,6 +97,21 @@ def test_store_frame_is_content_addressed_and_sweep_removes_orphans(tmp_path):
     removed = sweep_frames(frames, {sha})
     assert set(removed) == {frames / ".incoming-x", orphan}
     assert first.exists() and keep.exists()
+
+
+def test_a_plain_run_meeting_a_live_run_is_told_to_follow_or_stop_it(tmp_path):
+    """--resume and --new would both meet the frame store in use: the refusal says what to do instead."""
+    plan = parse_plan(small_plan(), "small.toml")
+    db, frames = tmp_path / "cat.sqlite", tmp_path / "frames"
+    with Catalogue(db) as cat:
+        rig = cat.add_rig(CameraInfo("psfd simulated camera", "SIM-0", "simulated 50 mm", 50.0))
+        run = cat.start_run(plan.path, plan.text, rig, [(step.key, step.payload()) for step in plan.steps()])
+        with store_lock(frames):  # the run's process, alive
+            with pytest.raises(BadInputError, match=f"run {run} of plan small.toml is running .* in another psfd "
+                                                    "process: follow it with `psfd status`, or stop it"):
+                start_check(cat, plan, False, False, frames)
+        with pytest.raises(BadInputError, match="is interrupted .*: add --resume to continue it, or --new"):
+            start_check(cat, plan, False, False, frames)  # killed: nobody holds its store
 
 
 def test_run_failure_pauses_keeps_work_and_resume_completes(tmp_path):

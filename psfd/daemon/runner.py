@@ -730,9 +730,13 @@ def start_check(catalogue: Catalogue, plan: Plan, resume: bool, new: bool,
         return unfinished
     if unfinished is not None and not new:
         summary = catalogue.run_summary(unfinished)
-        raise BadInputError(
-            f"run {unfinished} of plan {plan.path} is {_progress(summary, frames_dir)}: add --resume to continue it, "
-            "or --new to start a fresh run" + _reworded(catalogue.run(unfinished), plan))
+        progress = _progress(summary, frames_dir)
+        # a run another process is shooting: --resume and --new would both meet its frame store in use
+        advice = ("in another psfd process: follow it with `psfd status`, or stop it (Ctrl-C or SIGTERM there "
+                  "pauses it) and add --resume" if progress.startswith("running") else
+                  "add --resume to continue it, or --new to start a fresh run")
+        raise BadInputError(f"run {unfinished} of plan {plan.path} is {progress}: {advice}"
+                            + _reworded(catalogue.run(unfinished), plan))
     return None
 
 
