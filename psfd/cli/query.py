@@ -91,7 +91,7 @@ def run_filters(cat, options: dict[str, Any], nothing: str = ""):
     """
     result = cat.query(**options)
     notes = [result.note] if result.note else []
-    notes += unfinished_runs(cat, result.rows)
+    notes += partial_runs(cat, result.rows)
     result.note = "; ".join(notes) or None
     if result.note:
         print(f"psfd: note: {result.note}", file=sys.stderr)
@@ -100,7 +100,7 @@ def run_filters(cat, options: dict[str, Any], nothing: str = ""):
     return result
 
 
-def unfinished_runs(cat, rows: list[dict]) -> list[str]:
+def partial_runs(cat, rows: list[dict]) -> list[str]:
     """A note per run of ``rows`` with steps not done: its PSFs are a part of the plan's (a run under way,
     stopped, killed, cancelled or failed)."""
     notes = []
