@@ -31,7 +31,7 @@ import os
 import sqlite3
 import stat
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -263,11 +263,22 @@ def _v7_relative_psf_sources(db: sqlite_utils.Database) -> None:
             db.execute("UPDATE psfs SET sources = ? WHERE id = ?", [json.dumps(stored), psf_id])
 
 
+def _v8_pending_frames(db: sqlite_utils.Database) -> None:
+    """Version 8: the frames a run has put into its frame store and not yet committed (`Catalogue.pend_frame`).
+
+    A crash between storing a frame and committing its step leaves a file no row holds; this journal names the
+    files a run of this catalogue made, so that the next run removes those and nothing else (a frame store may
+    be shared with other catalogues, whose frames this one does not know).
+    """
+    if "pending_frames" not in db.table_names():
+        db["pending_frames"].create({"sha256": str, "stored": str}, pk="sha256")
+
+
 # In the order they landed: a catalogue's user_version counts the migrations it ran. Each later one
 # checks its columns before adding them, so a catalogue is the same whichever of them ran first.
 MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [
     _v1_tables, _v2_query_indexes, _v3_frame_exif, _v4_relative_frame_paths, _v5_prediction_error,
-    _v6_noise_floor_as_norm, _v7_relative_psf_sources]
+    _v6_noise_floor_as_norm, _v7_relative_psf_sources, _v8_pending_frames]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -850,6 +861,7 @@ class Catalogue:
         step_id: int | None,
     ) -> list[int]:
         frame_ids = [self._insert_frame(db, f, self.folder) for f in frames]
+        db.conn.executemany("DELETE FROM pending_frames WHERE sha256 = ?", [(f.sha256,) for f in frames])
         ids = []
         for estimate, meta in psfs:
             indices = meta.get("frame_indices")
@@ -1001,6 +1013,24 @@ class Catalogue:
             row["rail"] = json.loads(row["rail"] or "{}")
         return rows
 
+    def pend_frame(self, sha256: str) -> None:
+        """Journal a frame about to be put into the frame store, before its step commits (`pending_frames`)."""
+        with self._write() as db:
+            db["pending_frames"].insert({"sha256": sha256, "stored": _now()}, replace=True)
+
+    def pending_frames(self) -> set[str]:
+        """SHA-256 of the frames journalled by `pend_frame` whose step has not committed them."""
+        with self._read() as db:
+            return {row[0] for row in db.execute("SELECT sha256 FROM pending_frames").fetchall()}
+
+    def forget_pending(self, hashes: Iterable[str] | None = None) -> None:
+        """Drop ``hashes`` (all by default) from the pending frames: swept, discarded or committed."""
+        with self._write() as db:
+            if hashes is None:
+                db.execute("DELETE FROM pending_frames")
+            else:
+                db.conn.executemany("DELETE FROM pending_frames WHERE sha256 = ?", [(h,) for h in hashes])
+
     def frame_hashes(self) -> set[str]:
         """SHA-256 of every catalogued frame (the daemon's frame store keeps exactly these files)."""
         with self._read() as db:
@@ -1113,6 +1143,10 @@ COLUMNS: dict[str, dict[str, str]] = {
         "psf_id": "the PSF (psfs.id)",
         "frame_id": "a frame it was estimated from (frames.id)",
     },
+    "pending_frames": {
+        "sha256": "SHA-256 of a file a run put into its frame store, its step not yet committed",
+        "stored": "when it was stored, ISO 8601 UTC",
+    },
 }
 TABLES = {
     "rigs": "Cameras and lenses, one row per model, serial and lens.",
@@ -1121,6 +1155,8 @@ TABLES = {
     "frames": "RAW frames, stored once by content hash.",
     "psfs": "Sub-pixel PSFs, one per channel, field location and aperture, with their metrics.",
     "psf_frames": "Which frames each PSF was estimated from.",
+    "pending_frames": "Frames stored by a run whose step is not committed yet: a crash's leftovers, removed by "
+                      "the next run.",
 }
 # Units Datasette shows beside values (names from Pint's registry); the others are in the descriptions.
 UNITS = {"rigs": {"focal_length_mm": "mm"}, "psfs": {"focal_length_mm": "mm", "focus_distance_m": "m"}}

@@ -13,6 +13,8 @@ from psfd.catalogue import Catalogue
 from psfd.cli import main
 from psfd.cli.options import parse_axes
 from psfd.daemon import client
+from psfd.daemon.plan import parse_plan
+from psfd.drivers.base import CameraInfo
 from psfd.errors import BadInputError
 
 from plans import one_channel_plan
@@ -35,8 +37,8 @@ def test_capture_locally_adds_the_psfs_to_the_catalogue(tmp_path, capsys):
 
 
 def test_two_catalogues_sharing_a_frame_folder_keep_each_others_frames(tmp_path, capsys):
-    """A frame the catalogue does not hold is a crash's leftover only if stored since its interrupted run
-    began: the first catalogue's frame was deleted by the second's capture, its rows pointing at nothing."""
+    """A frame the catalogue does not hold is not a crash's leftover unless the catalogue journalled it: the
+    first catalogue's frame was deleted by the second's capture, its rows pointing at nothing."""
     shots = tmp_path / "shots"
     for name, aperture in (("a", "5.6"), ("b", "8")):
         assert main(["capture", "--aperture", aperture, "--simulate", "--channels", "g1", "--out", str(shots),
@@ -48,6 +50,26 @@ def test_two_catalogues_sharing_a_frame_folder_keep_each_others_frames(tmp_path,
             (row,) = cat.query().rows
             (frame,) = cat.psf_frames(row["id"])
         assert Path(frame["path"]).is_file(), name
+
+
+def test_a_catalogue_with_an_interrupted_run_keeps_the_frames_another_stored_since(tmp_path, capsys):
+    """The frames a crash may have left are the ones its own catalogue journalled as being stored, not every
+    unknown file newer than the run: catalogue a's run was killed, b then captured into the same folder, and a's
+    next capture deleted b's frame (stored after a's run began), its row pointing at nothing."""
+    shots = tmp_path / "shots"
+    plan = parse_plan(one_channel_plan("simulate = true"), "killed.toml")
+    with Catalogue(tmp_path / "a.sqlite") as cat:  # a run killed before its first frame: interrupted
+        rig = cat.add_rig(CameraInfo("psfd simulated camera", "SIM-0", "simulated 50 mm", 50.0))
+        cat.start_run(plan.path, plan.text, rig, [(step.key, step.payload()) for step in plan.steps()])
+    for name, aperture in (("b", "8"), ("a", "5.6")):
+        assert main(["capture", "--aperture", aperture, "--simulate", "--channels", "g1", "--out", str(shots),
+                     "--catalogue", str(tmp_path / f"{name}.sqlite"), "--socket", str(tmp_path / "none.sock"),
+                     "--workers", "1"]) == 0
+    capsys.readouterr()
+    with Catalogue(tmp_path / "b.sqlite", readonly=True) as cat:
+        (row,) = cat.query().rows
+        (frame,) = cat.psf_frames(row["id"])
+    assert Path(frame["path"]).is_file()
 
 
 def test_quiet_capture_prints_no_progress(tmp_path, capsys):

@@ -84,19 +84,24 @@ def test_store_frame_is_content_addressed_and_sweep_removes_orphans(tmp_path):
     frames.mkdir()
     for name in ("a.dng", "b.dng"):
         (tmp_path / name).write_bytes(b"same bytes")
-    first, sha = store_frame(tmp_path / "a.dng", frames)
-    second, sha2 = store_frame(tmp_path / "b.dng", frames)
+    journal = []
+    first, sha = store_frame(tmp_path / "a.dng", frames, journal.append)
+    second, sha2 = store_frame(tmp_path / "b.dng", frames, journal.append)
     assert first == second and sha == sha2 and first.name == f"{sha}.dng"
     assert not (tmp_path / "b.dng").exists()  # the duplicate was dropped, not stored twice
+    assert journal == [sha]  # journalled before it entered the store, once: the second was already there
     (frames / ".incoming-x").mkdir()
     orphan = frames / "ff" / ("f" * 64 + ".dng")
     orphan.parent.mkdir()
     orphan.write_bytes(b"left by a crash")
+    unknown = frames / "ee" / ("e" * 64 + ".dng")  # another catalogue's frame: never journalled here
+    unknown.parent.mkdir()
+    unknown.write_bytes(b"another catalogue's")
     keep = frames / "ff" / "notes.txt"
     keep.write_text("not a frame")
-    removed = sweep_frames(frames, {sha})
+    removed = sweep_frames(frames, {sha}, {sha, "f" * 64, "d" * 64})
     assert set(removed) == {frames / ".incoming-x", orphan}
-    assert first.exists() and keep.exists()
+    assert first.exists() and keep.exists() and unknown.exists()
 
 
 def test_a_plain_run_meeting_a_live_run_is_told_to_follow_or_stop_it(tmp_path):

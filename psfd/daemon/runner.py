@@ -10,10 +10,11 @@ Durability rules, in the order a step goes through them:
    catalogue transaction.
 
 A crash between any two of these leaves a step ``running`` (redone on resume)
-and perhaps a frame file the catalogue does not know: `sweep_frames` removes
-those at the start of every run, so no file is orphaned and none is counted twice
-(only those stored since the interrupted run began: a frame store shared with
-another catalogue keeps that one's frames).
+and perhaps a frame file the catalogue does not know. Each file is journalled
+in the catalogue before it enters the store (`Catalogue.pend_frame`), so
+`sweep_frames` removes exactly those at the start of every run: no file is
+orphaned, none is counted twice, and a frame store shared with another
+catalogue keeps that one's frames.
 A failed step (camera gone, rail alarm, no target in the frame) is marked
 ``failed`` with its reason, the estimates already under way are committed,
 the rig is released, and the run is ``paused``: ``--resume`` retries it. A worker
@@ -46,7 +47,6 @@ from __future__ import annotations
 import concurrent.futures as cf
 import contextlib
 import logging
-import math
 import multiprocessing
 import os
 import shutil
@@ -356,7 +356,8 @@ class Runner:
     # -- steps --------------------------------------------------------------------------------
 
     def _open_run(self, plan: Plan, camera: Camera, rail: Rail, resume: bool, new: bool) -> int:
-        sweep_frames(self.frames_dir, self.catalogue.frame_hashes(), self._crashes_since())
+        sweep_frames(self.frames_dir, self.catalogue.frame_hashes(), self.catalogue.pending_frames())
+        self.catalogue.forget_pending()
         # we hold the store lock, so a run journalled "running" here was killed: it is interrupted,
         # and done if it was killed between its last commit and its close (the one resumed here too:
         # it is reopened below and closed by _execute, so that its resume reports it done)
@@ -371,12 +372,6 @@ class Runner:
         rig_id = self.catalogue.add_rig(camera.info())
         steps = [(step.key, step.payload()) for step in plan.steps()]
         return self.catalogue.start_run(plan.path, plan.text, rig_id, steps)
-
-    def _crashes_since(self) -> float:
-        """When the catalogue's unfinished runs began (infinity without one): the orphan frames a crash of
-        them left were stored since; older ones are another catalogue's that shares the frame store."""
-        starts = [run["started"] for run in self.catalogue.runs() if run["state"] in UNFINISHED_STATES]
-        return min(datetime.fromisoformat(start).timestamp() for start in starts) if starts else math.inf
 
     def _execute(self, plan: Plan, run_id: int, camera: Camera, rail: Rail) -> RunResult:
         result = RunResult(run_id, "done")
@@ -505,7 +500,7 @@ class Runner:
                 files = [p for p in camera.capture(incoming) if p.suffix.lower() in RAW_SUFFIXES]
                 if not files:
                     raise CameraError("the camera produced no RAW file: set imageformat to RAW")
-                path, sha = store_frame(files[0], self.frames_dir)
+                path, sha = store_frame(files[0], self.frames_dir, self.catalogue.pend_frame)
             except (PsfdError, OSError):
                 check_room(self.frames_dir, max(self._frame_bytes, FRAME_BYTES_MIN))
                 raise
@@ -520,6 +515,7 @@ class Runner:
         for record in records:
             if record.sha256 not in known:
                 Path(record.path).unlink(missing_ok=True)
+        self.catalogue.forget_pending(record.sha256 for record in records)
 
     def _hand_over(self, run_id: int, focal: float | None, step: Step, records: list, inflight: list,
                    result: RunResult, bar: Progress) -> None:

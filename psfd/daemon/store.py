@@ -6,7 +6,7 @@ complete, and the same exposure stored twice is one file. One run at a time
 holds the store (`store_lock`, an flock a killed process never leaves
 behind), so a run journalled ``running`` whose store nobody holds was killed
 (`shown_state`: ``interrupted``). `sweep_frames` removes what a crash left:
-temporary folders and frames the catalogue does not know.
+temporary folders and the frames its catalogue journalled and never committed.
 
 Only the store's owner writes to it: another user's files and folders in it (a root
 ``psfd capture`` in the service's store) would be ones the service cannot use.
@@ -25,7 +25,7 @@ import re
 import shutil
 import threading
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 from psfd.catalogue import check_owner
 from psfd.errors import STORAGE_ERRNOS, BadInputError, ServiceError, StorageError, path_reason
@@ -43,12 +43,15 @@ def frames_dir_for(catalogue_path: str | os.PathLike) -> Path:
     return path.with_name(path.stem + "-frames")
 
 
-def store_frame(src: Path, frames_dir: Path) -> tuple[Path, str]:
+def store_frame(src: Path, frames_dir: Path, journal: Callable[[str], None] | None = None) -> tuple[Path, str]:
     """Move a captured file into the store under its sha256; returns (path, sha256).
 
     The data is fsynced before the rename and the folder after it, so the
     name is only ever seen on a complete file. An identical file already
-    stored is re-used.
+    stored is re-used. ``journal(sha256)`` is called before a new file is put
+    into the store (not for one re-used, which is someone else's): the
+    catalogue's `pend_frame`, which lets `sweep_frames` tell a crash's leftover
+    from another catalogue's frame.
     """
     digest = hashlib.sha256()
     with open(src, "rb") as fh:
@@ -62,6 +65,8 @@ def store_frame(src: Path, frames_dir: Path) -> tuple[Path, str]:
     if dest.exists():
         src.unlink()
     else:
+        if journal is not None:
+            journal(sha)
         os.replace(src, dest)
         _fsync_dir(folder)
     return dest.resolve(), sha
@@ -171,14 +176,11 @@ def shown_state(state: str, frames_dir: str | os.PathLike) -> str:
     return "interrupted" if state == "running" and not store_busy(frames_dir) else state
 
 
-def sweep_frames(frames_dir: Path, known: set[str], since: float = 0.0) -> list[Path]:
-    """Remove what a crash left in the store: temporary folders and frames the catalogue does not hold.
-
-    Only files named like stored frames (sha256 + suffix) are touched; ``known``
-    holds the catalogued hashes, ``since`` (a `time.time`) the start of the runs a crash
-    may have interrupted: a frame stored before it (its inode changed last before it: a
-    rename into the store changes it, whatever time the camera gave the file) is another
-    catalogue's, when two share a folder, and is kept. Returns the removed paths.
+def sweep_frames(frames_dir: Path, known: set[str], pending: set[str]) -> list[Path]:
+    """Remove what a crash left in the store: temporary folders, and the frames a run journalled as being
+    stored (``pending``, `Catalogue.pending_frames`) that its catalogue does not hold (``known``). Any other
+    file is kept: a folder may be shared with other catalogues, whose frames this one does not know.
+    Returns the removed paths.
     """
     removed: list[Path] = []
     if not frames_dir.is_dir():
@@ -186,8 +188,9 @@ def sweep_frames(frames_dir: Path, known: set[str], since: float = 0.0) -> list[
     for incoming in frames_dir.glob(INCOMING + "*"):
         shutil.rmtree(incoming, ignore_errors=True)
         removed.append(incoming)
-    for path in frames_dir.glob("??/*"):
-        if FRAME_NAME.match(path.name) and path.name.split(".")[0] not in known and path.stat().st_ctime >= since:
-            path.unlink()
-            removed.append(path)
+    for sha in sorted(pending - known):
+        for path in (frames_dir / sha[:2]).glob(sha + ".*"):
+            if FRAME_NAME.match(path.name):
+                path.unlink()
+                removed.append(path)
     return removed
