@@ -361,3 +361,28 @@ def test_sources_outside_the_catalogue_folder_stay_absolute(tmp_path):
     os.rename(tmp_path / "k1", tmp_path / "moved")
     (row,) = _query_json(tmp_path / "moved" / "cat.sqlite")
     assert row["sources"] == [stored] and os.path.isfile(stored)
+
+
+def _psfd(*argv: str, **kwargs) -> subprocess.CompletedProcess:
+    """The whole ``python -m psfd`` process, as a user runs it."""
+    return subprocess.run([sys.executable, "-m", "psfd", *argv], capture_output=True, text=True, timeout=120,
+                          **kwargs)
+
+
+def test_channel_names_are_read_in_any_case_as_camera_names_are(catalogue, tmp_path):
+    """--channel G1 is --channel g1 (the stored names are lower case); an unknown one is still refused."""
+    lower = _psfd("query", "--catalogue", catalogue, "--channel", "g1", "--csv")
+    assert lower.returncode == 0, lower.stderr
+    upper = _psfd("query", "--catalogue", catalogue, "--channel", "G1", "--csv")
+    assert upper.returncode == 0 and upper.stdout == lower.stdout, upper.stderr
+    red = _psfd("query", "--catalogue", catalogue, "--channel", "R", "--csv")
+    rows = red.stdout.splitlines()[1:]
+    assert red.returncode == 0 and len(rows) == 18 and all(",r," in row for row in rows), red.stderr
+    mono = _psfd("query", "--catalogue", catalogue, "--channel", "Mono")
+    assert mono.returncode == 1 and "no PSF matches" in mono.stderr  # known, none stored: no match, not bad input
+    export = _psfd("export", "--catalogue", catalogue, "--channel", "G1", "--aperture", "8", "--out",
+                   str(tmp_path / "ex"))
+    assert export.returncode == 0 and len(json.loads((tmp_path / "ex" / "index.json").read_text())["psfs"]) == 9
+    bad = _psfd("query", "--catalogue", catalogue, "--channel", "G3")
+    assert bad.returncode == 2 and bad.stderr == ("psfd: error: --channel: unknown channel 'G3' "
+                                                  "(one of r, g1, g2, b, mono)\n")

@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     if not weights or any(w < 0 for w in weights):
         raise BadInputError("--weights: expected non-negative numbers separated by commas")
     if args.channel is not None:  # None: each file's default plane (`psfd.estimator.raw.load_frame`)
-        options.parse_channel(args.channel, allowed=(*CHANNELS, MONO))
+        args.channel = options.parse_channel(args.channel, allowed=(*CHANNELS, MONO))  # G1 is g1
     inputs = [*args.frames, *([args.truth] if args.truth else [])]  # never deleted by --force
     if args.out is not None:
         from psfd.cli import output

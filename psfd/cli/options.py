@@ -125,10 +125,15 @@ def sizes(args: argparse.Namespace, method: str) -> dict:
 
 
 def parse_channel(text: str, name: str = "--channel", allowed: tuple[str, ...] = vocabulary.CHANNELS) -> str:
-    """One channel among ``allowed``."""
-    if text not in allowed:
+    """One channel among ``allowed``, in any case (``G1`` is ``g1``), as stored: lower case.
+
+    The catalogue stores the names of `psfd.vocabulary.CHANNELS` and ``mono``, all lower case, and
+    ``--camera`` ignores case: a channel typed as printed on a datasheet (``G1``) is the same channel.
+    """
+    channel = text.strip().lower()
+    if channel not in allowed:
         raise BadInputError(f"{name}: unknown channel {text!r} (one of {', '.join(allowed)})")
-    return text
+    return channel
 
 
 def parse_near(text: str, name: str = "--near") -> tuple[float, float]:

@@ -27,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     filters.add_argument("--camera", help="camera model (case-insensitive substring) or serial number")
     filters.add_argument("--lens", help="lens name (case-insensitive substring)")
     filters.add_argument("--aperture", metavar="F", help="f-number, e.g. 5.6; the nearest measured one if not measured")
-    filters.add_argument("--channel", help=f"Bayer channel ({', '.join(CHANNELS)}, {MONO})")
+    filters.add_argument("--channel", help=f"Bayer channel ({', '.join(CHANNELS)}, {MONO}; any case)")
     filters.add_argument("--method", help=", ".join(METHODS[:-1]) + " or " + METHODS[-1])
     near = argparse.ArgumentParser(add_help=False)
     near.add_argument("--near", metavar="X,Y", help="normalised field location: the nearest PSF per aperture")
