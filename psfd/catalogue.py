@@ -948,18 +948,9 @@ class Catalogue:
             At most this many rows.
         """
         where, params = [], []
-        if camera:
-            where.append("(instr(lower(r.model), lower(?)) > 0 OR r.serial = ?)")
-            params += [camera, camera]
-        if lens:
-            where.append("instr(lower(r.lens), lower(?)) > 0")
-            params.append(lens)
-        if channel:
-            where.append("p.channel = ?")
-            params.append(channel)
-        if method:
-            where.append("p.method = ?")
-            params.append(method_name(method))
+        for _, _, clause, values in _filters(camera, lens, method, channel):
+            where.append(clause)
+            params += values
         note = None
         with self._read() as db:
             if aperture is not None:
@@ -981,6 +972,49 @@ class Catalogue:
         if limit is not None:
             rows = rows[: max(int(limit), 0)]
         return QueryResult(rows, note)
+
+    def why_empty(
+        self,
+        camera: str | None = None,
+        lens: str | None = None,
+        aperture: float | None = None,
+        channel: str | None = None,
+        method: str | None = None,
+    ) -> str | None:
+        """Why `query` with these filters finds no PSF, in a phrase; None when it finds some.
+
+        The filters are applied one at a time, in the order camera, lens, method, channel, aperture,
+        and the first that leaves no PSF is named with the values the PSFs before it have, e.g.
+        ``"no PSF of channel b with camera 'canon' (these have g1, r)"``. The aperture comes last
+        because `query` takes the measured f-number nearest the one asked among the PSFs of the
+        other filters: it leaves none only when none of them has an f-number.
+        """
+        where: list[str] = []
+        params: list = []
+        named: list[str] = []
+        with self._read() as db:
+            if not self._count(db, where, params):
+                return "the catalogue holds no PSF"
+            for name, label, clause, values in _filters(camera, lens, method, channel):
+                if not self._count(db, [*where, clause], [*params, *values]):
+                    column = {"camera": "r.model", "lens": "r.lens", "method": "p.method", "channel": "p.channel"}
+                    there = [str(v) if v else "(none)" for v in self._distinct(db, column[name], where, params)]
+                    return _empty_phrase(f"no PSF of {label}", named, _listed(there))
+                where, params, named = [*where, clause], [*params, *values], [*named, label]
+            if aperture is not None and not self._apertures(db, where, params):
+                return _empty_phrase(f"no PSF at f/{float(aperture):g}", named, "no f-number")
+        return None
+
+    @staticmethod
+    def _count(db: sqlite_utils.Database, where: list[str], params: list) -> int:
+        sql = "SELECT count(*) FROM psfs p LEFT JOIN rigs r ON r.id = p.rig_id"
+        return int(db.execute(sql + (f" WHERE {' AND '.join(where)}" if where else ""), params).fetchone()[0])
+
+    @staticmethod
+    def _distinct(db: sqlite_utils.Database, column: str, where: list[str], params: list) -> list:
+        sql = f"SELECT DISTINCT {column} FROM psfs p LEFT JOIN rigs r ON r.id = p.rig_id"
+        sql += (f" WHERE {' AND '.join(where)}" if where else "") + f" ORDER BY {column}"
+        return [row[0] for row in db.execute(sql, params).fetchall()]
 
     @staticmethod
     def _apertures(db: sqlite_utils.Database, where: list[str], params: list) -> list[float]:
@@ -1035,6 +1069,37 @@ class Catalogue:
         """SHA-256 of every catalogued frame (the daemon's frame store keeps exactly these files)."""
         with self._read() as db:
             return {row[0] for row in db.execute("SELECT sha256 FROM frames").fetchall()}
+
+
+def _filters(camera: str | None, lens: str | None, method: str | None, channel: str | None
+             ) -> list[tuple[str, str, str, list]]:
+    """The SQL of the filters given: (name, how a message names it, clause, its parameters), in the order
+    `Catalogue.why_empty` applies them."""
+    filters = []
+    if camera:
+        filters.append(("camera", f"camera {camera!r}", "(instr(lower(r.model), lower(?)) > 0 OR r.serial = ?)",
+                        [camera, camera]))
+    if lens:
+        filters.append(("lens", f"lens {lens!r}", "instr(lower(r.lens), lower(?)) > 0", [lens]))
+    if method:
+        method = method_name(method)
+        filters.append(("method", f"method {method}", "p.method = ?", [method]))
+    if channel:
+        filters.append(("channel", f"channel {channel}", "p.channel = ?", [channel]))
+    return filters
+
+
+def _listed(values: list[str], most: int = 8) -> str:
+    """``a, b, c``, or the first ``most`` and how many more (a catalogue of many cameras stays one line)."""
+    shown = ", ".join(values[:most])
+    return shown + (f" and {len(values) - most} more" if len(values) > most else "")
+
+
+def _empty_phrase(what: str, before: list[str], there: str) -> str:
+    """``no PSF of X (the catalogue has ...)``, or ``no PSF of X with Y, Z (these have ...)`` after other filters."""
+    if not before:
+        return f"{what} (the catalogue has {there})"
+    return f"{what} with {', '.join(before)} (these have {there})"
 
 
 def _nearest_per_group(rows: list[dict], near: tuple[float, float]) -> list[dict]:

@@ -478,6 +478,28 @@ def test_query_near_keeps_nearest_per_aperture_channel_method(tmp_path):
         assert len(one) == 1 and (one.rows[0]["field_x"], one.rows[0]["field_y"]) == pytest.approx((1 / 6, 5 / 6))
 
 
+def test_an_empty_answer_names_the_first_filter_that_leaves_no_psf_and_what_there_is(tmp_path):
+    """Filters applied one at a time (camera, lens, method, channel, then aperture, whose nearest measured
+    value is taken among the others' PSFs): the first that leaves none is named, with the values there are."""
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        assert cat.why_empty() == "the catalogue holds no PSF"
+        fill(cat)
+        sony = new_run(cat, keys=("s",), rig=CameraInfo("Sony A7", "9", "FE 50mm", 50.0))
+        cat.commit_step(sony, "s", [], [(make_psf(channel="g1"), {})])  # no f-number recorded
+        assert cat.why_empty(camera="canon", channel="g1") is None  # it matches
+        assert cat.why_empty(camera="EOS 5D") == ("no PSF of camera 'EOS 5D' (the catalogue has Canon EOS 400D, "
+                                                  "Nikon D850, Sony A7)")
+        assert cat.why_empty(lens="85mm", channel="g1") == ("no PSF of lens '85mm' (the catalogue has AF-S 24-70mm, "
+                                                            "EF 50mm f/1.8, FE 50mm)")
+        assert cat.why_empty(camera="canon", method="two-photo", channel="b") == (
+            "no PSF of method two-photo with camera 'canon' (these have bernoulli)")
+        assert cat.why_empty(camera="nikon", channel="r", aperture=4) == (
+            "no PSF of channel r with camera 'nikon' (these have g1)")
+        assert cat.why_empty(camera="sony", aperture=4) == "no PSF at f/4 with camera 'sony' (these have no f-number)"
+        assert cat.why_empty(channel="b") == "no PSF of channel b (the catalogue has g1, r)"
+        assert len(cat.query(camera="sony", aperture=4)) == 0 and len(cat.query(camera="sony")) == 1
+
+
 # -- concurrency ----------------------------------------------------------------------
 
 STEPS, PER_STEP = 60, 4

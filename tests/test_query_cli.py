@@ -296,7 +296,8 @@ def test_unwritable_outputs_are_one_line_errors(capsys, catalogue, tmp_path):
 
 def test_json_query_without_match_says_so_on_stderr(capsys, catalogue):
     code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--camera", "EOS 5D", "--json")
-    assert (code, out, err) == (1, "", "psfd: error: no PSF matches the query\n")  # exit 1, as grep
+    assert (code, out, err) == (1, "", "psfd: error: no PSF matches: no PSF of camera 'EOS 5D' (the catalogue has "
+                                       "Canon EOS 400D)\n")  # exit 1, as grep
 
 
 def test_query_subprocess_uses_the_default_catalogue(catalogue, tmp_path):
@@ -386,3 +387,20 @@ def test_channel_names_are_read_in_any_case_as_camera_names_are(catalogue, tmp_p
     bad = _psfd("query", "--catalogue", catalogue, "--channel", "G3")
     assert bad.returncode == 2 and bad.stderr == ("psfd: error: --channel: unknown channel 'G3' "
                                                   "(one of r, g1, g2, b, mono)\n")
+
+
+def test_no_match_says_which_filter_left_no_psf_and_what_the_catalogue_has(catalogue, tmp_path):
+    """One line, exit 1 as before: the first filter that leaves no PSF, and the values there are."""
+    cases = [
+        (["query", "--channel", "b"], "no PSF matches: no PSF of channel b (the catalogue has g1, r)"),
+        (["query", "--camera", "canon", "--method", "two-photo", "--aperture", "4"],
+         "no PSF matches: no PSF of method two-photo with camera 'canon' (these have bernoulli)"),
+        (["export", "--camera", "nikon", "--out", str(tmp_path / "ex")],
+         "no PSF matches: no PSF of camera 'nikon' (the catalogue has Canon EOS 400D); nothing exported"),
+        (["report", "--channel", "B", "--out", str(tmp_path / "r.png")],
+         "no PSF matches: no PSF of channel b (the catalogue has g1, r); nothing to report"),
+    ]
+    for argv, message in cases:
+        done = _psfd(*argv, "--catalogue", catalogue)
+        assert (done.returncode, done.stdout, done.stderr) == (1, "", f"psfd: error: {message}\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == CATALOGUE_FILES

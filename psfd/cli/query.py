@@ -96,7 +96,9 @@ def run_filters(cat, options: dict[str, Any], nothing: str = ""):
     if result.note:
         print(f"psfd: note: {result.note}", file=sys.stderr)
     if not result.rows:
-        raise NoMatchError(f"no PSF matches the query{nothing}")
+        filters = {key: options.get(key) for key in ("camera", "lens", "aperture", "channel", "method")}
+        why = cat.why_empty(**filters)  # the first filter that leaves no PSF, and what there is
+        raise NoMatchError(f"no PSF matches: {why}{nothing}" if why else f"no PSF matches the query{nothing}")
     return result
 
 
@@ -227,7 +229,9 @@ def run_report(args: argparse.Namespace) -> int:
     with open_catalogue(args) as cat:
         result = run_filters(cat, filters, "; nothing to report")
         if channel and not any(r["channel"] == channel for r in result.rows):
-            raise NoMatchError(f"no PSF of channel {channel} matches the query; nothing to report")
+            with_channel = {key: filters[key] for key in ("camera", "lens", "aperture", "method")}
+            why = cat.why_empty(**with_channel, channel=channel) or f"no PSF of channel {channel}"
+            raise NoMatchError(f"no PSF matches: {why}; nothing to report")
         output.write_report(cat, result.rows, pick_channel(result.rows, channel), out, result.note)
     print(f"report written to {out}")
     return 0
