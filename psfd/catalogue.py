@@ -968,7 +968,8 @@ class Catalogue:
             sql += " ORDER BY r.model, r.lens, p.aperture, p.channel, p.method, p.field_y, p.field_x, p.id"
             rows = [_row(r, self.folder) for r in db.query(sql, params)]
         if near is not None:
-            rows = _nearest_per_group(rows, near)
+            rows, far = _nearest_per_group(rows, near)
+            note = "; ".join(n for n in (note, far) if n) or None
         if limit is not None:
             rows = rows[: max(int(limit), 0)]
         return QueryResult(rows, note)
@@ -1102,19 +1103,67 @@ def _empty_phrase(what: str, before: list[str], there: str) -> str:
     return f"{what} with {', '.join(before)} (these have {there})"
 
 
-def _nearest_per_group(rows: list[dict], near: tuple[float, float]) -> list[dict]:
-    """Keep the PSF nearest ``near`` per (rig, focal length, aperture, channel, method), nearest first.
+def _nearest_per_group(rows: list[dict], near: tuple[float, float]) -> tuple[list[dict], str | None]:
+    """Keep the PSF nearest ``near`` per (rig, focal length, aperture, channel, method), nearest first,
+    and a note when one of them lies outside the grid of its group's stored locations (`_far_note`).
 
-    Ties (repeated measurements at one location) go to the newest PSF.
+    Ties (repeated measurements at one location) go to the newest PSF. ``distance`` is in normalised
+    field units, as ``field_x`` and ``field_y`` (a fraction of the width across, of the height down).
     """
     x, y = near
     for row in rows:
         row["distance"] = math.hypot(row["field_x"] - x, row["field_y"] - y)
     best: dict[tuple, dict] = {}
+    groups: dict[tuple, list[dict]] = {}
     for row in sorted(rows, key=lambda r: (r["distance"], -r["id"])):
         group = (row["rig_id"], row["focal_length_mm"], row["aperture"], row["channel"], row["method"])
         best.setdefault(group, row)
-    return sorted(best.values(), key=lambda r: (r["distance"], r["aperture"] or 0.0, r["channel"], r["method"]))
+        groups.setdefault(group, []).append(row)
+    kept = sorted(best.values(), key=lambda r: (r["distance"], r["aperture"] or 0.0, r["channel"], r["method"]))
+    return kept, _far_note(near, [(best[g], groups[g]) for g in best])
+
+
+# Two stored field coordinates closer than this are one grid line: window edges are whole channel
+# pixels (`psfd.estimator.kernels.split_grid`), so the centres of one grid column in frames of one size
+# differ by a pixel or less, 1/1000 of the field on the smallest planes psfd reads.
+_SAME_LINE = 1e-3
+
+
+def _grid_step(values: list[float]) -> float:
+    """The grid step of stored field coordinates along one axis: the median gap between distinct ones
+    (robust to a missing window and to grids of several frames); 1, the whole field, for a single one."""
+    lines: list[float] = []
+    for value in sorted(values):
+        if not lines or value - lines[-1] > _SAME_LINE:
+            lines.append(value)
+    gaps = [b - a for a, b in zip(lines, lines[1:])]
+    return float(np.median(gaps)) if gaps else 1.0
+
+
+def _far_note(near: tuple[float, float], groups: list[tuple[dict, list[dict]]]) -> str | None:
+    """A note when the nearest PSF of a group is farther from ``near`` than half its grid step along x or y.
+
+    Grid windows tile the measured region, each reaching half a step either side of its centre
+    (`psfd.estimator.kernels.split_grid`): a point within half a step of the nearest stored location
+    along both axes lies inside that PSF's window, the edges of a whole grid's outer windows included.
+    Farther, it lies in no measured window (a failed window, a partial run, outside the target's
+    region): the PSF returned was measured elsewhere in the field. A single location along an axis has
+    no step; it is taken as covering that axis (step 1, the whole field), so only a location more than
+    half the field away is noted. The farthest such PSF is named; how many there are when not all.
+    """
+    far = []
+    for row, members in groups:
+        steps = (_grid_step([r["field_x"] for r in members]), _grid_step([r["field_y"] for r in members]))
+        offsets = (abs(row["field_x"] - near[0]), abs(row["field_y"] - near[1]))
+        if any(offset > step / 2 + 1e-9 for offset, step in zip(offsets, steps)):
+            far.append((row["distance"], row, steps))
+    if not far:
+        return None
+    distance, row, (across, down) = max(far, key=lambda item: item[0])
+    share = f" for {len(far)} of {len(groups)} PSFs" if len(far) < len(groups) else ""
+    return (f"no PSF measured near {near[0]:g},{near[1]:g}{share}: the nearest stored location "
+            f"({row['field_x']:.3f},{row['field_y']:.3f}) is {distance:.3f} away, more than half the grid step "
+            f"({across:.3f} across, {down:.3f} down)")
 
 
 # ---------------------------------------------------------------------------

@@ -500,6 +500,34 @@ def test_an_empty_answer_names_the_first_filter_that_leaves_no_psf_and_what_ther
         assert len(cat.query(camera="sony", aperture=4)) == 0 and len(cat.query(camera="sony")) == 1
 
 
+def test_query_near_notes_a_nearest_psf_outside_the_grid_of_stored_locations(tmp_path):
+    """The nearest PSF of a group is an extrapolation when the location asked is more than half the grid step
+    of the group's stored locations from it along x or y: outside every measured window. The note says so."""
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        fill(cat)  # Canon: a whole 3x3 grid (step 1/3); Nikon: one location, the centre
+        for near in ((0.8, 0.1), (0.0, 0.0), (1.0, 1.0), (0.5, 0.5), (0.9, 0.9)):
+            # inside the whole grid, its corners too: the windows tile the field; one location covers it all
+            assert cat.query(near=near).note is None
+        sony = new_run(cat, keys=("s",), rig=CameraInfo("Sony A7", "9", "FE 50mm", 50.0))
+        holed = [f for f in GRID if f != (5 / 6, 5 / 6)]  # the bottom-right window failed
+        cat.commit_step(sony, "s", [], [(make_psf(field, "g1"), {"aperture": 8}) for field in holed])
+        result = cat.query(camera="sony", near=(0.9, 0.9))
+        (row,) = result.rows
+        assert row["distance"] == pytest.approx(math.hypot(0.9 - 5 / 6, 0.4))
+        assert result.note == ("no PSF measured near 0.9,0.9: the nearest stored location (0.500,0.833) is 0.406 "
+                               "away, more than half the grid step (0.333 across, 0.333 down)")
+        assert cat.query(camera="sony", near=(0.5, 0.5)).note is None
+        assert cat.query(near=(0.9, 0.9)).note == (  # Canon r, g1 at f/5.6, f/8; Nikon; Sony
+            "no PSF measured near 0.9,0.9 for 1 of 6 PSFs: the nearest stored location (0.500,0.833) is 0.406 "
+            "away, more than half the grid step (0.333 across, 0.333 down)")
+        away = new_run(cat, keys=("o",), rig=CameraInfo("Olympus E-M1", "3", "12-40mm", 12.0))
+        cat.commit_step(away, "o", [], [(make_psf((0.2, 0.5), "g1"), {"aperture": 8})])  # one window, left
+        assert cat.query(camera="olympus", near=(0.6, 0.5)).note is None  # 0.4: within the half field
+        assert cat.query(camera="olympus", near=(0.8, 0.5)).note == (
+            "no PSF measured near 0.8,0.5: the nearest stored location (0.200,0.500) is 0.600 away, more than half "
+            "the grid step (1.000 across, 1.000 down)")
+
+
 # -- concurrency ----------------------------------------------------------------------
 
 STEPS, PER_STEP = 60, 4

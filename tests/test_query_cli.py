@@ -404,3 +404,21 @@ def test_no_match_says_which_filter_left_no_psf_and_what_the_catalogue_has(catal
         done = _psfd(*argv, "--catalogue", catalogue)
         assert (done.returncode, done.stdout, done.stderr) == (1, "", f"psfd: error: {message}\n")
     assert sorted(p.name for p in tmp_path.iterdir()) == CATALOGUE_FILES
+
+
+def test_near_notes_on_stderr_when_no_psf_was_measured_there(catalogue):
+    """The table is as before (the nearest PSF, its dist); one note line on stderr when that PSF's location is
+    more than half the grid step of the stored locations away along x or y, none inside the grid."""
+    with Catalogue(catalogue) as cat:
+        rig = cat.add_rig(CameraInfo("Sony A7", "9", "FE 50mm", 50.0))
+        run = cat.start_run("sony.toml", "sony plan", rig, [("f8", {})])
+        cat.commit_step(run, "f8", [], [(PSF(gaussian(2.0), 4, "bernoulli", "g1", ["s.dng"], f, (0, 0, 64, 64)),
+                                         {"aperture": 8.0}) for f in GRID if f != (5 / 6, 5 / 6)])
+    inside = _psfd("query", "--catalogue", catalogue, "--near", "0.95,0.05")
+    assert inside.returncode == 0 and inside.stderr == "" and len(inside.stdout.splitlines()) == 1 + 5 + 1
+    far = _psfd("query", "--catalogue", catalogue, "--camera", "sony", "--near", "0.9,0.9")
+    assert far.returncode == 0 and far.stderr == (
+        "psfd: note: no PSF measured near 0.9,0.9: the nearest stored location (0.500,0.833) is 0.406 away, more "
+        "than half the grid step (0.333 across, 0.333 down)\n")
+    (row,) = far.stdout.splitlines()[1:-1]
+    assert row.split()[-1] == "0.406" and "field distance to --near, normalised" in far.stdout.splitlines()[-1]

@@ -44,7 +44,7 @@ def units_line(rows: list[dict]) -> str:
         mtf += ", lp/mm: line pairs per mm on the sensor"
     return (f"units: f/ f-number; field normalised (0,0 top-left, 1,1 bottom-right); size: kernel side in samples "
             f"of the s-times grid; {mtf}; fwhm in channel pixels" +
-            ("; dist: field distance to --near" if rows and "distance" in rows[0] else ""))
+            ("; dist: field distance to --near, normalised" if rows and "distance" in rows[0] else ""))
 
 
 def _has_lp_mm(rows: list[dict]) -> bool:
