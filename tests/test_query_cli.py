@@ -422,3 +422,38 @@ def test_near_notes_on_stderr_when_no_psf_was_measured_there(catalogue):
         "than half the grid step (0.333 across, 0.333 down)\n")
     (row,) = far.stdout.splitlines()[1:-1]
     assert row.split()[-1] == "0.406" and "field distance to --near, normalised" in far.stdout.splitlines()[-1]
+
+
+def test_tiff_exports_carry_the_sample_pitch_as_resolution_in_centimetres(tmp_path):
+    """A PSF is sampled at the channel pixel pitch / s (a Bayer plane's pixel is two photosites, a mono plane's
+    one): its TIFF says so in XResolution, YResolution (samples per cm) and ResolutionUnit (centimetre); one of
+    unknown pitch keeps no unit, as before."""
+    from psfd.catalogue import FrameRecord
+
+    path = tmp_path / "cat.sqlite"
+    with Catalogue(path) as cat:
+        rig = cat.add_rig(CameraInfo("Canon EOS 400D", "0420", "EF 50mm f/1.8", 50.0))
+        for n, (plan, channel, s) in enumerate((("[rig]\npitch_um = 5.7\n", "g1", 4), ("[rig]\npitch_um = 4.3\n",
+                                                                                       "mono", 3), ("plan", "r", 4))):
+            run = cat.start_run(f"p{n}.toml", plan, rig, [("f8", {})])
+            frame = FrameRecord(str(tmp_path / f"frame{n}.pgm"), f"{n:064x}", {"aperture": "8"}, {}, "t")
+            cat.commit_step(run, "f8", [frame], [(PSF(gaussian(2.0, 4 * s + 1), s, "bernoulli", channel,
+                                                      [frame.path], (0.5, 0.5), (0, 0, 64, 64)), {"aperture": 8.0})])
+    out = tmp_path / "ex"
+    done = _psfd("export", "--catalogue", str(path), "--format", "tif", "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    expected = {"g1": 10 * 4 / (2 * 5.7e-3), "mono": 10 * 3 / 4.3e-3}  # samples per cm: 7017.5 and 6976.7
+    seen = set()
+    for entry in json.loads((out / "index.json").read_text())["psfs"]:
+        with tifffile.TiffFile(out / entry["file"]) as tif:
+            tags = tif.pages[0].tags
+            unit = tags["ResolutionUnit"].value
+            if entry["channel"] in expected:
+                assert unit == tifffile.RESUNIT.CENTIMETER
+                for name in ("XResolution", "YResolution"):
+                    numerator, denominator = tags[name].value
+                    assert numerator / denominator == pytest.approx(expected[entry["channel"]], rel=1e-9)
+            else:  # no pitch known: no unit, no claim
+                assert unit == tifffile.RESUNIT.NONE
+            seen.add(entry["channel"])
+    assert seen == {"g1", "mono", "r"}
