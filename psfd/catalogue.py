@@ -26,6 +26,7 @@ import contextlib
 import hashlib
 import io
 import json
+import logging
 import math
 import os
 import sqlite3
@@ -46,6 +47,8 @@ from psfd.errors import BadInputError, CatalogueError, StorageError, path_reason
 from psfd.estimator.kernels import PSF
 from psfd.vocabulary import (BERNOULLI, SHARP_EDGE, camera_fnumber, data_dir, method_name, parse_fnumber,
                              plan_content)
+
+log = logging.getLogger(__name__)
 
 STEP_STATES = ("pending", "running", "done", "failed")
 RUN_STATES = ("running", "done", "paused", "cancelled", "failed")
@@ -404,8 +407,10 @@ class Catalogue:
     connection closes unless SQLITE_FCNTL_PERSIST_WAL is set, which Python's sqlite3 module
     cannot set. A writer's `close` therefore puts them back, empty, with the catalogue's own
     mode and owner: an empty WAL and an uninitialised index are states SQLite reads from
-    (the read-only index is then rebuilt in the reader's memory). ``immutable=1`` is not
-    used: it is only safe for a file nobody changes, and the service does.
+    (the read-only index is then rebuilt in the reader's memory). ``immutable=1`` is used only
+    when they are missing and cannot be made, and the ``-wal`` held nothing (a catalogue copied
+    alone to read-only media, `_on_read_only_media`): it is only safe for a file nobody changes,
+    and the service changes the catalogue it serves, whose -wal and -shm then exist.
 
     Ownership. A writer must own an existing catalogue (`check_owner`): files another user
     made beside it (SQLite's ``-wal`` of a root process) could not be written by its owner.
@@ -430,9 +435,24 @@ class Catalogue:
             check_owner(self.path, "the catalogue")
         self._lock = threading.RLock()
         try:
-            if readonly:
-                conn = sqlite3.connect(f"{self.path.absolute().as_uri()}?mode=ro", uri=True, timeout=timeout,
-                                       check_same_thread=False)
+            self._open(create, timeout, immutable=False)
+        except sqlite3.OperationalError as exc:  # read-only file or folder, locked, ...
+            if not self._on_read_only_media():
+                raise self._open_error(exc) from None
+            log.warning("%s: read as immutable (SQLite immutable=1): its -wal and -shm files are missing and %s is "
+                        "read-only", self.path, self.path.parent)
+            try:
+                self._open(create, timeout, immutable=True)
+            except sqlite3.OperationalError as again:
+                raise CatalogueError(f"cannot open catalogue {self.path}: {again}") from None
+
+    def _open(self, create: bool, timeout: float, immutable: bool) -> None:
+        """Connect and check the file (`_check_is_catalogue`, then the schema: checked, or migrated by a
+        writer); an SQLite OperationalError is raised as it is, for the caller to tell why."""
+        try:
+            if self.readonly:
+                uri = f"{self.path.absolute().as_uri()}?mode=ro" + ("&immutable=1" if immutable else "")
+                conn = sqlite3.connect(uri, uri=True, timeout=timeout, check_same_thread=False)
             else:
                 conn = sqlite3.connect(str(self.path), timeout=timeout, check_same_thread=False)
         except sqlite3.Error as exc:  # e.g. "unable to open database file" in a read-only folder
@@ -441,15 +461,15 @@ class Catalogue:
         try:
             self.db.execute(f"PRAGMA busy_timeout = {int(timeout * 1000)}")
             self.db.execute("PRAGMA foreign_keys = ON")
-            self._check_is_catalogue(create and not readonly)
-            if readonly:
+            self._check_is_catalogue(create and not self.readonly)
+            if self.readonly:
                 self._check_readable_version()
             else:  # the version was checked first: a catalogue this psfd refuses is left as it was
                 self.db.enable_wal()
                 self._migrate()
-        except sqlite3.OperationalError as exc:  # read-only file or folder, locked, ...
+        except sqlite3.OperationalError:
             self.db.close()
-            raise self._open_error(exc) from None
+            raise
         except sqlite3.DatabaseError as exc:
             self.db.close()
             raise CatalogueError(f"{self.path} is not a psfd catalogue ({exc})") from None
@@ -457,12 +477,31 @@ class Catalogue:
             self.db.close()
             raise
 
+    def _on_read_only_media(self) -> bool:
+        """Whether a reader's failed open is that of a catalogue on read-only media, which SQLite reads with
+        ``immutable=1``: its ``-shm`` missing and not to be created (the folder is read-only, see the class
+        notes), and its ``-wal`` missing or empty, so the file alone holds every commit.
+
+        Then no psfd writes it either: a writer (the service) creates both files when it opens the
+        catalogue and keeps them after (`_keep_wal_files`). A non-empty ``-wal`` holds commits the file
+        lacks, which an immutable read would not see: that stays an error (`_open_error`).
+        """
+        if not self.readonly or os.access(self.path.parent, os.W_OK):
+            return False
+        wal = self.path.with_name(self.path.name + "-wal")
+        try:
+            empty_wal = wal.stat().st_size == 0
+        except OSError:
+            empty_wal = not wal.exists()
+        return empty_wal and not self.path.with_name(self.path.name + "-shm").exists()
+
     def _open_error(self, exc: sqlite3.OperationalError) -> CatalogueError:
         side = self.path.with_name(self.path.name + "-shm")
         if self.readonly and not side.exists() and not os.access(self.path.parent, os.W_OK):
             return CatalogueError(
-                f"cannot read {self.path} without write access to {self.path.parent}: its {side.name} and -wal "
-                "files are missing (psfd keeps them; they come back when its owner, e.g. the service, opens it)")
+                f"cannot read {self.path} without write access to {self.path.parent}: its {side.name} file is "
+                "missing and its -wal holds commits not in the file (psfd keeps both files; they come back when "
+                "its owner, e.g. the service, opens it)")
         return _storage_error(exc, f"cannot open catalogue {self.path}") or CatalogueError(
             f"cannot open catalogue {self.path}: {exc}")
 

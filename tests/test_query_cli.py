@@ -457,3 +457,54 @@ def test_tiff_exports_carry_the_sample_pitch_as_resolution_in_centimetres(tmp_pa
                 assert unit == tifffile.RESUNIT.NONE
             seen.add(entry["channel"])
     assert seen == {"g1", "mono", "r"}
+
+
+def _as_user_without_write_access(command: list[str]) -> list[str]:
+    """``command`` run so that file modes restrict it: as it is for a user, without root's override for root."""
+    if os.geteuid() != 0:
+        return command
+    import shutil
+
+    if shutil.which("setpriv") is None:
+        pytest.skip("running as root without setpriv: chmod does not restrict root")
+    return ["setpriv", "--bounding-set=-dac_override,-dac_read_search", "--inh-caps=-dac_override,-dac_read_search",
+            *command]
+
+
+def test_a_catalogue_copied_alone_to_read_only_media_is_read_as_immutable(catalogue, tmp_path):
+    """No -wal or -shm beside it and no right to create them (a DVD, a read-only share, chmod 0555): the read-only
+    open fails, so the file is read with SQLite's immutable=1, said in one log line. A non-empty -wal without its
+    -shm holds commits the file lacks: that copy is still refused, not read incomplete."""
+    import shutil
+
+    normal = _psfd("query", "--catalogue", catalogue, "--csv")
+    assert normal.returncode == 0, normal.stderr
+    media, partial = tmp_path / "media", tmp_path / "partial"
+    media.mkdir()
+    shutil.copy(catalogue, media / "cat.sqlite")
+    partial.mkdir()
+    with Catalogue(catalogue) as writer:  # a commit still in the -wal alone, copied without its -shm
+        writer.db.execute("PRAGMA wal_autocheckpoint = 0")
+        writer.add_rig(CameraInfo("Sony A7", "9", "FE 50mm", 50.0))
+        for suffix in ("", "-wal"):
+            shutil.copy(catalogue + suffix, partial / f"cat.sqlite{suffix}")
+    assert (partial / "cat.sqlite-wal").stat().st_size > 0
+    for folder in (media, partial):
+        for path in folder.iterdir():
+            path.chmod(0o444)
+        folder.chmod(0o555)
+    try:
+        command = [sys.executable, "-m", "psfd", "query", "--csv", "--catalogue"]
+        done = subprocess.run(_as_user_without_write_access([*command, str(media / "cat.sqlite")]),
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0 and done.stdout == normal.stdout, done.stderr
+        assert done.stderr == (f"psfd: warning: {media / 'cat.sqlite'}: read as immutable (SQLite immutable=1): its "
+                               f"-wal and -shm files are missing and {media} is read-only\n")
+        assert sorted(p.name for p in media.iterdir()) == ["cat.sqlite"]
+        refused = subprocess.run(_as_user_without_write_access([*command, str(partial / "cat.sqlite")]),
+                                 capture_output=True, text=True, timeout=120)
+        assert_one_line_error(refused.returncode, refused.stderr, 5, "without write access")
+        assert sorted(p.name for p in partial.iterdir()) == ["cat.sqlite", "cat.sqlite-wal"]
+    finally:
+        for folder in (media, partial):
+            folder.chmod(0o755)
