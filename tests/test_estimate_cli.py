@@ -700,3 +700,15 @@ def test_an_image_too_small_for_any_estimate_is_one_bad_input_line_naming_it(tmp
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr == f"psfd: error: {tiny}: 12x8 pixels, too small for any estimate (at least 16x16)\n"
+
+
+def test_estimate_out_makes_the_folder_but_no_missing_parent(tmp_path, data_dir):
+    """As export and report --out: the folder named is made where its parent exists; a missing parent (a typo,
+    media not mounted) is a one-line bad input naming it, before any work, and nothing is created."""
+    frame = data_dir / "img_example.pgm"
+    missing = psfd(tmp_path, "estimate", "bernoulli", frame, "--out", "missing/psfs", "--no-figures")
+    assert (missing.returncode, missing.stdout) == (2, "")
+    assert missing.stderr == f"psfd: error: {tmp_path / 'missing'}: no such folder\n"
+    assert list(tmp_path.iterdir()) == []
+    made = psfd(tmp_path, "estimate", "bernoulli", frame, "--out", "psfs", "--no-figures")
+    assert made.returncode == 0 and (tmp_path / "psfs" / "metrics.csv").is_file(), made.stderr

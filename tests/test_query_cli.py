@@ -206,6 +206,7 @@ def test_export_force_replaces_an_earlier_export_and_nothing_else(catalogue, tmp
 
 def test_report_as_png_and_vector(capsys, catalogue, tmp_path):
     """`psfd report` writes the field report (its content: tests/test_figures.py) by the file's suffix."""
+    (tmp_path / "figs").mkdir()
     for name, magic in (("report.png", b"\x89PNG"), ("report.pdf", b"%PDF"), ("report.svg", b"<?xml")):
         out = tmp_path / "figs" / name
         code, stdout, _ = run_cli(capsys, "report", "--catalogue", catalogue, "--out", str(out))
@@ -289,7 +290,7 @@ def test_unwritable_outputs_are_one_line_errors(capsys, catalogue, tmp_path):
     assert_one_line_error(code, err, 2, "could not write /proc/psfd-report.png")
     (tmp_path / "file.txt").write_text("")
     code, _, err = run_cli(capsys, "report", "--catalogue", catalogue, "--out", str(tmp_path / "file.txt" / "r.png"))
-    assert_one_line_error(code, err, 2, "cannot create")
+    assert_one_line_error(code, err, 2, "file.txt: not a folder")
     code, _, err = run_cli(capsys, "query", "--catalogue", "/proc/psfd.sqlite")
     assert_one_line_error(code, err, 5, "no catalogue")
 
@@ -508,3 +509,26 @@ def test_a_catalogue_copied_alone_to_read_only_media_is_read_as_immutable(catalo
     finally:
         for folder in (media, partial):
             folder.chmod(0o755)
+
+
+def test_report_and_metadata_out_make_the_file_but_no_missing_folder(catalogue, tmp_path):
+    """As estimate and export --out: the file named is made in a folder that exists; a missing folder (a typo,
+    media not mounted) is a one-line bad input naming it, and nothing is created."""
+    (tmp_path / "notes.txt").write_text("mine")
+    for command, name in (("report", "r.png"), ("metadata", "m.json")):
+        missing = _psfd(command, "--catalogue", catalogue, "--out", str(tmp_path / "missing" / name))
+        assert (missing.returncode, missing.stdout) == (2, "")
+        assert missing.stderr == f"psfd: error: {tmp_path / 'missing'}: no such folder\n"
+        under_a_file = _psfd(command, "--catalogue", catalogue, "--out", str(tmp_path / "notes.txt" / name))
+        assert_one_line_error(under_a_file.returncode, under_a_file.stderr, 2, "notes.txt: not a folder")
+        made = _psfd(command, "--catalogue", catalogue, "--out", str(tmp_path / name))
+        assert made.returncode == 0 and (tmp_path / name).stat().st_size > 0, made.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([*CATALOGUE_FILES, "m.json", "notes.txt", "r.png"])
+
+
+def test_export_out_makes_the_folder_but_no_missing_parent(catalogue, tmp_path):
+    missing = _psfd("export", "--catalogue", catalogue, "--out", str(tmp_path / "missing" / "ex"))
+    assert (missing.returncode, missing.stderr) == (2, f"psfd: error: {tmp_path / 'missing'}: no such folder\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == CATALOGUE_FILES
+    made = _psfd("export", "--catalogue", catalogue, "--channel", "g1", "--aperture", "8", "--out", str(tmp_path / "ex"))
+    assert made.returncode == 0 and len(list((tmp_path / "ex").iterdir())) == 9 + 2, made.stderr

@@ -30,7 +30,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from psfd.errors import BadInputError, NoMatchError, path_reason
+from psfd.errors import BadInputError, NoMatchError
 from psfd.estimator.kernels import PSF
 from psfd.vocabulary import ALIASES, CHANNELS, METHODS, MONO
 from psfd.workers import forked_map, in_worker, usable_cores
@@ -142,13 +142,20 @@ def staging_dir(out: Path) -> Path:
         raise BadInputError(f"cannot write in {out.parent}: {exc.strerror or exc}") from None
 
 
-def parent_folder(out: Path) -> Path:
-    """The folder ``out`` goes in, created if needed; an unwritable place is a bad input."""
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise BadInputError(f"cannot create {out.parent}: {path_reason(out.parent, exc)}") from None
-    return out.parent
+def check_out_file(out: str | os.PathLike) -> Path:
+    """Fail early (before any work) if the file ``out`` cannot be made: its folder must exist.
+
+    As for an output folder (`check_out_dir`), the name given is made and no missing folder above it:
+    a mistyped path, or media not mounted, is a one-line error naming the folder, not a new tree of
+    folders on the wrong disk. Returns the folder.
+    """
+    out = Path(out).absolute()
+    if out.is_dir():
+        raise BadInputError(f"{out}: is a folder; name a file")
+    parent = out.parent
+    if not parent.is_dir():
+        raise BadInputError(f"{parent}: {'not a folder' if parent.exists() else 'no such folder'}")
+    return parent
 
 
 def write_folder(out_dir: str | os.PathLike, write: Callable[[Path], list[str]], force: bool = False,
@@ -174,8 +181,8 @@ def write_folder(out_dir: str | os.PathLike, write: Callable[[Path], list[str]],
 
 def write_file(out: Path, write: Callable[[Path], None]) -> None:
     """Write one file atomically: ``write(path)`` writes a hidden sibling with the same suffix,
-    renamed to ``out`` when complete."""
-    staging = parent_folder(out) / f".{out.stem}.{os.getpid()}.partial{out.suffix}"
+    renamed to ``out`` when complete, in a folder that exists (`check_out_file`)."""
+    staging = check_out_file(out) / f".{out.stem}.{os.getpid()}.partial{out.suffix}"
     try:
         write(staging)
         os.replace(staging, out)

@@ -241,6 +241,7 @@ def run_report(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if not figures.can_write(out):
         raise BadInputError(f"cannot write a figure named {out} (use .png, or .pdf or .svg for vector output)")
+    output.check_out_file(out)  # before any work, as export and estimate check their folders
     filters = query_options(args)
     channel = filters.pop("channel")  # the report draws every channel's PSFs; --channel picks the MTF50 one
     with open_catalogue(args) as cat:
@@ -258,14 +259,16 @@ def run_metadata(args: argparse.Namespace) -> int:
     from psfd.catalogue import Catalogue, datasette_metadata, default_path
 
     path = Path(args.catalogue) if args.catalogue else default_path()
+    if args.out is not None:
+        from psfd.cli import output
+
+        output.check_out_file(Path(args.out))
     # only a catalogue this psfd reads is described: a mistyped path or a newer schema is an error, not metadata
     Catalogue(path, readonly=True).close()
     text = json.dumps(datasette_metadata(path.stem), indent=2) + "\n"
     if args.out is None:
         sys.stdout.write(text)
         return 0
-    from psfd.cli import output
-
     output.write_file(Path(args.out), lambda staging: staging.write_text(text, encoding="utf-8"))
     print(f"wrote {args.out}: datasette {path} -m {args.out}")
     return 0
