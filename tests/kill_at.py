@@ -4,7 +4,7 @@ Usage: ``python tests/kill_at.py PHASE:N ARGS...`` (the caller starts it in a ne
 kill takes the estimation workers too, like a power cut). Phases, in the order a step meets them:
 
 - ``capture``: the frame is downloaded into the store's temporary folder, not yet stored;
-- ``journal``: the frame is journalled as being stored (`Catalogue.pend_frame`), not yet in the store;
+- ``pending``: the frame is journalled as being stored (`Catalogue.pend_frame`), not yet in the store;
 - ``store``: the frame is stored under its hash, not yet catalogued;
 - ``estimate``: the step's estimate was just handed to a worker;
 - ``commit``: the step's frames and PSFs are inserted, inside the transaction, before COMMIT;
@@ -35,7 +35,7 @@ def arm(phase: str, nth: int) -> None:
         count["n"] += 1
         return count["n"] == nth
 
-    if phase in ("capture", "journal", "store"):
+    if phase in ("capture", "pending", "store"):
         store_frame = runner.store_frame
 
         def patched_store(src, frames_dir, journal=None):
@@ -44,7 +44,7 @@ def arm(phase: str, nth: int) -> None:
 
             def journalled(sha: str) -> None:
                 journal(sha)
-                if phase == "journal" and reached():
+                if phase == "pending" and reached():
                     kill()
 
             out = store_frame(src, frames_dir, journalled)

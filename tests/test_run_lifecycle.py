@@ -296,7 +296,7 @@ def test_a_read_only_file_system_is_refused_in_one_line_and_resume_continues(sma
 
 # -- 10. SIGKILL in every phase of a run ----------------------------------------------------------------
 
-PHASES = ("capture", "journal", "store", "estimate", "commit", "last-commit", "close-down")
+PHASES = ("capture", "pending", "store", "estimate", "commit", "last-commit", "close-down")
 
 
 def killed_run(plan_path: Path, db: Path, phase: str, nth: int, resume: bool, tmp_path: Path) -> int:
