@@ -20,6 +20,9 @@ import pytest
 from psfd.catalogue import Catalogue
 from psfd.daemon import client
 from psfd.daemon.plan import parse_plan
+from psfd.daemon.service import Service
+from psfd.daemon.store import store_lock
+from psfd.drivers.base import CameraInfo
 from psfd.errors import BadInputError, ServiceError
 
 from test_runner import check_complete, small_plan
@@ -294,3 +297,106 @@ def test_a_plan_submitted_twice_while_queued_is_measured_once(served, tmp_path):
     with Catalogue(db, readonly=True) as cat:
         runs = [r for r in cat.runs() if r["plan_path"] == str(twice)]
     assert [r["state"] for r in runs] == ["done", "done"]  # the first submit and the --new one
+
+
+# -- resume after a restart -----------------------------------------------------------------------------
+
+
+def journal(db: Path, plan_text: str, path: str, state: str) -> int:
+    """A run of the plan journalled with every step pending, left in ``state`` (``running``: as a kill leaves it)."""
+    plan = parse_plan(plan_text, path)
+    with Catalogue(db) as cat:
+        rig = cat.add_rig(CameraInfo("psfd simulated camera", "SIM-0", "simulated 50 mm", 50.0))
+        run = cat.start_run(path, plan.text, rig, [(step.key, step.payload()) for step in plan.steps()])
+        if state != "running":
+            cat.finish_run(run, state)
+    return run
+
+
+def test_resume_after_a_restart_continues_the_catalogues_paused_run(tmp_path):
+    """`systemctl stop` pauses the run and ends the service; the service started again found no paused run
+    (it kept the plan in memory) although the catalogue has it, its plan text and `status` listed it. Now
+    `resume` continues it with its stored plan, says which run and plan, and status says paused meanwhile."""
+    plan_path = tmp_path / "plan.toml"
+    plan_path.write_text(small_plan())
+    plan = parse_plan(plan_path.read_text(), str(plan_path))
+    sock, db, log_path = tmp_path / "run" / "control.sock", tmp_path / "cat.sqlite", tmp_path / "serve.log"
+    argv = [sys.executable, "-m", "psfd", "serve", "--socket", str(sock), "--catalogue", str(db), "--workers", "1"]
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen(argv, stderr=log, start_new_session=True)
+        try:
+            wait_until(lambda: sock.exists() and client.service_up(sock), proc, "listening")
+            client.submit(sock, plan.text, str(plan_path))
+            wait_status(sock, lambda s: s["current"] and s["current"]["step"])
+            client.request(sock, {"cmd": "pause"})
+            wait_status(sock, lambda s: s["state"] == "paused")
+            proc.send_signal(signal.SIGTERM)  # systemctl stop
+            assert proc.wait(timeout=60) == 0
+            plan_path.unlink()  # the service needs its catalogue only, not the plan file
+            proc = subprocess.Popen(argv, stderr=log, start_new_session=True)  # systemctl start
+            wait_until(lambda: sock.exists() and client.service_up(sock), proc, "listening again")
+            status = client.request(sock, {"cmd": "status"})
+            assert (status["state"], status["paused_plan"]) == ("paused", str(plan_path)), status
+            assert [r["id"] for r in status["unfinished"]] == [1]
+            answer = client.request(sock, {"cmd": "resume"})
+            assert (answer["run_id"], answer["plan"], answer["queued"]) == (1, str(plan_path), 1), answer
+            status = wait_status(sock, lambda s: s["last"] is not None)
+            assert status["last"]["state"] == "done" and status["last"]["run_id"] == 1, status
+            assert (status["state"], status["paused_plan"], status["unfinished"]) == ("idle", None, [])
+            with pytest.raises(ServiceError, match="no paused run to resume"):
+                client.request(sock, {"cmd": "resume"})
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(timeout=60) == 0
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+    text = log_path.read_text()
+    assert f"resume asked on the control socket: run 1 of {plan_path} (paused, " in text, text
+    with Catalogue(db, readonly=True) as cat:
+        assert [r["state"] for r in cat.runs()] == ["done"]  # run 1 went on: no second run
+    check_complete(db, db.with_name("cat-frames"), plan)
+
+
+def test_resume_takes_the_newest_unfinished_run_says_so_and_skips_a_live_one(tmp_path):
+    """Several unfinished runs of different plans: `resume` continues the newest paused or interrupted one,
+    names it and the others; a run that another process is shooting is never it; none left: the error."""
+    db, frames = tmp_path / "cat.sqlite", tmp_path / "cat-frames"
+    texts = {name: small_plan().replace("apertures = [4, 11]", f"apertures = [{a}]")
+             for name, a in (("a.toml", 4), ("b.toml", 8), ("c.toml", 11))}
+    first = journal(db, texts["a.toml"], "a.toml", "paused")
+    second = journal(db, texts["b.toml"], "b.toml", "running")  # killed: interrupted
+    service = Service(db, frames, tmp_path / "control.sock")
+
+    def ask(cmd: str) -> dict:
+        return service.handle_line(json.dumps({"cmd": cmd}).encode() + b"\n")
+
+    status = ask("status")
+    assert (status["state"], status["paused_plan"]) == ("paused", "b.toml"), status
+    answer = ask("resume")
+    assert answer["ok"] and (answer["run_id"], answer["plan"]) == (second, "b.toml"), answer
+    assert f"run {first} of a.toml" in answer["note"] and "newest" in answer["note"], answer
+    # the queued job is the stored plan, to be resumed (the runner thread is not started here)
+    job = service.jobs.get_nowait()
+    assert job.resume and job.plan.text == texts["b.toml"] and job.plan.path == "b.toml"
+    service.waiting.clear()
+    service.queued = 0
+
+    with Catalogue(db) as cat:
+        cat.finish_run(second, "done")
+    live = journal(db, texts["c.toml"], "c.toml", "running")
+    with store_lock(frames):  # run `live` is being shot by another process: not resumable from here
+        status = ask("status")
+        assert status["paused_plan"] == "a.toml" and live not in [r["id"] for r in status["unfinished"]]
+        answer = ask("resume")
+        assert answer["ok"] and (answer["run_id"], answer["plan"]) == (first, "a.toml"), answer
+        assert "note" not in answer, answer
+    service.jobs.get_nowait()
+    service.waiting.clear()
+
+    with Catalogue(db) as cat:
+        cat.finish_run(first, "cancelled")
+        cat.finish_run(live, "cancelled")
+    assert ask("status")["state"] == "idle"
+    answer = ask("resume")
+    assert not answer["ok"] and answer["error"] == "no paused run to resume", answer

@@ -7,7 +7,7 @@ JSON object back::
     {"cmd": "submit", "plan": "<TOML text>", "path": "plan.toml", "resume": false, "new": false}
     {"cmd": "status"}
     {"cmd": "pause"}            # stop after the current frame; the run stays resumable
-    {"cmd": "resume"}           # resume the last paused run
+    {"cmd": "resume"}           # resume the catalogue's newest paused or interrupted run
     {"cmd": "cancel"}           # stop after the current frame and close the run as cancelled
     {"cmd": "submit", ..., "wait": true}   # answer only when the job has ended (used by `psfd capture`)
     {"cmd": "submit", ..., "oneshot": true}  # never left resumable: closed as failed where it would pause
@@ -16,6 +16,13 @@ JSON object back::
 this module). ``resume`` and ``new`` mean what they mean to `Runner.run`; a submit that the
 catalogue refuses (nothing to resume, or an unfinished run without ``new``)
 is answered with the error at once instead of queued.
+
+The ``resume`` request reads what to continue from the catalogue, not from the service's memory,
+so that it works after a restart (`systemctl stop` pauses the run, `systemctl start` brings
+a service that never saw it): the newest paused or interrupted run (`runner.unfinished_runs`,
+never one another process is shooting), with the plan text stored with it. Its answer names the
+run (``run_id``, ``plan``) and, when other runs are unfinished, says so in ``note``. ``status``
+says ``paused`` whenever no job runs and ``resume`` has such a run, ``paused_plan`` its plan.
 
 Answers carry ``"ok": true`` or ``"ok": false`` with ``"error"``, ``"error_type"`` and
 ``"exit_code"`` (the `psfd.errors` type, so the client raises the same error and the
@@ -49,6 +56,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from psfd.catalogue import Catalogue
 from psfd.daemon.client import MAX_REQUEST
 from psfd.daemon.plan import Plan, check_text, parse_plan
 from psfd.daemon.runner import Control, preflight, run_plan, unfinished_runs
@@ -124,7 +132,6 @@ class Service:
         self.lock = threading.Lock()
         self.current: dict[str, Any] | None = None
         self.last: dict[str, Any] | None = None
-        self.paused: Plan | None = None
         self.queued = 0
         self.waiting: list[Job] = []  # submitted, not ended: another plain submit of one of their plans is refused
 
@@ -177,8 +184,6 @@ class Service:
     def _open_catalogue(self) -> None:
         """Create or migrate the catalogue now, as the service's user: readers then find it at the current
         schema, with the files SQLite needs to read it without write access (`psfd.catalogue`)."""
-        from psfd.catalogue import Catalogue
-
         Catalogue(self.catalogue_path).close()
 
     def _listen(self) -> socket.socket:
@@ -236,7 +241,6 @@ class Service:
                                   oneshot=job.oneshot, rows=job.wait, control=self.control, progress=None,
                                   on_step=self._on_step, **self.runner_options)
                 job.result = result.to_dict()
-                self.paused = job.plan if result.state == "paused" else None
             except PsfdError as exc:
                 job.result = {"state": "failed", "reason": str(exc), "exit_code": exc.exit_code}
                 log.error("%s failed: %s", job.plan.path, exc)
@@ -337,23 +341,23 @@ class Service:
         text, path = req.get("plan"), req.get("path", "<submitted plan>")
         if not isinstance(text, str):
             raise BadInputError('submit needs "plan": the text of a plan')
-        problems = check_text(text)
-        if problems:
-            error = BadInputError(f"plan {path}: " + "; ".join(problems))
-            error.problems = problems  # type: ignore[attr-defined]
-            raise error
-        return self._enqueue(parse_plan(text, str(path)), bool(req.get("resume")), bool(req.get("wait")),
+        return self._enqueue(submitted_plan(text, str(path)), bool(req.get("resume")), bool(req.get("wait")),
                              new=bool(req.get("new")), oneshot=bool(req.get("oneshot")))
 
+    def _resumable(self) -> list[dict]:
+        """The catalogue's paused and interrupted runs, newest first (`unfinished_runs`): what ``resume``
+        continues. A ``running`` one is being shot, by this service or another process, and is left alone."""
+        return [r for r in unfinished_runs(self.catalogue_path, self.frames_dir) if r["state"] != "running"]
+
     def _cmd_status(self, req: dict) -> dict:
+        unfinished = self._resumable()  # read first: the catalogue is not read under the lock
         with self.lock:
-            state = "running" if self.current else ("paused" if self.paused else "idle")
+            # "paused" from the catalogue, not from memory: a restarted service has the runs the last one paused
+            state = "running" if self.current else ("paused" if unfinished else "idle")
             answer = {"state": state, "current": self.current, "last": self.last, "queued": self.queued,
-                      "paused_plan": self.paused.path if self.paused else None,
+                      "paused_plan": unfinished[0]["plan_path"] if unfinished else None,
                       "catalogue": str(self.catalogue_path), "frames": str(self.frames_dir)}
-        # the catalogue's paused and interrupted runs (not the one running now): what --resume continues
-        answer["unfinished"] = [r for r in unfinished_runs(self.catalogue_path, self.frames_dir)
-                                if r["state"] != "running"]
+        answer["unfinished"] = unfinished
         return answer
 
     def _cmd_pause(self, req: dict) -> dict:
@@ -373,10 +377,46 @@ class Service:
     def _cmd_resume(self, req: dict) -> dict:
         if self.current is not None:
             raise ServiceError("a run is in progress")
-        if self.paused is None:
+        unfinished = self._resumable()
+        if not unfinished:
             raise ServiceError("no paused run to resume")
-        log.info("resume asked on the control socket: %s", self.paused.path)
-        return self._enqueue(self.paused, True, bool(req.get("wait")))
+        run, others = unfinished[0], unfinished[1:]
+        with Catalogue(self.catalogue_path, readonly=True) as catalogue:
+            text = catalogue.run(run["id"])["plan_text"]
+        # parsed as a submitted plan: a stored text this psfd no longer reads is refused with its problems
+        plan = submitted_plan(text, run["plan_path"] or f"<plan of run {run['id']}>")
+        note = None
+        if others:
+            note = (f"run {run['id']} is the newest of {len(unfinished)} unfinished runs; the others: "
+                    + "; ".join(f"run {r['id']} of {r['plan_path']} ({_progress(r)})" for r in others)
+                    + "; `resume` again once this one has ended continues the next")
+        log.info("resume asked on the control socket: run %d of %s (%s)%s", run["id"], plan.path, _progress(run),
+                 f"; {note}" if note else "")
+        answer = {"run_id": run["id"], "plan": plan.path, **self._enqueue(plan, True, bool(req.get("wait")))}
+        if note:
+            answer["note"] = note
+        return answer
+
+
+def submitted_plan(text: str, path: str) -> Plan:
+    """A plan text received (a submit) or stored with a run (a resume): every problem named, or the Plan.
+
+    Raises
+    ------
+    BadInputError
+        With ``problems``, every problem of the text (`check_text`).
+    """
+    problems = check_text(text)
+    if problems:
+        error = BadInputError(f"plan {path}: " + "; ".join(problems))
+        error.problems = problems  # type: ignore[attr-defined]
+        raise error
+    return parse_plan(text, path)
+
+
+def _progress(run: dict) -> str:
+    """``paused, 1/4 steps done``: an unfinished run (`unfinished_runs`) as the log and the answers say it."""
+    return f"{run['state']}, {run['done']}/{run['total']} steps done"
 
 
 def same_plan(a: str, b: str) -> bool:
