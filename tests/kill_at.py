@@ -1,7 +1,16 @@
 """Run ``psfd ARGS...`` and SIGKILL its whole process group the Nth time the run reaches a phase.
 
-Usage: ``python tests/kill_at.py PHASE:N ARGS...`` (the caller starts it in a new session, so the
-kill takes the estimation workers too, like a power cut). Phases, in the order a step meets them:
+Usage: ``python tests/kill_at.py PHASE:N[:SIGNAL] ARGS...`` (the caller starts it in a new session, so the
+kill takes the estimation workers too, like a power cut). SIGNAL (``TERM``, ``INT``; default ``KILL``)
+sends another signal to the group instead, as `systemctl stop` or Ctrl-C do; the process handles it
+right after the phase. Phases before the run's first step, in the order a run meets them:
+
+- ``plan``: the plan file is read (the command has not begun to run it);
+- ``rig``: the rig is open (nothing is created yet: no catalogue, no frame store);
+- ``opening``: the frame store is held and the catalogue open, the run not yet journalled;
+- ``journal``: the run is journalled (a new run started, or a paused one reopened to go on).
+
+Phases, in the order a step meets them:
 
 - ``capture``: the frame is downloaded into the store's temporary folder, not yet stored;
 - ``pending``: the frame is journalled as being stored (`Catalogue.pend_frame`), not yet in the store;
@@ -19,15 +28,21 @@ import signal
 import sys
 
 
+SIGNAL = signal.SIGKILL
+
+
 def kill() -> None:
     if os.getpgrp() == os.getpid():  # our own session: take the workers with us
-        os.killpg(os.getpgrp(), signal.SIGKILL)
-    os.kill(os.getpid(), signal.SIGKILL)
+        os.killpg(os.getpgrp(), SIGNAL)
+    if SIGNAL == signal.SIGKILL:
+        os.kill(os.getpid(), SIGNAL)
+    elif os.getpgrp() != os.getpid():
+        os.kill(os.getpid(), SIGNAL)
 
 
 def arm(phase: str, nth: int) -> None:
     from psfd import catalogue
-    from psfd.daemon import runner
+    from psfd.daemon import plan, runner
 
     count = {"n": 0}
 
@@ -35,7 +50,52 @@ def arm(phase: str, nth: int) -> None:
         count["n"] += 1
         return count["n"] == nth
 
-    if phase in ("capture", "pending", "store"):
+    if phase == "plan":
+        load_plan = plan.load_plan
+
+        def patched_load(path):
+            out = load_plan(path)
+            if reached():
+                kill()
+            return out
+
+        plan.load_plan = patched_load
+    elif phase == "rig":
+        open_rig = runner.open_rig
+
+        def patched_open(config):
+            out = open_rig(config)
+            if reached():
+                kill()
+            return out
+
+        runner.open_rig = patched_open
+    elif phase == "opening":
+        sweep = runner.sweep_frames
+
+        def patched_sweep(*args):
+            if reached():
+                kill()
+            return sweep(*args)
+
+        runner.sweep_frames = patched_sweep
+    elif phase == "journal":
+        start_run, finish_run = catalogue.Catalogue.start_run, catalogue.Catalogue.finish_run
+
+        def patched_start(self, *args):
+            run_id = start_run(self, *args)
+            if reached():
+                kill()
+            return run_id
+
+        def patched_reopen(self, run_id, state):
+            finish_run(self, run_id, state)
+            if state == "running" and reached():
+                kill()
+
+        catalogue.Catalogue.start_run = patched_start
+        catalogue.Catalogue.finish_run = patched_reopen
+    elif phase in ("capture", "pending", "store"):
         store_frame = runner.store_frame
 
         def patched_store(src, frames_dir, journal=None):
@@ -95,7 +155,8 @@ def arm(phase: str, nth: int) -> None:
 
 
 if __name__ == "__main__":
-    where, n = sys.argv[1].split(":")
+    where, n, *name = sys.argv[1].split(":")
+    SIGNAL = signal.Signals[f"SIG{name[0]}"] if name else signal.SIGKILL
     arm(where, int(n))
     from psfd.cli import main
 

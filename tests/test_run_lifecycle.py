@@ -529,3 +529,95 @@ def test_a_catalogue_whose_creation_was_killed_is_created_by_the_next_run(tmp_pa
         code, out, err = cli(capsys, "run", plan_path, *common)
         assert code == 0, err
         check_complete(db, frames_dir_for(db), plan)
+
+
+# -- 15. SIGTERM or Ctrl-C before the first step -----------------------------------------------------------
+
+
+def signalled_run(tmp_path: Path, plan_path: Path, db: Path, moment: str, signum: int,
+                  resume: bool = False, sigint=signal.SIG_DFL) -> subprocess.CompletedProcess:
+    """`psfd run` in its own session, sent ``signum`` (to its whole group, as `systemctl stop` or Ctrl-C do)
+    at a ``moment`` of its start (tests/kill_at.py); Ctrl-C at its default (``sigint``), as from a terminal,
+    also where the suite runs as a background job (SIGINT ignored there)."""
+    argv = [sys.executable, str(HERE / "kill_at.py"), f"{moment}:1:{signal.Signals(signum).name[3:]}", "run",
+            str(plan_path), "--catalogue", str(db), "--socket", str(tmp_path / "none.sock"), "--workers", "1"]
+    return subprocess.run(argv + ["--resume"] * resume, start_new_session=True, capture_output=True, text=True,
+                          timeout=600, preexec_fn=lambda: signal.signal(signal.SIGINT, sigint))
+
+
+def stopped_word(signum: int) -> str:
+    return "terminated" if signum == signal.SIGTERM else "interrupted"
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+@pytest.mark.parametrize("moment", ["plan", "rig"])
+def test_a_stop_before_the_run_is_journalled_leaves_nothing(tmp_path, moment, signum):
+    """In its first second `psfd run` reads the plan and opens the rig; a SIGTERM or Ctrl-C then journalled
+    a run of no step done and paused it (a catalogue, a frame store, a paused run that a plain `psfd run`
+    of the plan then refused). Nothing was measured: nothing is left, and the command says so."""
+    plan_path = write_plan(tmp_path, ONE_STEP)
+    done = signalled_run(tmp_path, plan_path, tmp_path / "cat.sqlite", moment, signum)
+    assert done.returncode == 128 + signum, done.stderr
+    assert "Traceback" not in done.stderr and done.stdout == "", done.stderr
+    assert done.stderr.splitlines()[-1] == \
+        f"psfd: {stopped_word(signum)} (before the run started: nothing was stored)", done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.toml"]
+
+
+def test_a_stop_while_the_catalogue_is_opened_journals_no_run(tmp_path):
+    """The frame store is held and the catalogue open, but the run not journalled yet: no run is left to
+    resume, so the next plain `psfd run` measures the plan."""
+    plan_path = write_plan(tmp_path, ONE_STEP)
+    db = tmp_path / "cat.sqlite"
+    done = signalled_run(tmp_path, plan_path, db, "opening", signal.SIGTERM)
+    assert done.returncode == 143, done.stderr
+    assert done.stderr.splitlines()[-1] == "psfd: terminated (before the run started: nothing was stored)"
+    assert states(db) == []
+    again = _psfd("run", plan_path, "--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1")
+    assert again.returncode == 0, again.stderr
+    check_complete(db, frames_dir_for(db), parse_plan(ONE_STEP, str(plan_path)))
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_stop_once_the_run_is_journalled_pauses_it_with_the_hint(tmp_path, signum):
+    """From the moment the run is journalled a stop ends as it does mid-run: the run is paused, the last line
+    says how to continue, exit 143 or 130. A resume stopped before it reopens the run leaves it as it was."""
+    plan_path = write_plan(tmp_path, TWO_STEPS)
+    plan = parse_plan(TWO_STEPS, str(plan_path))
+    db = tmp_path / "cat.sqlite"
+    name = signal.Signals(signum).name
+    done = signalled_run(tmp_path, plan_path, db, "journal", signum)
+    assert done.returncode == 128 + signum, done.stderr
+    assert "Traceback" not in done.stderr, done.stderr
+    last = done.stderr.splitlines()[-1]
+    assert last.startswith(f"run 1 paused (interrupted by {name}); continue with: psfd run {plan_path} --resume"), \
+        done.stderr
+    assert states(db) == ["paused"]
+    before = step_states(db)
+
+    resume = signalled_run(tmp_path, plan_path, db, "rig", signum, resume=True)
+    assert resume.returncode == 128 + signum, resume.stderr
+    assert resume.stderr.splitlines()[-1] == (f"psfd: {stopped_word(signum)} (before the run went on: it is as it "
+                                              f"was; continue with: {last.split('continue with: ')[1]})")
+    assert states(db) == ["paused"] and step_states(db) == before
+
+    resume = signalled_run(tmp_path, plan_path, db, "journal", signum, resume=True)  # reopened, then stopped
+    assert resume.returncode == 128 + signum, resume.stderr
+    assert resume.stderr.splitlines()[-1] == last
+    assert states(db) == ["paused"] and step_states(db) == before
+
+    resumed = _psfd("run", plan_path, "--resume", "--catalogue", db, "--socket", tmp_path / "none.sock",
+                    "--workers", "1")
+    assert resumed.returncode == 0, resumed.stderr
+    assert states(db) == ["done"]
+    check_complete(db, frames_dir_for(db), plan)
+
+
+def test_ctrl_c_ignored_by_the_parent_stays_ignored_before_the_run_is_journalled(tmp_path):
+    """A process started with SIGINT ignored (a background job of a shell) keeps it ignored, the Unix
+    convention: a SIGINT while the plan is read changes nothing and the run is measured."""
+    plan_path = write_plan(tmp_path, ONE_STEP)
+    db = tmp_path / "cat.sqlite"
+    done = signalled_run(tmp_path, plan_path, db, "plan", signal.SIGINT, sigint=signal.SIG_IGN)
+    assert done.returncode == 0 and "run 1 done" in done.stdout, done.stderr
+    check_complete(db, frames_dir_for(db), parse_plan(ONE_STEP, str(plan_path)))

@@ -8,6 +8,7 @@ rig), and runs the plan in this process otherwise (`psfd.daemon.runner.run_plan`
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -86,12 +87,35 @@ def _service_options(p: argparse.ArgumentParser) -> None:
 # -- running a plan here -------------------------------------------------------------------------
 
 
-def run_here(plan, catalogue: Path, frames: Path, quiet: int = 0, **flags):
-    """`run_plan` in this process; the first Ctrl-C or SIGTERM pauses after the current frame. ``quiet``
-    (`psfd -q`): no progress lines."""
-    from psfd.daemon.runner import Control, run_plan
+def unstarted_note(resume: bool, again: str | None = None) -> str:
+    """What a Ctrl-C or SIGTERM before the run was journalled left: nothing stored, or the run to resume as it
+    was (``again``: the command line that continues it)."""
+    if not resume:
+        return "before the run started: nothing was stored"
+    return "before the run went on: it is as it was" + (f"; continue with: {again}" if again else "")
 
-    control = Control()
+
+@contextlib.contextmanager
+def unstarted(note: str):
+    """A Ctrl-C or SIGTERM raised inside (`psfd.cli.Terminated`), before the run is journalled, ends the
+    command with ``note`` after its one line (``psfd: terminated (NOTE)``), exit 130 or 143."""
+    try:
+        yield
+    except KeyboardInterrupt as exc:
+        exc.add_note(note)
+        raise
+
+
+def run_here(plan, catalogue: Path, frames: Path, quiet: int = 0, again: str | None = None, **flags):
+    """`run_plan` in this process; the first Ctrl-C or SIGTERM pauses after the current frame. ``quiet``
+    (`psfd -q`): no progress lines.
+
+    A Ctrl-C or SIGTERM before the run is journalled (the run's modules loading, the rig opening) ends the
+    command with nothing journalled and nothing created once the rig answered, and says so
+    (`unstarted_note`; ``again``: the command line that resumes a run); from the moment the run is journalled
+    it pauses the run, and ``again`` is the hint of `_report`.
+    """
+    note = unstarted_note(bool(flags.get("resume")), again)
     stopped: list[int] = []
 
     def stop(signum, frame):  # first Ctrl-C or SIGTERM: finish the current frame and pause
@@ -102,9 +126,18 @@ def run_here(plan, catalogue: Path, frames: Path, quiet: int = 0, **flags):
 
     if quiet:
         flags["progress"] = None
-    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    with unstarted(note):  # main's SIGTERM handler and Python's SIGINT one, until ours
+        from psfd.cli import Terminated
+        from psfd.daemon.runner import Control, StoppedBeforeStart, run_plan
+
+        control = Control()
+        previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        result = run_plan(plan, catalogue, frames, control=control, **flags)
+        result = run_plan(plan, catalogue, frames, control=control, stop_before_journal=True, **flags)
+    except StoppedBeforeStart:  # the first stop came before the run was journalled: end as main ends a stop
+        stop_exc = Terminated() if stopped[0] == signal.SIGTERM else KeyboardInterrupt()
+        stop_exc.add_note(note)
+        raise stop_exc from None
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -178,17 +211,20 @@ def run_plan_file(args: argparse.Namespace) -> int:
     from psfd.daemon import plan as plans
 
     catalogue, frames, sock = options.paths(args)
-    plan = plans.load_plan(args.plan)
-    if not args.local and client.service_up(sock):
+    again = _again(args, "run", args.plan, "--resume")
+    with unstarted(unstarted_note(args.resume, again)):  # nothing is written before run_here journals the run
+        plan = plans.load_plan(args.plan)
+        served = not args.local and client.service_up(sock)
+        runner = None if served else options.runner_options(args)  # the service runs with its own
+    if served:
         check_service_paths(args, sock, "or add --local to run in this process")
         answer = client.submit(sock, plan.text, str(Path(args.plan).resolve()), resume=args.resume, new=args.new)
         follow = "psfd status" + (f" --socket {args.socket}" if args.socket else "")
         print(f"submitted {args.plan} to the service at {sock} ({answer['queued']} queued); "
               f"follow it with: {follow}")
         return 0
-    runner = options.runner_options(args)
-    result = run_here(plan, catalogue, frames, args.quiet, resume=args.resume, new=args.new, **runner)
-    return _report(result.to_dict(), _again(args, "run", args.plan, "--resume"))
+    result = run_here(plan, catalogue, frames, args.quiet, again, resume=args.resume, new=args.new, **runner)
+    return _report(result.to_dict(), again)
 
 
 def check_service_paths(args: argparse.Namespace, sock: Path, otherwise: str) -> None:
@@ -478,9 +514,10 @@ def run_demo(args: argparse.Namespace) -> int:
         resume = unfinished is not None
         print(f"demo: {plural(len(plan.steps()), 'step')} on the simulated rig into {catalogue}"
               + (f" (resuming run {unfinished})" if resume else ""))
-        result = run_here(plan, catalogue, frames_dir_for(catalogue), args.quiet, resume=resume, new=not resume,
-                          **runner)
-        code = _report(result.to_dict(), _again(args, "demo", "--workdir", str(workdir)))
+        again = _again(args, "demo", "--workdir", str(workdir))
+        result = run_here(plan, catalogue, frames_dir_for(catalogue), args.quiet, again, resume=resume,
+                          new=not resume, **runner)
+        code = _report(result.to_dict(), again)
     _demo_outputs(catalogue, workdir)
     return code
 

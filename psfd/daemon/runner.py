@@ -66,7 +66,8 @@ from psfd.daemon.store import (INCOMING, check_room, shown_state, storage_error,
                                sweep_frames)
 from psfd.drivers import open_rig
 from psfd.drivers.base import Camera, CameraReady, CameraSetup, Rail, settle
-from psfd.errors import BadInputError, CameraError, EstimationError, HardwareError, PsfdError, RailError, StorageError
+from psfd.errors import (BadInputError, CameraError, EstimationError, HardwareError, Interrupted, PsfdError, RailError,
+                         StorageError)
 from psfd.estimator.raw import RAW_SUFFIXES
 from psfd.exif import check_settings, read_metadata
 from psfd.vocabulary import BACKLOG_MAX, WORKERS_MAX, camera_fnumber, check_count
@@ -74,8 +75,8 @@ from psfd.vocabulary import BACKLOG_MAX, WORKERS_MAX, camera_fnumber, check_coun
 # Below this much free space, a failed download is put down to the storage: no RAW file is smaller.
 FRAME_BYTES_MIN = 1 << 20
 
-__all__ = ["Control", "RunResult", "Runner", "default_workers", "preflight", "release_rig", "run_plan", "start_check",
-           "unfinished_runs"]
+__all__ = ["Control", "RunResult", "Runner", "StoppedBeforeStart", "default_workers", "preflight", "release_rig",
+           "run_plan", "start_check", "unfinished_runs"]
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +102,11 @@ class Control:
     def requested(self) -> str | None:
         with self._lock:
             return self._request
+
+
+class StoppedBeforeStart(Interrupted):
+    """A stop asked before the run was journalled, for a `Runner` made with ``stop_before_journal``: no run
+    was started or reopened, nothing was stored."""
 
 
 @dataclass
@@ -279,6 +285,11 @@ class Runner:
         worker). A queue deeper than the workers lets the rig keep moving while
         estimation catches up; the steps in it are journalled "running", so a
         crash only redoes them.
+    stop_before_journal : bool
+        What a stop asked before the run is journalled (started, or reopened to resume) does. True: the
+        run ends unstarted, `StoppedBeforeStart` and nothing journalled (the command line: its plan file is
+        there to run again). False (default): the run is journalled and pauses at once, so that the
+        service's submitted plan stays resumable from the catalogue.
     """
 
     def __init__(
@@ -292,8 +303,10 @@ class Runner:
         on_step: Callable[[str, str, str | None], None] | None = None,
         estimate: Callable[..., list] = work.estimate_step,
         backlog: int | None = None,
+        stop_before_journal: bool = False,
     ) -> None:
         self.catalogue = catalogue
+        self.stop_before_journal = stop_before_journal
         self.frames_dir = Path(frames_dir)
         self.workers = default_workers() if workers is None else check_count(workers, "workers", WORKERS_MAX)
         self.control = control or Control()
@@ -367,8 +380,10 @@ class Runner:
             lost = position_lost(rail, self.catalogue, unfinished)
             if lost:  # refused before the run reopens: it stays resumable once the rail is put right
                 raise RailError(lost)
+            check_not_stopped(self.control, self.stop_before_journal)
             self.catalogue.finish_run(unfinished, "running")
             return unfinished
+        check_not_stopped(self.control, self.stop_before_journal)
         rig_id = self.catalogue.add_rig(camera.info())
         steps = [(step.key, step.payload()) for step in plan.steps()]
         return self.catalogue.start_run(plan.path, plan.text, rig_id, steps)
@@ -580,6 +595,12 @@ class Runner:
         self._fail(result, run_id, step.key, error)
         self._discard(records)
         bar.show(step.key, f"failed: {error}")
+
+
+def check_not_stopped(control: Control | None, stop_before_journal: bool) -> None:
+    """Raise `StoppedBeforeStart` when ``stop_before_journal`` and a stop was asked (`Runner`'s parameter)."""
+    if stop_before_journal and control is not None and control.requested:
+        raise StoppedBeforeStart(f"{control.requested} requested before the run started")
 
 
 def _step_error(exc: PsfdError | OSError) -> PsfdError:
@@ -837,13 +858,15 @@ def run_plan(
     (``workers``, ``backlog``, ``control``, ``progress``, ``on_step``).
 
     A rig that cannot be opened, or refuses the plan, leaves no catalogue, catalogue
-    folder or frame store behind: none is made before the rig has answered. The rig
-    is released on every path.
+    folder or frame store behind: none is made before the rig has answered, and so
+    does a stop asked meanwhile with ``stop_before_journal`` (`Runner`). The rig is
+    released on every path.
     """
     preflight(plan, catalogue_path, frames_dir, resume, new)
     camera, rail = open_rig(plan.rig_config())
     try:
         check_rig(plan, camera, rail)  # Runner.run asks again for its other callers: two queries, no motion
+        check_not_stopped(runner_options.get("control"), runner_options.get("stop_before_journal", False))
         with store_lock(Path(frames_dir)), Catalogue(catalogue_path) as catalogue:
             result = Runner(catalogue, frames_dir, **runner_options).run(plan, camera, rail, resume=resume,
                                                                          new=new, oneshot=oneshot)
