@@ -208,11 +208,11 @@ def writable_folder(path: Path, option: str, create: bool = True) -> Path:
 
 
 def run_plan_file(args: argparse.Namespace) -> int:
-    from psfd.daemon import plan as plans
-
-    catalogue, frames, sock = options.paths(args)
     again = _again(args, "run", args.plan, "--resume")
     with unstarted(unstarted_note(args.resume, again)):  # nothing is written before run_here journals the run
+        from psfd.daemon import plan as plans
+
+        catalogue, frames, sock = options.paths(args)
         plan = plans.load_plan(args.plan)
         served = not args.local and client.service_up(sock)
         runner = None if served else options.runner_options(args)  # the service runs with its own
