@@ -28,6 +28,7 @@ from psfd.errors import RailAlarm, RailError
 BENCH = {110: 6000, 111: 6000, 112: 6000, 120: 200, 121: 200, 122: 200, 24: 600, 25: 3000, 26: 10}
 HOMING = {**BENCH, 22: 1}
 SLOW = {**BENCH, 110: 1200}  # 20 mm/s: a 150 mm move lasts 7.5 s, time enough to interrupt it
+FEED_HOLD = ord("!")
 
 
 @pytest.fixture
@@ -138,6 +139,31 @@ def test_fake_follows_the_documented_alarm_behaviour(make_fake):
     assert say(b"\x18", 1.3) == ["ALARM:2", "[MSG:Reset to continue]"]  # a reset during the delay is forgotten
     assert say(b"?") == [] and say(b"$$\n") == []  # deaf: not even a status report
     assert say(b"\x18", 0.3) == ["ok", "Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
+    link.close()
+
+
+def test_fake_feed_hold_and_reset_in_motion_as_the_firmware(make_fake):
+    """commands.md: `!` decelerates to a stop (Hold:1, then Hold:0); a reset in motion throws ALARM:3, and a
+    reset in a completed hold keeps the position (protocol.c clears STEP_CONTROL_EXECUTE_HOLD at the cycle
+    stop that completes the hold; mc_reset kills the steppers only in a cycle, a jog or an executing hold)."""
+    fake = make_fake({**SLOW, 120: 20})  # 20 mm/s braked at 20 mm/s^2: a hold decelerates for 1 s
+    link = serial.Serial(fake.port, 115200, timeout=0.3)
+    link.write(b"G0 X-150\n")
+    assert fake.wait_for(lambda f: f.machine_position()[0] < -10.0)
+    link.write(b"!")
+    assert fake.wait_for(lambda f: f.status() == "Hold:1", timeout=1)
+    assert fake.wait_for(lambda f: f.status() == "Hold:0", timeout=2)
+    held = fake.machine_position()[0]
+    link.write(b"\x18")
+    assert fake.wait_for(lambda f: f.status() == "Idle") and settled(fake)
+    assert fake.resets() == ["Hold:0"] and fake.alarms() == [] and fake.machine_position()[0] == held
+    link.write(b"G0 X-150\n")  # the rest of the first move was dropped: this one starts from where it stood
+    assert fake.wait_for(lambda f: f.machine_position()[0] < held - 10.0)
+    link.write(b"!")
+    assert fake.wait_for(lambda f: f.status() == "Hold:1", timeout=1)
+    link.write(b"\x18")  # while still decelerating
+    assert fake.wait_for(lambda f: f.alarms() == [3])
+    assert fake.resets()[-1] == "Hold:1" and not fake.moving
     link.close()
 
 
@@ -343,12 +369,91 @@ def test_second_process_is_refused_and_the_move_goes_on(make_fake, capsys):
     assert fake.resets() == [] and fake.alarms() == []
 
 
+def children(pid: int) -> list[int]:
+    """Pids of the children of process ``pid`` (/proc/PID/task/TID/children)."""
+    found = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        found += [int(c) for c in (task / "children").read_text().split()]
+    return found
+
+
+def test_sigkill_mid_move_is_stopped_by_the_guard(make_fake, connect):
+    """kill -9 (the OOM killer, systemd's last SIGKILL of the main pid) mid-move: nothing in the process runs,
+    its guard process stops the carriage as a Ctrl-C would (feed hold, Hold:0, reset) without any other
+    psfd command opening the port, and then frees the port."""
+    fake = make_fake(SLOW)
+    proc = psfd_process("rail", "move", "X=-150", "--rail-port", fake.port)
+    try:
+        assert fake.wait_for(lambda f: f.machine_position()[0] < -20.0, timeout=30)
+        proc.kill()
+        proc.wait()
+        killed_at = fake.machine_position()[0]
+        freed = fake.wait_for(lambda f: not f.peer_open, timeout=15)  # the guard's copy of the port closed too
+    finally:
+        proc.kill()
+    assert freed and settled(fake)
+    # 20 mm/s brakes over 1 mm at 200 mm/s^2: the carriage stands within the guard's reaction (tens of ms)
+    assert killed_at - 5.0 < fake.machine_position()[0] < -20.0 and fake.physical_position()[0] > -100.0
+    assert FEED_HOLD in [byte for _, byte in fake.realtime]
+    assert fake.resets() == ["Hold:0"] and fake.alarms() == []  # held, reset standing: no ALARM:3
+    assert fake.physical_position()[0] - fake.machine_position()[0] == pytest.approx(-50.0, abs=0.01)  # kept
+    assert connect(fake).position().x == fake.machine_position()[0]  # the port is free, the lock file stale
+
+
+def test_guard_of_a_closed_rail_sends_nothing(make_fake, connect):
+    fake = make_fake()
+    rail = connect(fake)
+    rail.move(x=-10)
+    guard = rail._guard
+    assert guard.poll() is None  # watching while the rail is open
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # a terminal's Ctrl-C, `systemctl stop`
+        os.kill(guard.pid, sig)
+    time.sleep(0.2)
+    assert guard.poll() is None and os.getsid(guard.pid) == guard.pid  # its own session, signals ignored
+    realtime, lines = list(fake.realtime), list(fake.lines)
+    rail.close()
+    assert guard.returncode == 0  # told to go, and waited for
+    assert fake.realtime == realtime and fake.lines == lines and fake.resets() == []
+    assert fake.wait_for(lambda f: not f.peer_open, timeout=2)
+
+
+def test_guard_of_a_process_killed_standing_only_asks(make_fake, connect, tmp_path):
+    """A process killed while the carriage stands: its guard asks for one status report and sends nothing
+    else (no feed hold, no reset)."""
+    fake = make_fake()
+    script = tmp_path / "owner.py"
+    script.write_text("import sys, time\n"
+                      "from psfd.drivers.grbl import GrblRail\n"
+                      "rail = GrblRail(sys.argv[1])\n"
+                      "print(rail.move(x=-10).x, flush=True)\n"
+                      "time.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, str(script), fake.port], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline() == "-10.0\n"
+        realtime, lines = len(fake.realtime), list(fake.lines)
+        proc.kill()
+        proc.wait()
+        assert fake.wait_for(lambda f: not f.peer_open, timeout=10)
+    finally:
+        proc.kill()
+        proc.stdout.close()
+    asked = [byte for _, byte in fake.realtime[realtime:]]
+    assert asked and set(asked) == {ord("?")}
+    assert fake.lines == lines and fake.resets() == [] and fake.alarms() == []
+    assert fake.machine_position()[0] == -10.0 and connect(fake).position().x == -10.0
+
+
 def test_reopen_does_not_reset_a_moving_controller(make_fake, connect):
+    """The process and its guard both killed (systemd-oomd, a SIGKILL of the whole control group): the
+    controller goes on with the move; the next open stops it."""
     fake = make_fake(SLOW)
     proc = psfd_process("rail", "move", "X=-150", "--rail-port", fake.port)
     assert fake.wait_for(lambda f: f.machine_position()[0] < -20.0, timeout=30)
+    for pid in children(proc.pid):
+        os.kill(pid, signal.SIGKILL)
     proc.kill()  # SIGKILL: no chance to stop anything; the controller goes on with the move
     proc.wait()
+    assert fake.wait_for(lambda f: not f.peer_open, timeout=5)
     assert fake.moving
     rail = connect(fake)  # what `psfd run --resume` does next
     assert fake.alarms() == [] and fake.resets() == ["Hold:0"]  # held, then reset standing: no ALARM:3

@@ -43,6 +43,8 @@ import math
 import os
 import re
 import signal
+import subprocess
+import sys
 import termios
 import time
 from dataclasses import dataclass
@@ -75,6 +77,7 @@ HOMING_LOCATE_SCALAR = 5.0  # and locate over 5 x pull-off
 DEADLINE_FACTOR = 1.25  # margin on a computed motion time (host latency, polling, 32-bit float rounding)
 BOOT_WAIT = 2.5  # s an Arduino bootloader may hold the port after an auto-reset
 READ_SLICE = 0.02  # s a read waits for a byte (fixed: changing pyserial's timeout reconfigures the tty)
+GUARD = Path(__file__).with_name("grbl_guard.py")  # run by path: it imports the standard library only
 
 # GRBL 1.1 error codes (grbl/doc/csv/error_codes_en_US.csv), short meanings.
 ERRORS = {
@@ -479,11 +482,15 @@ class GrblRail:
         self._moving = False
         self._alarmed = False
         self._serial: serial.Serial | None = None
+        self._guard: subprocess.Popen | None = None
+        self._guard_owner = os.getpid()
         self._lock = PortLock(port)
         self._lock.acquire()
         try:
             self._serial = _open_port(port, baudrate, self.timeout)
+            self._start_guard()
             self._connect()
+            self._tell_guard(f"stop {self._stop_time():.3f}")
         except BaseException:
             self.close()
             raise
@@ -587,7 +594,8 @@ class GrblRail:
         return self._position(self._status())
 
     def close(self) -> None:
-        """Release the serial port and the lock (idempotent)."""
+        """Release the serial port and the lock (idempotent); the guard leaves without touching the port."""
+        self._stop_guard()
         port, self._serial = self._serial, None
         if port is not None:
             try:
@@ -601,6 +609,60 @@ class GrblRail:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    # ------------------------------------------------------------------ the guard process
+
+    def _start_guard(self) -> None:
+        """Start the process that stops the carriage if this one dies with the port open (`grbl_guard`).
+
+        Nothing in a process killed by SIGKILL runs, and the controller goes on with its move: a separate
+        process holding the same port watches this one through a pidfd (a pipe would stay open in the forked
+        estimation workers) and, on its death, sends the feed hold and the reset `_halt` would have sent.
+        fork+exec (subprocess) is safe with the service's threads; its own session keeps a terminal's Ctrl-C
+        away from it, and it ignores SIGTERM, so `systemctl stop` leaves the stop to this process.
+        """
+        if self._serial is None or not sys.executable:
+            return
+        try:
+            owner = os.pidfd_open(os.getpid())
+        except (AttributeError, OSError) as exc:  # Linux before 5.3
+            log.warning("rail %s: no guard process (%s): a process killed mid-move leaves the carriage running "
+                        "until the next psfd command opens the port", self.port, _reason(exc))
+            return
+        try:
+            fd = self._serial.fileno()
+            self._guard = subprocess.Popen(
+                [sys.executable, "-I", "-S", str(GUARD), str(fd), str(owner), f"{self.timeout:g}"],
+                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, pass_fds=(fd, owner), start_new_session=True)
+            self._guard_owner = os.getpid()
+        except OSError as exc:
+            log.warning("rail %s: cannot start the guard process (%s)", self.port, _reason(exc))
+        finally:
+            os.close(owner)
+
+    def _tell_guard(self, line: str, guard: subprocess.Popen | None = None) -> None:
+        guard = guard or self._guard
+        if guard is None or guard.stdin is None or self._guard_owner != os.getpid():
+            return
+        try:
+            guard.stdin.write(line.encode("ascii") + b"\n")
+            guard.stdin.flush()
+        except (OSError, ValueError):  # it died (someone killed it): the rail still works without it
+            log.warning("rail %s: the guard process (pid %d) is gone", self.port, guard.pid)
+
+    def _stop_guard(self) -> None:
+        """Tell the guard the rail is closed and wait for it (not from a forked child: the guard is its parent's)."""
+        guard, self._guard = self._guard, None
+        if guard is None or self._guard_owner != os.getpid():
+            return
+        self._tell_guard("exit", guard)
+        with contextlib.suppress(OSError, ValueError):
+            guard.stdin.close()
+        try:
+            guard.wait(timeout=max(2.0, self.timeout))
+        except subprocess.TimeoutExpired:
+            guard.kill()
+            guard.wait()
 
     # ------------------------------------------------------------------ connecting
 

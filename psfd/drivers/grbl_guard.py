@@ -1,0 +1,186 @@
+"""Stops a GRBL carriage when the process driving it dies without closing the rail (SIGKILL, the OOM killer).
+
+`psfd.drivers.grbl.GrblRail` starts this file, by path and with only the standard library (it imports nothing
+of psfd, so that it starts in a few tens of milliseconds), when it opens its port::
+
+    python -I -S grbl_guard.py PORT_FD OWNER_PIDFD TIMEOUT
+
+``PORT_FD`` is the owner's serial port (the same open file description: the owner's flock stays on it while
+this process lives), ``OWNER_PIDFD`` a pidfd of the owner (``os.pidfd_open``), readable once the owner has
+exited, whoever else still holds its pipes or descriptors (the forked estimation workers do), and ``TIMEOUT``
+the seconds one exchange may take. This process runs in its own session and ignores SIGINT, SIGTERM and
+SIGHUP: a terminal's Ctrl-C and ``systemctl stop`` reach the owner, which stops the carriage itself.
+
+While the owner lives this process never reads or writes the port (the owner's replies are the owner's). On
+its standard input it takes lines: ``stop SECONDS`` (the longest deceleration, once the owner has read the
+controller's ``$110``/``$120``) and ``exit`` (the rail was closed: leave without touching the port).
+
+When the owner has died with the rail open it does what the owner's own stop does (GRBL 1.1, gnea/grbl
+doc/markdown/commands.md and interface.md), and nothing more when the carriage stands:
+
+- ``?``: one status report. Idle, Alarm, Sleep, Check, Door:1-3 (the door holds it): nothing is sent.
+- Run or Jog: ``!`` (a feed hold: a controlled deceleration; a jog is cancelled by it), then ``?`` until
+  ``Hold:0`` or Idle, then Ctrl-X (0x18) so that the rest of the move is dropped; after a completed hold the
+  reset keeps the position, while a reset in motion or in ``Hold:1`` would throw ALARM:3 and lose it.
+- ``Hold:1``/``Hold:0``/``Door:0`` (the owner died in its own stop, or a move waits to be resumed): the same
+  wait, then the reset, so that no cycle start resumes the move unattended.
+- Home: the homing cycle ignores feed holds; a reset stops it (ALARM:6), as the owner's interrupted ``$H`` does.
+- No answer (GRBL answers no ``?`` during a homing cycle or after a critical alarm): the feed hold anyway,
+  then the reset once the longest deceleration is over.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import select
+import signal
+import sys
+import termios
+import time
+
+SOFT_RESET = b"\x18"
+FEED_HOLD = b"!"
+STATUS = b"?"
+_STATE = re.compile(r"<([A-Za-z]+)(?::(\d+))?")
+_BANNER = re.compile(r"^(Grbl|GrblHAL|grblHAL)\s+\S+.*\[.*help\]")
+_POSITION = re.compile(r"[MW]Pos:[^|>]*")
+UNKNOWN_STOP = 30.0  # s: the owner died before reading the settings; GrblRail._stop_time says the same
+STANDING = ("Idle", "Alarm", "Sleep", "Check")
+
+
+class Port:
+    """Lines from a GRBL controller on a raw serial descriptor shared with the (dead) owner."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        self.buffer = b""
+        self.poll = select.poll()
+        self.poll.register(fd, select.POLLIN)
+
+    def write(self, data: bytes) -> None:
+        os.write(self.fd, data)
+
+    def line(self, deadline: float) -> str | None:
+        """The next non-empty line, or None at the deadline."""
+        while b"\n" not in self.buffer:
+            left = deadline - time.monotonic()
+            if left <= 0 or not self.poll.poll(int(left * 1000) + 1):
+                return None
+            try:
+                chunk = os.read(self.fd, 4096)
+            except BlockingIOError:
+                continue
+            if not chunk:
+                raise OSError("the port is gone")
+            self.buffer += chunk
+        raw, self.buffer = self.buffer.split(b"\n", 1)
+        return raw.decode("ascii", "replace").strip() or self.line(deadline)
+
+    def status(self, seconds: float) -> tuple[str, str] | None:
+        """``?`` and its report: (state name such as ``Hold:0``, the report), or None without an answer."""
+        self.write(STATUS)
+        deadline = time.monotonic() + seconds
+        while (line := self.line(deadline)) is not None:
+            match = _STATE.match(line)
+            if match:
+                name = match.group(1) + (f":{match.group(2)}" if match.group(2) else "")
+                return name, line
+        return None
+
+    def reset(self, seconds: float) -> bool:
+        """Ctrl-X and the banner (twice: a reset can be lost in the delay that follows an alarm message)."""
+        for _ in range(2):
+            self.write(SOFT_RESET)
+            deadline = time.monotonic() + seconds
+            while (line := self.line(deadline)) is not None:
+                if _BANNER.match(line):
+                    return True
+        return False
+
+
+def stop_carriage(port: Port, stop: float, timeout: float) -> str | None:
+    """What the owner's `GrblRail._halt` does, for a controller the owner left; None when it stood."""
+    termios.tcflush(port.fd, termios.TCIFLUSH)  # replies to the owner's last requests: stale now
+    found = port.status(timeout)
+    if found is not None and found[0] in ("Idle",):
+        # The owner may have died just after sending a move line that GRBL had not started yet.
+        time.sleep(0.25)
+        found = port.status(timeout) or found
+    name = found[0] if found else None
+    state = name.split(":")[0] if name else None
+    if state in STANDING or name in ("Door:1", "Door:2", "Door:3"):
+        return None
+    if state == "Home":
+        reset = port.reset(timeout)
+        return f"homing cycle ({_where(found)}) stopped by a reset" + ("" if reset else ": no banner after it")
+    if state != "Hold" and name != "Door:0":
+        port.write(FEED_HOLD)
+    started = time.monotonic()
+    while True:
+        status = port.status(min(timeout, 0.5))
+        if status is not None and (status[0].split(":")[0] in ("Idle", "Alarm") or status[0] in ("Hold:0", "Door:0",
+                                                                                                   "Door:1")):
+            break
+        waited = time.monotonic() - started
+        # Silent: reset once the longest deceleration is over. Answering but still decelerating (slower than
+        # its settings say): wait on, a reset now would lose the position.
+        if waited > stop + timeout and (status is None or waited > 4 * stop + 3 * timeout):
+            break
+        if status is not None:
+            time.sleep(0.05)
+    before = f"{name} at {_where(found)}" if found else "no answer to '?'"
+    if status is not None and status[0].startswith("Alarm"):
+        return f"{before}: feed hold; the controller stopped in ALARM at {_where(status)}"
+    reset = port.reset(timeout)
+    after = port.status(timeout) if reset else None
+    where = f"stopped at {_where(after)}" if after else "reset sent, no answer after it: position unknown"
+    return f"{before}: feed hold, reset once standing ({status[0] if status else 'silent'}); {where}"
+
+
+def _where(found: tuple[str, str] | None) -> str:
+    match = _POSITION.search(found[1]) if found else None
+    return match.group(0) if match else "an unknown position"
+
+
+def watch(port_fd: int, owner: int, timeout: float) -> int:
+    """Wait for the owner's exit or its ``exit`` line; stop the carriage in the first case."""
+    stop = UNKNOWN_STOP
+    pid = os.getppid()  # the owner started this process
+    poll = select.poll()
+    poll.register(owner, select.POLLIN)
+    poll.register(0, select.POLLIN)
+    pending = b""
+    while True:
+        events = dict(poll.poll())
+        if events.get(0):
+            data = os.read(0, 4096)
+            if not data:
+                poll.unregister(0)  # the owner closed its end (it is exiting): its pidfd says when
+            pending += data
+            while b"\n" in pending:
+                line, pending = pending.split(b"\n", 1)
+                words = line.split()
+                if words == [b"exit"]:
+                    return 0
+                if len(words) == 2 and words[0] == b"stop":
+                    stop = float(words[1])
+        if events.get(owner):
+            break
+    try:
+        done = stop_carriage(Port(port_fd), stop, timeout)
+    except OSError as exc:  # the cable was pulled, or the port closed under us
+        done = f"the port failed ({exc}): the carriage may still be moving"
+    if done:
+        sys.stderr.write(f"psfd: the process driving the rail (pid {pid}) died with the rail open; {done}\n")
+    return 0
+
+
+def main(argv: list[str]) -> int:
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
+    return watch(int(argv[1]), int(argv[2]), float(argv[3]))
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))
