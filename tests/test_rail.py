@@ -397,12 +397,30 @@ def test_sigkill_mid_move_is_stopped_by_the_guard(make_fake, connect):
     assert FEED_HOLD in [byte for _, byte in fake.realtime]
     assert fake.resets() == ["Hold:0"] and fake.alarms() == []  # held, reset standing: no ALARM:3
     assert fake.physical_position()[0] - fake.machine_position()[0] == pytest.approx(-50.0, abs=0.01)  # kept
-    assert connect(fake).position().x == fake.machine_position()[0]  # the port is free, the lock file stale
+    assert PortLock(fake.port).path.read_text().strip() == str(proc.pid)  # left behind by the killed process,
+    assert connect(fake).position().x == fake.machine_position()[0]  # taken over: its pid is dead
+
+
+def test_open_right_after_a_sigkill_waits_for_the_guard(make_fake, connect):
+    """`psfd run --resume` at once: the dead process's guard still holds the port while it stops the carriage;
+    the open waits for it rather than report the port in use by a dead pid."""
+    fake = make_fake(SLOW)
+    proc = psfd_process("rail", "move", "X=-150", "--rail-port", fake.port)
+    try:
+        assert fake.wait_for(lambda f: f.machine_position()[0] < -20.0, timeout=30)
+        proc.kill()
+        proc.wait()
+        rail = connect(fake)
+    finally:
+        proc.kill()
+    assert fake.resets() == ["Hold:0"] and fake.alarms() == []  # the guard's stop; the open found it standing
+    assert settled(fake) and rail.position().x == fake.machine_position()[0] > -100.0
 
 
 def test_guard_of_a_closed_rail_sends_nothing(make_fake, connect):
     fake = make_fake()
     rail = connect(fake)
+    assert rail.position().x == 0.0 and rail._guard is None  # the carriage stands until the first move
     rail.move(x=-10)
     guard = rail._guard
     assert guard.poll() is None  # watching while the rail is open
@@ -412,7 +430,7 @@ def test_guard_of_a_closed_rail_sends_nothing(make_fake, connect):
     assert guard.poll() is None and os.getsid(guard.pid) == guard.pid  # its own session, signals ignored
     realtime, lines = list(fake.realtime), list(fake.lines)
     rail.close()
-    assert guard.returncode == 0  # told to go, and waited for
+    assert guard.returncode == -signal.SIGKILL  # ended, and reaped
     assert fake.realtime == realtime and fake.lines == lines and fake.resets() == []
     assert fake.wait_for(lambda f: not f.peer_open, timeout=2)
 

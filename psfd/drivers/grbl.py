@@ -77,7 +77,11 @@ HOMING_LOCATE_SCALAR = 5.0  # and locate over 5 x pull-off
 DEADLINE_FACTOR = 1.25  # margin on a computed motion time (host latency, polling, 32-bit float rounding)
 BOOT_WAIT = 2.5  # s an Arduino bootloader may hold the port after an auto-reset
 READ_SLICE = 0.02  # s a read waits for a byte (fixed: changing pyserial's timeout reconfigures the tty)
-GUARD = Path(__file__).with_name("grbl_guard.py")  # run by path: it imports the standard library only
+# The guard process: grbl_guard imported from its folder (its bytecode cached, unlike a script run by path, which
+# is compiled at every start), in an interpreter without site-packages; it needs the standard library only.
+GUARD_CODE = "import sys; sys.path.insert(0, sys.argv[1]); import grbl_guard; sys.exit(grbl_guard.main(sys.argv[1:]))"
+GUARD_DIR = str(Path(__file__).parent)
+GUARD_WAIT = 20.0  # s an open waits for a dead process's guard to stop its carriage (a second or two, usually)
 
 # GRBL 1.1 error codes (grbl/doc/csv/error_codes_en_US.csv), short meanings.
 ERRORS = {
@@ -488,9 +492,7 @@ class GrblRail:
         self._lock.acquire()
         try:
             self._serial = _open_port(port, baudrate, self.timeout)
-            self._start_guard()
             self._connect()
-            self._tell_guard(f"stop {self._stop_time():.3f}")
         except BaseException:
             self.close()
             raise
@@ -524,6 +526,7 @@ class GrblRail:
             raise RailError("homing cycle not enabled in the controller's settings ($22=0): move the carriage by "
                             "hand to the + end and reset the controller, or enable homing switches")
         self._make_ready("home", allow_alarm=True)
+        self._ensure_guard()
         seconds = self._homing_timeout or homing_time(self._settings_full) * DEADLINE_FACTOR + self.timeout + 1.0
         self._moving = True
         try:
@@ -561,6 +564,7 @@ class GrblRail:
         allowed = expected * DEADLINE_FACTOR + 1.0 + self.timeout + 2 * self.poll
         words = " ".join(f"{axis.upper()}{value:.4f}" for axis, value in target.items())
         line = f"G90 G21 G1 {words} F{self.feed:g}" if self.feed else f"G90 G21 G0 {words}"
+        self._ensure_guard()
         self._moving = True
         try:
             self._command(line, self.timeout)
@@ -612,15 +616,25 @@ class GrblRail:
 
     # ------------------------------------------------------------------ the guard process
 
-    def _start_guard(self) -> None:
-        """Start the process that stops the carriage if this one dies with the port open (`grbl_guard`).
+    def _ensure_guard(self) -> None:
+        """Before a line that can move the carriage: start the process that stops it if this one dies with the
+        port open (`grbl_guard`), or keep the one running.
 
         Nothing in a process killed by SIGKILL runs, and the controller goes on with its move: a separate
         process holding the same port watches this one through a pidfd (a pipe would stay open in the forked
         estimation workers) and, on its death, sends the feed hold and the reset `_halt` would have sent.
         fork+exec (subprocess) is safe with the service's threads; its own session keeps a terminal's Ctrl-C
-        away from it, and it ignores SIGTERM, so `systemctl stop` leaves the stop to this process.
+        away from it, and it ignores SIGTERM, so `systemctl stop` leaves the stop to this process. Started at
+        the first motion rather than at the open: the carriage stands until then, and commands that only read
+        the rail (`psfd rail position`) do not pay for a second interpreter (~20 ms of a 2-core machine).
         """
+        guard = self._guard
+        if guard is not None and self._guard_owner == os.getpid():
+            if guard.poll() is None:
+                return
+            log.warning("rail %s: the guard process (pid %d) ended (%s): starting another", self.port, guard.pid,
+                        guard.returncode)
+        self._guard = None
         if self._serial is None or not sys.executable:
             return
         try:
@@ -632,37 +646,27 @@ class GrblRail:
         try:
             fd = self._serial.fileno()
             self._guard = subprocess.Popen(
-                [sys.executable, "-I", "-S", str(GUARD), str(fd), str(owner), f"{self.timeout:g}"],
-                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, pass_fds=(fd, owner), start_new_session=True)
+                [sys.executable, "-I", "-S", "-c", GUARD_CODE, GUARD_DIR, str(fd), str(owner), f"{self.timeout:g}",
+                 f"{self._stop_time():.3f}"],
+                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, pass_fds=(fd, owner), start_new_session=True)
             self._guard_owner = os.getpid()
         except OSError as exc:
             log.warning("rail %s: cannot start the guard process (%s)", self.port, _reason(exc))
         finally:
             os.close(owner)
 
-    def _tell_guard(self, line: str, guard: subprocess.Popen | None = None) -> None:
-        guard = guard or self._guard
-        if guard is None or guard.stdin is None or self._guard_owner != os.getpid():
-            return
-        try:
-            guard.stdin.write(line.encode("ascii") + b"\n")
-            guard.stdin.flush()
-        except (OSError, ValueError):  # it died (someone killed it): the rail still works without it
-            log.warning("rail %s: the guard process (pid %d) is gone", self.port, guard.pid)
-
     def _stop_guard(self) -> None:
-        """Tell the guard the rail is closed and wait for it (not from a forked child: the guard is its parent's)."""
+        """End the guard of a rail being closed, and reap it (not from a forked child: it is its parent's).
+
+        SIGKILL, not a message it would read once started: the guard never touches the port while this process
+        lives, so it has nothing to finish, and a short command does not wait for its start-up (~30 ms). Our
+        own child, not yet reaped: its pid cannot have been reused.
+        """
         guard, self._guard = self._guard, None
         if guard is None or self._guard_owner != os.getpid():
             return
-        self._tell_guard("exit", guard)
-        with contextlib.suppress(OSError, ValueError):
-            guard.stdin.close()
-        try:
-            guard.wait(timeout=max(2.0, self.timeout))
-        except subprocess.TimeoutExpired:
-            guard.kill()
-            guard.wait()
+        guard.kill()
+        guard.wait()
 
     # ------------------------------------------------------------------ connecting
 
@@ -861,6 +865,7 @@ class GrblRail:
     def _halt(self) -> str:
         """Feed hold, wait for the carriage to stand, then reset to empty the planner; where it stopped."""
         self._moving = False
+        self._ensure_guard()  # a move found at the open: this process may die while it stops it
         with _signals_deferred():
             try:
                 self._write(FEED_HOLD)
@@ -1139,12 +1144,17 @@ def _open_port(port: str, baudrate: int, timeout: float) -> serial.Serial:
     link.dtr = True  # the kernel raised DTR on open already: asserting it again is no edge, so no reset
     link.rts = True
     link.exclusive = True
-    try:
-        link.open()
-    except (serial.SerialException, OSError, ValueError) as exc:
-        if getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK) or "exclusively lock" in str(exc):
-            raise RailError(f"rail {port} in use by {_describe_pid(_flock_holder(os.path.realpath(port)))}") from None
-        raise RailError(f"cannot open rail port {port}: {_reason(exc)}") from None
+    device = os.path.realpath(port)
+    for _ in range(2):
+        try:
+            link.open()
+            break
+        except (serial.SerialException, OSError, ValueError) as exc:
+            if getattr(exc, "errno", None) not in (errno.EAGAIN, errno.EWOULDBLOCK) and "exclusively lock" not in str(exc):
+                raise RailError(f"cannot open rail port {port}: {_reason(exc)}") from None
+            holder = _flock_holder(device)
+            if holder is None or os.path.exists(f"/proc/{holder}") or not _guard_done(port, device, holder):
+                raise RailError(f"rail {port} in use by {_describe_pid(holder)}") from None
     with contextlib.suppress(termios.error, OSError, AttributeError):
         # Without HUPCL the kernel keeps DTR up when the port closes, so the next open makes no DTR edge
         # either: an Arduino with the auto-reset capacitor is then reset once, at the first open after boot.
@@ -1152,6 +1162,18 @@ def _open_port(port: str, baudrate: int, timeout: float) -> serial.Serial:
         attrs[2] &= ~termios.HUPCL
         termios.tcsetattr(link.fd, termios.TCSANOW, attrs)
     return link
+
+
+def _guard_done(port: str, device: str, dead: int) -> bool:
+    """Wait while the guard of process ``dead`` stops the carriage it left (the flock of a dead process is its
+    guard's: they share the port's open file description); True once the port is free."""
+    log.warning("rail %s: pid %d died with the rail open; waiting while its guard stops the carriage", port, dead)
+    deadline = time.monotonic() + GUARD_WAIT
+    while time.monotonic() < deadline:
+        if _flock_holder(device) != dead:
+            return True
+        time.sleep(0.05)
+    return False
 
 
 def _check_limits(limits: dict | None) -> dict[str, tuple[float | None, float | None]]:

@@ -1,19 +1,19 @@
 """Stops a GRBL carriage when the process driving it dies without closing the rail (SIGKILL, the OOM killer).
 
-`psfd.drivers.grbl.GrblRail` starts this file, by path and with only the standard library (it imports nothing
-of psfd, so that it starts in a few tens of milliseconds), when it opens its port::
-
-    python -I -S grbl_guard.py PORT_FD OWNER_PIDFD TIMEOUT
+`psfd.drivers.grbl.GrblRail` starts it when it opens its port, in an interpreter without site-packages
+(``python -I -S``), importing this module from its folder (so its bytecode is cached) and nothing of psfd, so
+that it starts in a few tens of milliseconds; ``python -I -S grbl_guard.py PORT_FD OWNER_PIDFD TIMEOUT STOP``
+does the same.
 
 ``PORT_FD`` is the owner's serial port (the same open file description: the owner's flock stays on it while
 this process lives), ``OWNER_PIDFD`` a pidfd of the owner (``os.pidfd_open``), readable once the owner has
-exited, whoever else still holds its pipes or descriptors (the forked estimation workers do), and ``TIMEOUT``
-the seconds one exchange may take. This process runs in its own session and ignores SIGINT, SIGTERM and
+exited, whoever else still holds its pipes or descriptors (the forked estimation workers do), ``TIMEOUT``
+the seconds one exchange may take and ``STOP`` the longest deceleration (from ``$110``/``$120``; 30 s when
+the owner has not read them yet). This process runs in its own session and ignores SIGINT, SIGTERM and
 SIGHUP: a terminal's Ctrl-C and ``systemctl stop`` reach the owner, which stops the carriage itself.
 
-While the owner lives this process never reads or writes the port (the owner's replies are the owner's). On
-its standard input it takes lines: ``stop SECONDS`` (the longest deceleration, once the owner has read the
-controller's ``$110``/``$120``) and ``exit`` (the rail was closed: leave without touching the port).
+While the owner lives this process never reads or writes the port (the owner's replies are the owner's), so a
+clean close of the rail simply kills it (SIGKILL).
 
 When the owner has died with the rail open it does what the owner's own stop does (GRBL 1.1, gnea/grbl
 doc/markdown/commands.md and interface.md), and nothing more when the carriage stands:
@@ -29,23 +29,18 @@ doc/markdown/commands.md and interface.md), and nothing more when the carriage s
   then the reset once the longest deceleration is over.
 """
 
-from __future__ import annotations
-
+import _signal  # the C module under `signal`, whose enum wrapping would add ~15 ms to the start (measured)
 import os
-import re
 import select
-import signal
 import sys
 import termios
 import time
 
+# No `re` either (~15 ms of imports): status reports and banners are simple enough to split by hand.
 SOFT_RESET = b"\x18"
 FEED_HOLD = b"!"
 STATUS = b"?"
-_STATE = re.compile(r"<([A-Za-z]+)(?::(\d+))?")
-_BANNER = re.compile(r"^(Grbl|GrblHAL|grblHAL)\s+\S+.*\[.*help\]")
-_POSITION = re.compile(r"[MW]Pos:[^|>]*")
-UNKNOWN_STOP = 30.0  # s: the owner died before reading the settings; GrblRail._stop_time says the same
+BANNERS = ("Grbl ", "GrblHAL ", "grblHAL ")
 STANDING = ("Idle", "Alarm", "Sleep", "Check")
 
 
@@ -82,10 +77,8 @@ class Port:
         self.write(STATUS)
         deadline = time.monotonic() + seconds
         while (line := self.line(deadline)) is not None:
-            match = _STATE.match(line)
-            if match:
-                name = match.group(1) + (f":{match.group(2)}" if match.group(2) else "")
-                return name, line
+            if line.startswith("<"):  # <Hold:0|MPos:..> (GRBL 1.1), <Idle,MPos:..> (0.9)
+                return line[1:].split("|")[0].split(",")[0].rstrip(">"), line
         return None
 
     def reset(self, seconds: float) -> bool:
@@ -94,12 +87,12 @@ class Port:
             self.write(SOFT_RESET)
             deadline = time.monotonic() + seconds
             while (line := self.line(deadline)) is not None:
-                if _BANNER.match(line):
+                if line.startswith(BANNERS) and "help]" in line:
                     return True
         return False
 
 
-def stop_carriage(port: Port, stop: float, timeout: float) -> str | None:
+def stop_carriage(port: "Port", stop: float, timeout: float) -> str | None:
     """What the owner's `GrblRail._halt` does, for a controller the owner left; None when it stood."""
     termios.tcflush(port.fd, termios.TCIFLUSH)  # replies to the owner's last requests: stale now
     found = port.status(timeout)
@@ -139,34 +132,19 @@ def stop_carriage(port: Port, stop: float, timeout: float) -> str | None:
 
 
 def _where(found: tuple[str, str] | None) -> str:
-    match = _POSITION.search(found[1]) if found else None
-    return match.group(0) if match else "an unknown position"
+    for field in found[1].strip("<>").replace(",MPos", "|MPos").replace(",WPos", "|WPos").split("|") if found else ():
+        if field.startswith(("MPos:", "WPos:")):
+            return field
+    return "an unknown position"
 
 
-def watch(port_fd: int, owner: int, timeout: float) -> int:
-    """Wait for the owner's exit or its ``exit`` line; stop the carriage in the first case."""
-    stop = UNKNOWN_STOP
+def watch(port_fd: int, owner: int, timeout: float, stop: float) -> int:
+    """Wait for the owner's exit, then stop the carriage if it moves."""
     pid = os.getppid()  # the owner started this process
     poll = select.poll()
     poll.register(owner, select.POLLIN)
-    poll.register(0, select.POLLIN)
-    pending = b""
-    while True:
-        events = dict(poll.poll())
-        if events.get(0):
-            data = os.read(0, 4096)
-            if not data:
-                poll.unregister(0)  # the owner closed its end (it is exiting): its pidfd says when
-            pending += data
-            while b"\n" in pending:
-                line, pending = pending.split(b"\n", 1)
-                words = line.split()
-                if words == [b"exit"]:
-                    return 0
-                if len(words) == 2 and words[0] == b"stop":
-                    stop = float(words[1])
-        if events.get(owner):
-            break
+    while not poll.poll():
+        pass
     try:
         done = stop_carriage(Port(port_fd), stop, timeout)
     except OSError as exc:  # the cable was pulled, or the port closed under us
@@ -177,9 +155,9 @@ def watch(port_fd: int, owner: int, timeout: float) -> int:
 
 
 def main(argv: list[str]) -> int:
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, signal.SIG_IGN)
-    return watch(int(argv[1]), int(argv[2]), float(argv[3]))
+    for sig in (_signal.SIGINT, _signal.SIGTERM, _signal.SIGHUP):
+        _signal.signal(sig, _signal.SIG_IGN)
+    return watch(int(argv[1]), int(argv[2]), float(argv[3]), float(argv[4]))
 
 
 if __name__ == "__main__":
