@@ -1,15 +1,16 @@
-"""What the rail's guard process (psfd/drivers/grbl_guard.py) costs: a port open, a whole command, its own life.
+"""What the rail's guard process (psfd/drivers/grbl_guard.py) costs: a port open with a move, a whole command.
 
 Against the fake GRBL controller of the tests (tests/fake_grbl.py) behind a pseudo-terminal, each case beside
 its reference in the same run, in turn (A B A B ...), medians and the median of the pairwise ratios:
 
-- open: ``GrblRail(port).close()`` in this process, with the guard against the same class with
-  `_start_guard` made a no-op (the open reads ``$$``, ``$I``, ``$N`` and the WCO: tens of exchanges);
+- move: ``GrblRail(port)``, one 0.5 mm move (the guard starts before it), ``close()``, in this process,
+  against the same class with `_ensure_guard` made a no-op;
 - command: ``psfd rail position --rail-port PTY`` as a whole process, this tree against --before DIR (a
-  tree without the guard, e.g. ``git worktree add /tmp/before main``); skipped without --before.
+  tree without the guard, e.g. ``git archive`` of an older commit, compiled); skipped without --before. It
+  moves nothing, so it starts no guard: this shows the open itself costs nothing more.
 
-The guard's own start-up (``python -I -S`` and its imports, ``-X importtime``) runs beside the open; a clean
-close kills it, so a short command does not wait for it.
+The guard's own start-up (``python -I -S`` and its imports) runs beside the move; a clean close kills it, so
+a short command does not wait for it.
 
 Usage: python bench/bench_rail_guard.py [--runs N] [--before DIR]
 """
@@ -34,8 +35,14 @@ from psfd.drivers.grbl import GrblRail  # noqa: E402
 
 
 class Unguarded(GrblRail):
-    def _start_guard(self) -> None:
+    def _ensure_guard(self) -> None:
         pass
+
+
+def open_move_close(cls, fake: FakeGrbl) -> None:
+    rail = cls(fake.port)
+    rail.move(x=-0.5 if rail.position().x == 0.0 else 0.0)
+    rail.close()
 
 
 def timed(make) -> float:
@@ -67,7 +74,7 @@ def main() -> None:
     args = parser.parse_args()
     fake = FakeGrbl({110: 6000, 120: 200})
     try:
-        report("open", *alternate(lambda: GrblRail(fake.port).close(), lambda: Unguarded(fake.port).close(),
+        report("move", *alternate(lambda: open_move_close(GrblRail, fake), lambda: open_move_close(Unguarded, fake),
                                   args.runs), "without the guard")
         if args.before:
             command = [sys.executable, "-m", "psfd", "rail", "position", "--rail-port", fake.port]
