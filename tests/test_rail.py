@@ -424,7 +424,7 @@ def test_guard_of_a_closed_rail_sends_nothing(make_fake, connect):
     rail.move(x=-10)
     guard = rail._guard
     assert guard.poll() is None  # watching while the rail is open
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # a terminal's Ctrl-C, `systemctl stop`
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGABRT):  # Ctrl-C, `systemctl stop`, watchdog
         os.kill(guard.pid, sig)
     time.sleep(0.2)
     assert guard.poll() is None and os.getsid(guard.pid) == guard.pid  # its own session, signals ignored

@@ -1,6 +1,6 @@
 """Stops a GRBL carriage when the process driving it dies without closing the rail (SIGKILL, the OOM killer).
 
-`psfd.drivers.grbl.GrblRail` starts it when it opens its port, in an interpreter without site-packages
+`psfd.drivers.grbl.GrblRail` starts it before the first line that can move the carriage, in an interpreter without site-packages
 (``python -I -S``), importing this module from its folder (so its bytecode is cached) and nothing of psfd, so
 that it starts in a few tens of milliseconds; ``python -I -S grbl_guard.py PORT_FD OWNER_PIDFD TIMEOUT STOP``
 does the same.
@@ -9,8 +9,9 @@ does the same.
 this process lives), ``OWNER_PIDFD`` a pidfd of the owner (``os.pidfd_open``), readable once the owner has
 exited, whoever else still holds its pipes or descriptors (the forked estimation workers do), ``TIMEOUT``
 the seconds one exchange may take and ``STOP`` the longest deceleration (from ``$110``/``$120``; 30 s when
-the owner has not read them yet). This process runs in its own session and ignores SIGINT, SIGTERM and
-SIGHUP: a terminal's Ctrl-C and ``systemctl stop`` reach the owner, which stops the carriage itself.
+the owner has not read them yet). This process runs in its own session and ignores SIGINT, SIGTERM, SIGHUP,
+SIGQUIT and SIGABRT: a terminal's Ctrl-C, ``systemctl stop`` and the service watchdog are for the owner,
+which stops the carriage itself (or dies, and this process does it).
 
 While the owner lives this process never reads or writes the port (the owner's replies are the owner's), so a
 clean close of the rail simply kills it (SIGKILL).
@@ -18,7 +19,8 @@ clean close of the rail simply kills it (SIGKILL).
 When the owner has died with the rail open it does what the owner's own stop does (GRBL 1.1, gnea/grbl
 doc/markdown/commands.md and interface.md), and nothing more when the carriage stands:
 
-- ``?``: one status report. Idle, Alarm, Sleep, Check, Door:1-3 (the door holds it): nothing is sent.
+- ``?``: one status report (Idle: a second one 0.25 s later, as a move line the owner sent just before it died
+  may not have started yet). Idle, Alarm, Sleep, Check, Door:1-3 (the door holds it): nothing more is sent.
 - Run or Jog: ``!`` (a feed hold: a controlled deceleration; a jog is cancelled by it), then ``?`` until
   ``Hold:0`` or Idle, then Ctrl-X (0x18) so that the rest of the move is dropped; after a completed hold the
   reset keeps the position, while a reset in motion or in ``Hold:1`` would throw ALARM:3 and lose it.
@@ -155,7 +157,9 @@ def watch(port_fd: int, owner: int, timeout: float, stop: float) -> int:
 
 
 def main(argv: list[str]) -> int:
-    for sig in (_signal.SIGINT, _signal.SIGTERM, _signal.SIGHUP):
+    # A terminal's Ctrl-C, `systemctl stop` (SIGTERM to every process of the unit) and the service watchdog
+    # (SIGABRT) are meant for the owner: it stops the carriage itself, or dies and leaves it to this process.
+    for sig in (_signal.SIGINT, _signal.SIGTERM, _signal.SIGHUP, _signal.SIGQUIT, _signal.SIGABRT):
         _signal.signal(sig, _signal.SIG_IGN)
     return watch(int(argv[1]), int(argv[2]), float(argv[3]), float(argv[4]))
 
