@@ -29,11 +29,12 @@ narrowed by the ``limits`` the rig configures.
 Ctrl-C, SIGTERM (which the CLI raises as an exception), a deadline, an error or a lost answer during a move
 end in `_halt`: feed hold, wait for the carriage to stand, reset, and the error says where it stopped.
 A process killed outright (SIGKILL, the OOM killer) runs nothing: before the first line that can move the
-carriage the driver starts a guard process (`psfd.drivers.grbl_guard`, standard library only, its own session,
-SIGINT/SIGTERM/SIGHUP/SIGQUIT/SIGABRT ignored) holding the same port. It watches this process through a pidfd, never touches
-the port while it lives and is killed by `close`; when this process dies with the rail open, it sends ``?``
-and, if the carriage moves, what `_halt` sends (``!``, ``?`` until ``Hold:0``, 0x18), then exits. A whole
-control group killed at once, or a power cut of the PC, takes the guard too: the next open stops the carriage.
+carriage the driver starts a guard process (`psfd.drivers.grbl_guard`, standard library only, in its own
+session, SIGINT/SIGTERM/SIGHUP/SIGQUIT/SIGABRT ignored) holding the same port. It watches this process through
+a pidfd, never touches the port while it lives and is killed by `close`; when this process dies with the rail
+open, it sends ``?`` and, if the carriage moves, what `_halt` sends (``!``, ``?`` until ``Hold:0``, 0x18), then
+exits. A whole control group killed at once, or a power cut of the PC, takes the guard too: the next open
+stops the carriage.
 The port is opened exclusively (flock, pyserial ``exclusive``) behind a UUCP-style lock file naming the
 holder's pid, and without a reset: DTR is left up and HUPCL cleared so that an Arduino's auto-reset
 circuit sees no edge on the next open either (the README has the hardware fix).
@@ -1151,15 +1152,17 @@ def _open_port(port: str, baudrate: int, timeout: float) -> serial.Serial:
     link.rts = True
     link.exclusive = True
     device = os.path.realpath(port)
-    for _ in range(2):
+    for attempt in range(2):
         try:
             link.open()
             break
         except (serial.SerialException, OSError, ValueError) as exc:
-            if getattr(exc, "errno", None) not in (errno.EAGAIN, errno.EWOULDBLOCK) and "exclusively lock" not in str(exc):
+            busy = getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK) or "exclusively lock" in str(exc)
+            if not busy:
                 raise RailError(f"cannot open rail port {port}: {_reason(exc)}") from None
             holder = _flock_holder(device)
-            if holder is None or os.path.exists(f"/proc/{holder}") or not _guard_done(port, device, holder):
+            # a flock whose process is dead is held by that process's guard, stopping the carriage: wait for it
+            if attempt or holder is None or os.path.exists(f"/proc/{holder}") or not _guard_done(port, device, holder):
                 raise RailError(f"rail {port} in use by {_describe_pid(holder)}") from None
     with contextlib.suppress(termios.error, OSError, AttributeError):
         # Without HUPCL the kernel keeps DTR up when the port closes, so the next open makes no DTR edge
