@@ -25,7 +25,8 @@ The modules, from the bottom up (each imports only those above it in this list):
   conventions), ``mtf`` (MTF profiles, MTF50, FWHM, errors between kernels), ``gamma``
   (conditioning of a pattern), ``simulate`` (rendering frames of known PSF).
 - ``drivers/``: the ``Camera`` and ``Rail`` protocols (``base``), libgphoto2 (``gphoto``),
-  GRBL (``grbl``), the simulated rig (``sim``) and recordings (``recording``).
+  GRBL (``grbl``) and the process that stops its carriage when psfd is killed mid-move
+  (``grbl_guard``, standard library only), the simulated rig (``sim``) and recordings (``recording``).
 - ``printing``: the calibration targets rendered for print.
 - ``figures``: every picture psfd draws (PSF figure, array images, method comparison, field report),
   with matplotlib, loaded only by the commands that draw.
