@@ -461,6 +461,46 @@ def test_guard_of_a_process_killed_standing_only_asks(make_fake, connect, tmp_pa
     assert fake.machine_position()[0] == -10.0 and connect(fake).position().x == -10.0
 
 
+def test_sigkill_during_the_stop_of_a_ctrl_c_is_finished_by_the_guard(make_fake, connect):
+    """Ctrl-C, then kill -9 while psfd waits for the hold to complete: the guard finds Hold:1, waits for
+    Hold:0 and resets, so that no cycle start can resume the move unattended."""
+    fake = make_fake({**SLOW, 120: 10})  # 20 mm/s braked at 10 mm/s^2: a hold decelerates for 2 s
+    proc = psfd_process("rail", "move", "X=-150", "--rail-port", fake.port)
+    try:
+        assert fake.wait_for(lambda f: f.machine_position()[0] < -30.0, timeout=30)
+        proc.send_signal(signal.SIGINT)
+        assert fake.wait_for(lambda f: f.status() == "Hold:1", timeout=5)
+        proc.kill()
+        proc.wait()
+        assert fake.status() == "Hold:1"  # still decelerating: a reset now would be ALARM:3
+        assert fake.wait_for(lambda f: not f.peer_open, timeout=15)
+    finally:
+        proc.kill()
+    assert [byte for _, byte in fake.realtime].count(FEED_HOLD) == 1  # psfd's: the guard found the hold on
+    assert fake.resets() == ["Hold:0"] and fake.alarms() == [] and fake.status() == "Idle"
+    assert connect(fake).position().x == fake.machine_position()[0]
+
+
+def test_sigkill_just_after_the_move_line_is_stopped_by_the_guard(make_fake, connect, tmp_path):
+    """Killed the moment the move line is written: the guard may meet GRBL still Idle, before the line runs;
+    it asks again before deciding the carriage stands."""
+    fake = make_fake(SLOW)
+    script = tmp_path / "owner.py"
+    script.write_text("import os, signal, sys, time\n"
+                      "from psfd.drivers.grbl import GrblRail\n"
+                      "rail = GrblRail(sys.argv[1])\n"
+                      "rail._ensure_guard()\n"
+                      "time.sleep(0.5)  # the guard is up and waiting: it reacts within a millisecond\n"
+                      "rail._serial.write(b'G90 G21 G0 X-150.0000\\n')\n"
+                      "os.kill(os.getpid(), signal.SIGKILL)\n")
+    proc = subprocess.run([sys.executable, str(script), fake.port], timeout=60)
+    assert proc.returncode == -signal.SIGKILL
+    assert fake.wait_for(lambda f: not f.peer_open, timeout=15)
+    assert settled(fake) and -5.0 < fake.machine_position()[0] <= 0.0
+    assert fake.resets() == ["Hold:0"] and fake.alarms() == []
+    assert connect(fake).position().x == fake.machine_position()[0]
+
+
 def test_reopen_does_not_reset_a_moving_controller(make_fake, connect):
     """The process and its guard both killed (systemd-oomd, a SIGKILL of the whole control group): the
     controller goes on with the move; the next open stops it."""

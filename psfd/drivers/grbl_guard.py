@@ -19,7 +19,7 @@ clean close of the rail simply kills it (SIGKILL).
 When the owner has died with the rail open it does what the owner's own stop does (GRBL 1.1, gnea/grbl
 doc/markdown/commands.md and interface.md), and nothing more when the carriage stands:
 
-- ``?``: one status report (Idle: a second one 0.25 s later, as a move line the owner sent just before it died
+- ``?``: one status report (Idle: a few more over 0.15 s, as a move line the owner sent just before it died
   may not have started yet). Idle, Alarm, Sleep, Check, Door:1-3 (the door holds it): nothing more is sent.
 - Run or Jog: ``!`` (a feed hold: a controlled deceleration; a jog is cancelled by it), then ``?`` until
   ``Hold:0`` or Idle, then Ctrl-X (0x18) so that the rest of the move is dropped; after a completed hold the
@@ -44,6 +44,7 @@ FEED_HOLD = b"!"
 STATUS = b"?"
 BANNERS = ("Grbl ", "GrblHAL ", "grblHAL ")
 STANDING = ("Idle", "Alarm", "Sleep", "Check")
+IDLE_WATCH = 0.15  # s an Idle controller is watched for a move line the owner sent as it died
 
 
 class Port:
@@ -98,9 +99,12 @@ def stop_carriage(port: "Port", stop: float, timeout: float) -> str | None:
     """What the owner's `GrblRail._halt` does, for a controller the owner left; None when it stood."""
     termios.tcflush(port.fd, termios.TCIFLUSH)  # replies to the owner's last requests: stale now
     found = port.status(timeout)
-    if found is not None and found[0] in ("Idle",):
-        # The owner may have died just after sending a move line that GRBL had not started yet.
-        time.sleep(0.25)
+    # The owner may have died just after writing a move line: its bytes came before our '?', but GRBL may
+    # report before it parses the line (the report is a realtime flag, served first). It starts the move
+    # within milliseconds: a few more reports over IDLE_WATCH seconds tell.
+    watch_until = time.monotonic() + IDLE_WATCH
+    while found is not None and found[0] == "Idle" and time.monotonic() < watch_until:
+        time.sleep(0.03)
         found = port.status(timeout) or found
     name = found[0] if found else None
     state = name.split(":")[0] if name else None
