@@ -501,6 +501,24 @@ def test_sigkill_just_after_the_move_line_is_stopped_by_the_guard(make_fake, con
     assert connect(fake).position().x == fake.machine_position()[0]
 
 
+def test_sigkill_during_homing_is_stopped_by_the_guard(make_fake, connect):
+    """GRBL answers no '?' during a homing cycle and ignores feed holds in it: the guard, unanswered, sends
+    the feed hold anyway and then, once the longest deceleration is over, the reset that ends the cycle
+    (ALARM:6, as psfd's own Ctrl-C during `psfd rail home`)."""
+    fake = make_fake({**HOMING, 25: 600}, start=(-150.0, -50.0, -50.0))  # a 10 mm/s search, 15 s to the switch
+    proc = psfd_process("rail", "home", "--rail-port", fake.port)
+    try:
+        assert fake.wait_for(lambda f: f.status() == "Home" and f.moving, timeout=30)
+        time.sleep(0.5)
+        proc.kill()
+        proc.wait()
+        assert fake.wait_for(lambda f: not f.peer_open, timeout=20)
+    finally:
+        proc.kill()
+    assert settled(fake) and fake.alarms() == [6] and fake.resets() == ["Home"]
+    assert fake.physical_position()[0] < -60.0  # far from the switch it was searching for
+
+
 def test_reopen_does_not_reset_a_moving_controller(make_fake, connect):
     """The process and its guard both killed (systemd-oomd, a SIGKILL of the whole control group): the
     controller goes on with the move; the next open stops it."""
