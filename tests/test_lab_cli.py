@@ -11,7 +11,7 @@ import pytest
 
 from psfd.catalogue import Catalogue
 from psfd.cli import main
-from psfd.cli.options import parse_axes
+from psfd.cli.options import parse_axes, parse_channels
 from psfd.daemon import client
 from psfd.daemon.plan import parse_plan
 from psfd.drivers.base import CameraInfo
@@ -267,6 +267,15 @@ def test_parse_rail():
     assert parse_axes(["X=1200,y=-40", "Z=5"], "--rail") == {"x": 1200.0, "y": -40.0, "z": 5.0}
     with pytest.raises(BadInputError, match="Y must be a number"):
         parse_axes(["Y=left"], "--rail")
+
+
+def test_parse_channels_in_any_case():
+    """--channels G1,B is g1,b as --channel G1 is g1 (the stored names are lower case); ALL is all."""
+    assert parse_channels("G1, B") == ["g1", "b"] and parse_channels("ALL") == "all"
+    with pytest.raises(BadInputError, match="distinct"):
+        parse_channels("g1,G1")
+    with pytest.raises(BadInputError, match="got 'g3'"):
+        parse_channels("g3")
 
 
 def test_status_without_service_lists_runs(tmp_path, capsys):

@@ -148,10 +148,10 @@ def parse_near(text: str, name: str = "--near") -> tuple[float, float]:
 
 
 def parse_channels(text: str, name: str = "--channels") -> list[str] | str:
-    """``all`` or a comma list of distinct Bayer channels."""
-    if text.strip() == "all":
+    """``all`` or a comma list of distinct Bayer channels, in any case (as `parse_channel`)."""
+    if text.strip().lower() == "all":
         return "all"
-    channels = [c.strip() for c in text.split(",")]
+    channels = [c.strip().lower() for c in text.split(",")]
     bad = [c for c in channels if c not in vocabulary.CHANNELS]
     if bad or len(set(channels)) != len(channels):
         raise BadInputError(f"{name}: expected all, or a comma list of distinct {', '.join(vocabulary.CHANNELS)}, "
