@@ -69,6 +69,23 @@ def test_plain_converts_arrays_at_once_as_it_does_item_by_item():
     assert output.plain(arrays[2]) == [[0.5, None], [None, 2.0]]
 
 
+def test_estimate_tiffs_carry_the_sample_pitch_the_raw_gives(tmp_path):
+    """As `export --format tif`: the kernel is sampled at the channel pixel pitch / s, 2 x 4.3 um / 4 = 2.15 um
+    on a Bayer plane (4651.2 samples per cm); a source without a pitch gives no resolution, as before."""
+    mosaic = np.full((64, 96), 1000, dtype=np.uint16)
+    raw.write_dng(tmp_path / "IMG_0001.dng", mosaic, black=512, white=4095, exif={"pixel_pitch_um": 4.3})
+    pitched = dataclasses.replace(synthetic(0), sources=[str(tmp_path / "IMG_0001.dng")])
+    bare = dataclasses.replace(synthetic(0), sources=[str(tmp_path / "IMG_0002.pgm")])
+    output.write_estimates([pitched, bare], tmp_path / "out", drawn=False)
+    with tifffile.TiffFile(tmp_path / "out" / "IMG_0001_bernoulli_g1_w00.tif") as tif:
+        tags = tif.pages[0].tags
+        x, y = tags["XResolution"].value, tags["YResolution"].value
+        assert x[0] / x[1] == pytest.approx(1e4 / 2.15, rel=1e-5) and y == x
+        assert tags["ResolutionUnit"].value == tifffile.RESUNIT.CENTIMETER
+    with tifffile.TiffFile(tmp_path / "out" / "IMG_0002_bernoulli_g1_w00.tif") as tif:
+        assert tif.pages[0].tags["ResolutionUnit"].value == tifffile.RESUNIT.NONE
+
+
 def test_write_estimates_files_round_trip(tmp_path):
     kernel = np.arange(25.0).reshape(5, 5) - 12  # signed, as an inter-image kernel can be
     residual = np.random.default_rng(0).normal(size=(40, 60))

@@ -217,6 +217,18 @@ def base_names(estimates: list[PSF]) -> list[str]:
     return names
 
 
+def tiff_resolution(pitch_um: float | None, s: int | None, channel: str) -> dict:
+    """tifffile's resolution arguments for a kernel: samples per cm on the sensor, or none when the pitch is
+    unknown. The kernel is sampled at the channel pixel pitch / s: a Bayer plane's pixel is two photosites, a
+    mono plane's one (`psfd.estimator.mtf.channel_pitch_mm`)."""
+    from psfd.estimator import mtf
+
+    if not pitch_um or not s:
+        return {}
+    density = 10.0 * s / mtf.channel_pitch_mm(pitch_um, channel)
+    return {"resolution": (density, density), "resolutionunit": "CENTIMETER"}
+
+
 def _write_one(folder: Path, name: str, est: PSF, sensor: Any, drawn: bool) -> list[str]:
     """The files of one estimate but its PSF figure (`_write_figures`); its other figures when ``drawn``."""
     import tifffile  # only the writers need these
@@ -226,7 +238,8 @@ def _write_one(folder: Path, name: str, est: PSF, sensor: Any, drawn: bool) -> l
     files = [f"{name}.npy", f"{name}.tif", f"{name}.json"]
     np.save(folder / files[0], est.psf)
     meta = {"method": est.method, "channel": est.channel, "s": est.s, "field": [float(v) for v in est.field]}
-    tifffile.imwrite(folder / files[1], est.psf.astype(np.float32), metadata=meta)
+    tifffile.imwrite(folder / files[1], est.psf.astype(np.float32), metadata=meta,
+                     **tiff_resolution(sensor.pitch_um if sensor else None, est.s, est.channel))
     # the provenance and metrics beside the arrays, so a folder of results describes itself
     (folder / files[2]).write_text(json.dumps(estimate_json(est, sensor), allow_nan=False) + "\n")
     for key, array in est.figures.items():

@@ -157,20 +157,6 @@ def _file_stem(row: dict) -> str:
     return f"psf{row['id']:06d}_{row['channel']}_f{aperture}_{row['method']}"
 
 
-def samples_per_cm(meta: dict) -> float | None:
-    """Samples per cm on the sensor of a PSF row with `units` (its TIFF resolution); None when the pitch is unknown.
-
-    The kernel is sampled at the channel pixel pitch / s: a Bayer plane's pixel is two photosites, a mono
-    plane's one (`psfd.estimator.mtf.channel_pitch_mm`).
-    """
-    from psfd.estimator import mtf
-
-    pitch = meta.get("pixel_pitch_um")
-    if not pitch or not meta.get("s"):
-        return None
-    return 10.0 * meta["s"] / mtf.channel_pitch_mm(pitch, meta["channel"])
-
-
 def _write_psf(folder: Path, stem: str, array, meta: dict, fmt: str) -> str:
     import numpy as np
 
@@ -180,12 +166,12 @@ def _write_psf(folder: Path, stem: str, array, meta: dict, fmt: str) -> str:
     elif fmt == "tiff":
         import tifffile
 
+        from psfd.cli import output
+
         name = f"{stem}.tif"
-        density = samples_per_cm(meta)
-        where = {} if density is None else {"resolution": (density, density), "resolutionunit": "CENTIMETER"}
         # 32-bit float keeps ~7 significant digits, far below any PSF's noise floor.
         tifffile.imwrite(folder / name, array.astype(np.float32), description=json.dumps(meta), metadata=None,
-                         **where)
+                         **output.tiff_resolution(meta.get("pixel_pitch_um"), meta.get("s"), meta["channel"]))
     else:
         name = f"{stem}.json"
         (folder / name).write_text(json.dumps({**meta, "psf": array.tolist()}))
