@@ -50,50 +50,38 @@ def arm(phase: str, nth: int) -> None:
         count["n"] += 1
         return count["n"] == nth
 
+    def after(function):  # the phase is reached when `function` returns
+        def patched(*args, **kwargs):
+            out = function(*args, **kwargs)
+            if reached():
+                kill()
+            return out
+
+        return patched
+
+    def before(function):  # the phase is reached when `function` is called
+        def patched(*args, **kwargs):
+            if reached():
+                kill()
+            return function(*args, **kwargs)
+
+        return patched
+
     if phase == "plan":
-        load_plan = plan.load_plan
-
-        def patched_load(path):
-            out = load_plan(path)
-            if reached():
-                kill()
-            return out
-
-        plan.load_plan = patched_load
+        plan.load_plan = after(plan.load_plan)
     elif phase == "rig":
-        open_rig = runner.open_rig
-
-        def patched_open(config):
-            out = open_rig(config)
-            if reached():
-                kill()
-            return out
-
-        runner.open_rig = patched_open
+        runner.open_rig = after(runner.open_rig)
     elif phase == "opening":
-        sweep = runner.sweep_frames
-
-        def patched_sweep(*args):
-            if reached():
-                kill()
-            return sweep(*args)
-
-        runner.sweep_frames = patched_sweep
+        runner.sweep_frames = before(runner.sweep_frames)
     elif phase == "journal":
-        start_run, finish_run = catalogue.Catalogue.start_run, catalogue.Catalogue.finish_run
-
-        def patched_start(self, *args):
-            run_id = start_run(self, *args)
-            if reached():
-                kill()
-            return run_id
+        finish_run = catalogue.Catalogue.finish_run
 
         def patched_reopen(self, run_id, state):
             finish_run(self, run_id, state)
             if state == "running" and reached():
                 kill()
 
-        catalogue.Catalogue.start_run = patched_start
+        catalogue.Catalogue.start_run = after(catalogue.Catalogue.start_run)
         catalogue.Catalogue.finish_run = patched_reopen
     elif phase in ("capture", "pending", "store"):
         store_frame = runner.store_frame
@@ -114,24 +102,9 @@ def arm(phase: str, nth: int) -> None:
 
         runner.store_frame = patched_store
     elif phase == "estimate":
-        commit_ready = runner.Runner._commit_ready
-
-        def patched_ready(self, *args):
-            if reached():
-                kill()
-            return commit_ready(self, *args)
-
-        runner.Runner._commit_ready = patched_ready
+        runner.Runner._commit_ready = before(runner.Runner._commit_ready)
     elif phase == "commit":
-        insert = catalogue.Catalogue._insert
-
-        def patched_insert(self, *args, **kwargs):
-            ids = insert(self, *args, **kwargs)
-            if reached():
-                kill()
-            return ids
-
-        catalogue.Catalogue._insert = patched_insert
+        catalogue.Catalogue._insert = after(catalogue.Catalogue._insert)
     elif phase in ("last-commit", "close-down"):
         finish_run = catalogue.Catalogue.finish_run
         release_rig = runner.release_rig
