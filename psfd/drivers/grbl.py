@@ -61,14 +61,13 @@ from typing import Iterator, NoReturn
 import serial
 
 from psfd.drivers.base import Position, RailInfo
+# GRBL's realtime bytes, one definition for the driver and its guard (which imports nothing of psfd)
+from psfd.drivers.grbl_guard import FEED_HOLD, SOFT_RESET, STATUS
 from psfd.errors import RailAlarm, RailError
 
 log = logging.getLogger(__name__)
 
 AXES = ("x", "y", "z")
-SOFT_RESET = b"\x18"
-FEED_HOLD = b"!"
-STATUS = b"?"
 MM_PER_INCH = 25.4
 BANNER = re.compile(r"^(Grbl|GrblHAL|grblHAL)\s+\S+.*\[.*help\]")
 
