@@ -1058,9 +1058,7 @@ class Catalogue:
 
     @staticmethod
     def _apertures(db: sqlite_utils.Database, where: list[str], params: list) -> list[float]:
-        clause = " AND ".join(where + ["p.aperture IS NOT NULL"])
-        sql = f"SELECT DISTINCT p.aperture FROM psfs p LEFT JOIN rigs r ON r.id = p.rig_id WHERE {clause}"
-        return [row[0] for row in db.execute(sql, params).fetchall()]
+        return Catalogue._distinct(db, "p.aperture", [*where, "p.aperture IS NOT NULL"], params)
 
     def psf(self, psf_id: int) -> tuple[np.ndarray, dict]:
         """The PSF array (float64) and its metadata row."""
