@@ -32,8 +32,9 @@ from psfd.estimator.kernels import PSF
 if TYPE_CHECKING:  # pragma: no cover - types only
     from matplotlib.figure import Figure
 
-__all__ = ["FORMATS", "Sensor", "array_figure", "can_write", "comparison_figure", "pixel_borders", "psf_figure",
-           "report_figure", "PSFFigures", "save", "save_array", "save_comparison", "save_psf", "save_report"]
+__all__ = ["FORMATS", "Sensor", "array_figure", "can_write", "comparison_figure", "grid_figure", "pixel_borders",
+           "psf_figure", "report_figure", "PSFFigures", "save", "save_array", "save_comparison", "save_grid",
+           "save_psf", "save_report"]
 
 # Suffixes matplotlib writes without extra libraries: raster for viewing, vector for papers and print.
 FORMATS = ("png", "pdf", "svg", "eps", "jpg", "jpeg", "tif", "tiff", "webp")
@@ -104,6 +105,11 @@ def save_array(array: np.ndarray, path: str | Path, name: str = "", est: PSF | N
 def save_comparison(curves: list[tuple[str, np.ndarray, int]], path: str | Path, against_truth: bool = False) -> None:
     """`comparison_figure` of labelled kernels ``(label, psf, s)``, written to ``path``."""
     save(comparison_figure(curves, against_truth), path)
+
+
+def save_grid(estimates: Sequence[PSF], path: str | Path) -> None:
+    """`grid_figure` of the estimates of grids of windows, written to ``path``."""
+    save(grid_figure(estimates), path)
 
 
 def save_report(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: str, path: str | Path,
@@ -415,6 +421,147 @@ def comparison_figure(curves: list[tuple[str, np.ndarray, int]], against_truth: 
     # inside, top right: every MTF has fallen there, and nothing of the legend falls off the figure
     ax.legend(handles=handles + styles, loc="upper right", fontsize=8, framealpha=0.9)
     return fig
+
+
+# ---------------------------------------------------------------- grid of windows
+
+ANNOTATED = 36  # windows per panel up to which each window's MTF50 is written in it
+
+
+def _mosaic(estimates: Sequence[PSF], box: tuple[int, int, int, int], samples: int = 6,
+            largest: int = 4096) -> np.ndarray:
+    """The kernels of ``estimates`` each enlarged to fill its window (nearest sample), on one raster of the
+    channel plane's ``box`` (x0, y0, x1, y1): about ``samples`` raster pixels per kernel sample, at most
+    ``largest`` per side; NaN outside every window."""
+    x0, y0, x1, y1 = box
+    per_px = max(samples * e.psf.shape[1] / (e.window[2] - e.window[0]) for e in estimates)
+    per_px = max(1, min(math.ceil(per_px), largest // max(x1 - x0, y1 - y0, 1)))
+    out = np.full(((y1 - y0) * per_px, (x1 - x0) * per_px), np.nan)
+    for est in estimates:
+        a, b, c, d = est.window
+        rows, cols = est.psf.shape
+        # the kernel sample each raster pixel centre of the window falls in
+        i = ((np.arange((d - b) * per_px) + 0.5) / ((d - b) * per_px) * rows).astype(int)
+        j = ((np.arange((c - a) * per_px) + 0.5) / ((c - a) * per_px) * cols).astype(int)
+        out[(b - y0) * per_px:(d - y0) * per_px, (a - x0) * per_px:(c - x0) * per_px] = est.psf[np.ix_(i, j)]
+    return out
+
+
+def grid_figure(estimates: Sequence[PSF]) -> Figure:
+    """The PSFs of grids of windows where they were measured, and their MTF50 along x and y.
+
+    One column per channel and, per photograph (or pair) and method, three rows of panels on the channel
+    plane, in channel pixels: each kernel drawn over its own window (enlarged to fill it; one log colour
+    scale for every tile), then the MTF50 of each window along x and along y (one colour scale for both
+    rows and every channel; the value written in each window when a panel has `ANNOTATED` or fewer).
+    The field dependence of the PSF at a glance, which a figure per window hides.
+    """
+    from matplotlib.colors import LogNorm, Normalize
+
+    groups: dict[tuple, list[PSF]] = {}
+    for est in estimates:
+        groups.setdefault((tuple(est.sources), est.method), []).append(est)
+    channels = [c for c in CHANNEL_ORDER if any(e.channel == c for e in estimates)]
+    mtf50 = {id(e): (m["mtf50_x"], m["mtf50_y"]) for e in estimates for m in [e.metrics()]}
+    values = [v for pair in mtf50.values() for v in pair if math.isfinite(v)]
+    vmin, vmax = (min(values), max(values)) if values else (0.0, 0.5)
+    if vmax - vmin < 1e-3:
+        vmin, vmax = vmin - 0.01, vmax + 0.01
+    mtf_norm = Normalize(vmin, vmax)
+    peak = max(float(e.psf.max()) for e in estimates)
+    psf_norm = LogNorm(peak * 10.0 ** -LOG_DECADES, peak)
+    box = (min(e.window[0] for e in estimates), min(e.window[1] for e in estimates),
+           max(e.window[2] for e in estimates), max(e.window[3] for e in estimates))
+    fig, axes = _grid_panels(3 * len(groups), len(channels), box)
+    for g, ((sources, method), group) in enumerate(groups.items()):
+        name = ", ".join(Path(p).name for p in sources) or "an image"
+        for j, channel in enumerate(channels):
+            for k, what in enumerate(("PSFs", "MTF50 x", "MTF50 y")):
+                axes[3 * g + k, j].set_title(f"channel {channel}: {what}", fontsize=9)
+            mine = [e for e in group if e.channel == channel]
+            if mine:  # a channel measured on another photograph only: its panels stay empty here
+                tiles = _psf_tiles(axes[3 * g, j], mine, box, psf_norm)
+                cells = _mtf_cells(axes[3 * g + 1, j], mine, [mtf50[id(e)][0] for e in mine], mtf_norm)
+                _mtf_cells(axes[3 * g + 2, j], mine, [mtf50[id(e)][1] for e in mine], mtf_norm)
+        for k in range(3):
+            axes[3 * g + k, 0].set_ylabel(f"{name}, {method}\ny (channel pixels)", fontsize=8)
+    # the colour bars beside the first photograph's rows: the PSF tiles', and the MTF50 cells' across both rows
+    bar = fig.colorbar(tiles, cax=_beside(fig, axes[0, -1], axes[0, -1]), extend="min")
+    bar.set_label("PSF value (fraction of energy\nper sample), log scale", fontsize=7)
+    bar = fig.colorbar(cells, cax=_beside(fig, axes[1, -1], axes[2, -1]))
+    bar.set_label("MTF50 (cycles per channel pixel):\none scale for x, y and every channel", fontsize=7)
+    import textwrap
+
+    grids = sorted({"x".join(str(n) for n in e.params["grid"]) for e in estimates if e.params.get("grid")})
+    title = (f"PSFs and MTF50 over {' and '.join(grids) or 'a'} grid{'s' if len(grids) > 1 else ''} of windows, "
+             "each kernel drawn over its window (enlarged to fill it)")
+    fig.suptitle("\n".join(textwrap.wrap(title, int(fig.get_figwidth() * 12))), fontsize=10)  # 10-point characters
+    return fig
+
+
+def _grid_panels(rows: int, cols: int, box: tuple[int, int, int, int]) -> tuple[Figure, np.ndarray]:
+    """A figure of rows x cols axes on the channel plane's ``box`` (x0, y0, x1, y1), true aspect ratio, with
+    fixed margins in inches (a layout engine measures every tick label: several times the drawing)."""
+    x0, y0, x1, y1 = (v - 0.5 for v in box)  # pixel edges
+    panel_w = 3.0
+    panel_h = panel_w * min(4.0, max(0.25, (y1 - y0) / (x1 - x0)))
+    gap_w, gap_h, left, right, top, bottom = 0.55, 0.75, 0.85, 1.6, 1.0, 0.55  # inches; top: a title of two lines
+    width = left + cols * panel_w + (cols - 1) * gap_w + right
+    height = top + rows * panel_h + (rows - 1) * gap_h + bottom
+    fig = _figure(width, height)
+    grid = fig.add_gridspec(rows, cols, left=left / width, right=1 - right / width, top=1 - top / height,
+                            bottom=bottom / height, wspace=gap_w / panel_w, hspace=gap_h / panel_h)
+    axes = np.array([[fig.add_subplot(grid[i, j]) for j in range(cols)] for i in range(rows)])
+    for ax in axes.flat:
+        ax.set_xlim(x0, x1)
+        ax.set_ylim(y1, y0)
+        ax.set_aspect("equal")
+        ax.set_facecolor("0.93")
+        ax.tick_params(labelsize=7)
+        ax.set_xlabel("x (channel pixels)", fontsize=8)
+    return fig, axes
+
+
+def _beside(fig: Figure, upper: Any, lower: Any) -> Any:
+    """Axes for a colour bar right of ``upper`` .. ``lower`` (axes of one column), as tall as they span."""
+    top, bottom = upper.get_position(), lower.get_position()
+    inch = 1.0 / fig.get_figwidth()
+    return fig.add_axes((top.x1 + 0.25 * inch, bottom.y0, 0.15 * inch, top.y1 - bottom.y0), label="<colorbar>")
+
+
+def _windows(estimates: Sequence[PSF], **style: Any) -> Any:
+    """The windows of ``estimates`` as one collection of rectangles (pixel edges)."""
+    from matplotlib.collections import PatchCollection
+    from matplotlib.patches import Rectangle
+
+    boxes = [Rectangle((a - 0.5, b - 0.5), c - a, d - b) for a, b, c, d in (e.window for e in estimates)]
+    return PatchCollection(boxes, edgecolor="0.45", lw=0.5, **style)
+
+
+def _psf_tiles(ax: Any, estimates: Sequence[PSF], box: tuple[int, int, int, int], norm: Any) -> Any:
+    """Each kernel over its window on ``ax``, as one image (hundreds of images draw 100x slower)."""
+    x0, y0, x1, y1 = box
+    mosaic = _mosaic(estimates, box)
+    # samples <= 0 in the bad colour (as on the PSF figure's log view); outside the windows, nothing
+    image = ax.imshow(np.where(mosaic > 0, mosaic, np.nan), cmap=_cmap("inferno", under="black", bad=NEGATIVE),
+                      norm=norm, extent=[x0 - 0.5, x1 - 0.5, y1 - 0.5, y0 - 0.5], alpha=np.isfinite(mosaic) * 1.0,
+                      zorder=2)
+    ax.add_collection(_windows(estimates, facecolor="none", zorder=2.5))
+    return image
+
+
+def _mtf_cells(ax: Any, estimates: Sequence[PSF], values: list[float], norm: Any) -> Any:
+    """Each window on ``ax`` coloured by its value, written in it when there are `ANNOTATED` or fewer."""
+    cells = _windows(estimates, cmap=_cmap("viridis", bad="0.8"), norm=norm, zorder=2)
+    cells.set_array(np.array(values, dtype=float))
+    ax.add_collection(cells)
+    if len(estimates) <= ANNOTATED:
+        for est, value in zip(estimates, values):
+            a, b, c, d = est.window
+            dark = math.isfinite(value) and norm(value) < 0.5
+            ax.text((a + c) / 2 - 0.5, (b + d) / 2 - 0.5, _num(value, ".3f"), ha="center", va="center",
+                    fontsize=6.5, zorder=3, color="white" if dark else "black")
+    return cells
 
 
 # ---------------------------------------------------------------- field report

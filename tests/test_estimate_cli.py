@@ -96,7 +96,7 @@ def test_write_estimates_files_round_trip(tmp_path):
     assert names == sorted(
         [f"IMG_0001_bernoulli_g1_w0{i}.{ext}" for i in (0, 1) for ext in ("npy", "tif", "png", "json")]
         + [f"IMG_0001_bernoulli_g1_w00.{k}.{ext}" for k in ("kernel", "residual") for ext in ("npy", "png")]
-        + ["metrics.csv"]
+        + ["metrics.csv", "grid.png"]  # two windows of one channel: a grid, drawn where they were measured
     )
     base = tmp_path / "out" / "IMG_0001_bernoulli_g1_w00"
     np.testing.assert_array_equal(np.load(f"{base}.npy"), estimates[0].psf)
@@ -106,8 +106,8 @@ def test_write_estimates_files_round_trip(tmp_path):
     assert json.loads(Path(f"{base}.json").read_text())["window"] == [0, 0, 320, 480]
     np.testing.assert_array_equal(np.load(f"{base}.kernel.npy"), kernel)
     np.testing.assert_array_equal(np.load(f"{base}.residual.npy"), residual)
-    for name in (f"{base}.png", f"{base}.kernel.png", f"{base}.residual.png"):  # figures, not bare arrays
-        image = cv2.imread(name, cv2.IMREAD_COLOR)
+    for name in (f"{base}.png", f"{base}.kernel.png", f"{base}.residual.png", f"{tmp_path}/out/grid.png"):
+        image = cv2.imread(name, cv2.IMREAD_COLOR)  # figures, not bare arrays
         assert image is not None and min(image.shape[:2]) > 400 and image.std() > 10
     # one CSV row per estimate, units in the header, the metrics the JSON has
     import csv
@@ -125,6 +125,8 @@ def test_write_estimates_files_round_trip(tmp_path):
     assert rows[0]["mtf50_x [lp/mm]"] == ""  # no pitch known for this source: empty, never a guess
     # no temporary folder left beside the output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    output.write_estimates(estimates, tmp_path / "bare", drawn=False)  # --no-figures: grid.png neither
+    assert not list((tmp_path / "bare").glob("*.png")) and (tmp_path / "bare" / "metrics.csv").exists()
 
 
 def test_figures_drawn_by_forked_workers_are_each_estimates_own(tmp_path):

@@ -290,3 +290,74 @@ def test_report_marks_the_image_centre_above_a_tile_measured_there():
         (centre,) = [line for line in ax.get_lines() if line.get_marker() == "+"]
         assert tuple(centre.get_xydata()[0]) == (320, 240)
         assert centre.get_zorder() > max(a.get_zorder() for a in ax.get_images() + ax.collections)
+
+
+def grid_estimates(nx: int, ny: int, channels=("g1", "r"), size=(40, 30), origin=(100, 50)) -> list[PSF]:
+    """A grid of windows per channel, the PSF wider to the right (a field dependence to see)."""
+    out = []
+    for channel in channels:
+        for j in range(ny):
+            for i in range(nx):
+                a, b = origin[0] + i * size[0], origin[1] + j * size[1]
+                out.append(PSF(gaussian(0.4 + 0.1 * i, 0.5), 4, "bernoulli", channel, ["/data/IMG_0001.dng"],
+                               ((i + 0.5) / nx, (j + 0.5) / ny), (a, b, a + size[0], b + size[1]),
+                               params={"grid": [nx, ny]}))
+    return out
+
+
+def test_grid_figure_draws_each_kernel_over_its_window_on_shared_scales():
+    estimates = grid_estimates(3, 2)
+    fig = figures.grid_figure(estimates)
+    titled = {ax.get_title(): ax for ax in fig.axes if ax.get_title()}
+    assert sorted(titled) == sorted(f"channel {c}: {w}" for c in ("r", "g1") for w in ("PSFs", "MTF50 x", "MTF50 y"))
+    columns = sorted(((ax.get_position().x0, ax.get_title().split(":")[0]) for ax in titled.values()))
+    assert [c for _, c in columns][::3] == ["channel r", "channel g1"]  # the Bayer order, left to right
+    for ax in titled.values():  # the channel plane in channel pixels, the windows' box at its true aspect
+        assert ax.get_xlim() == (99.5, 219.5) and ax.get_ylim() == (109.5, 49.5) and ax.get_aspect() == 1.0
+    peak = max(e.psf.max() for e in estimates)
+    for channel in ("r", "g1"):
+        (image,) = titled[f"channel {channel}: PSFs"].get_images()
+        assert image.get_extent() == [99.5, 219.5, 109.5, 49.5]
+        assert isinstance(image.norm, LogNorm) and image.norm.vmax == pytest.approx(peak)  # one scale for all
+        assert image.norm.vmin == pytest.approx(peak * 1e-4)
+        mosaic = image.get_array()
+        per_px = mosaic.shape[1] // 120
+        for est in (e for e in estimates if e.channel == channel):  # every kernel sample inside its own window
+            a, b, c, d = est.window
+            block = mosaic[(b - 50) * per_px:(d - 50) * per_px, (a - 100) * per_px:(c - 100) * per_px]
+            k = est.psf.shape[0]
+            rows = ((np.arange(k) + 0.5) * block.shape[0] / k).astype(int)
+            cols = ((np.arange(k) + 0.5) * block.shape[1] / k).astype(int)
+            np.testing.assert_array_equal(block[np.ix_(rows, cols)], est.psf)
+        for axis, name in enumerate(("x", "y")):
+            ax = titled[f"channel {channel}: MTF50 {name}"]
+            (cells,) = ax.collections
+            mine = [e for e in estimates if e.channel == channel]
+            expected = [e.metrics()[f"mtf50_{name}"] for e in mine]
+            np.testing.assert_allclose(cells.get_array(), expected)
+            assert [t.get_text() for t in ax.texts] == [f"{v:.3f}" for v in expected]  # six windows: written
+            assert cells.norm.vmin == pytest.approx(min(e.metrics()[k] for e in estimates for k in ("mtf50_x", "mtf50_y")))
+    x_mtf = [e.metrics()["mtf50_x"] for e in estimates if e.channel == "g1"]
+    assert x_mtf[0] > x_mtf[1] > x_mtf[2]  # the wider PSFs to the right: the field dependence is what is drawn
+    bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    assert len(bars) == 2 and "log scale" in bars[0].get_ylabel() and "MTF50" in bars[1].get_ylabel()
+    assert "3x2 grid of windows" in fig._suptitle.get_text()
+    assert inside_figure(fig) == []
+    assert inside_figure(figures.grid_figure(grid_estimates(3, 2, channels=("mono",)))) == []  # one narrow column
+
+
+def test_grid_figure_of_a_large_grid_writes_no_values_and_keeps_empty_channels_empty():
+    estimates = grid_estimates(10, 10, channels=("b",)) + grid_estimates(2, 1, channels=("g2",), size=(500, 300))
+    estimates[-1].sources = estimates[-2].sources = ["/data/IMG_0002.dng"]
+    fig = figures.grid_figure(estimates)
+    rows = {ax.get_ylabel().split(",")[0] for ax in fig.axes if ax.get_ylabel() and ax.get_label() != "<colorbar>"}
+    assert rows == {"IMG_0001.dng", "IMG_0002.dng"}  # a row of panels per photograph
+    empty = [ax for ax in fig.axes if ax.get_title() and not ax.get_images() and not ax.collections]
+    assert len(empty) == 6  # each photograph's panels of the other's channel
+    crowded = [ax for ax in fig.axes if ax.get_title().startswith("channel b: MTF50") and ax.collections]
+    assert len(crowded) == 2 and all(not ax.texts for ax in crowded)  # 100 windows: colours only
+    (tiles,) = [image for ax in fig.axes for image in ax.get_images() if ax.get_title() == "channel b: PSFs"]
+    assert tiles.get_extent() == [99.5, 1099.5, 349.5, 49.5]  # both photographs' windows, on every panel
+    alpha = tiles.get_alpha()  # the 400 x 300 pixels of b's windows drawn, nothing beyond them
+    width = alpha.shape[1] * 400 // 1000
+    assert alpha[:, :width].min() == 1 and alpha[:, width:].max() == 0

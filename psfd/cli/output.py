@@ -54,13 +54,13 @@ def _has_lp_mm(rows: list[dict]) -> bool:
 
 
 # What psfd itself writes into an --out folder, so all that --force may replace: the estimates
-# (`write_estimates`: NAME.npy/.tif/.png/.json and NAME.KEY.npy/.png, NAME from `base_names`), compare's
-# compare.png and compare.json, export's PSF files (`psfd.cli.query._file_stem`) and index.json, and
-# metrics.csv. Anything else in a folder is the user's, and a folder holding it is never replaced.
+# (`write_estimates`: NAME.npy/.tif/.png/.json, NAME.KEY.npy/.png, NAME from `base_names`, and grid.png),
+# compare's compare.png and compare.json, export's PSF files (`psfd.cli.query._file_stem`) and index.json,
+# and metrics.csv. Anything else in a folder is the user's, and a folder holding it is never replaced.
 _METHOD = "|".join(re.escape(m) for m in (*METHODS, *ALIASES))
 _CHANNEL = "|".join((*CHANNELS, MONO))
 RESULT_NAME = re.compile(
-    rf"metrics\.csv|index\.json|compare\.(png|json)"
+    rf"metrics\.csv|index\.json|compare\.(png|json)|grid\.png"
     rf"|.+_({_METHOD})_({_CHANNEL})_w\d{{2,}}(-\d+)?(\.[A-Za-z0-9._+-]+)?\.(npy|tif|png|json)"
     rf"|psf\d{{6,}}_({_CHANNEL})_f(NA|[0-9.e+-]+)_({_METHOD})\.(npy|tif|json)"
 )
@@ -274,6 +274,17 @@ def _write_figures(jobs: list[tuple[PSF, Path, float | None]]) -> None:
     forked_map(draw, len(runs), workers)
 
 
+GRID_FIGURE = "grid.png"  # `psfd.figures.grid_figure`, beside the estimates of grids of windows
+
+
+def _gridded(estimates: list[PSF]) -> bool:
+    """Whether some photograph, method and channel has estimates of more than one window: a grid to draw."""
+    windows: dict[tuple, set] = {}
+    for est in estimates:
+        windows.setdefault((tuple(est.sources), est.method, est.channel), set()).add(tuple(est.window))
+    return any(len(w) > 1 for w in windows.values())
+
+
 def write_estimates(
     estimates: list[PSF],
     out_dir: str | os.PathLike,
@@ -288,7 +299,8 @@ def write_estimates(
     ``NAME.tif`` (float32), ``NAME.png`` (`psfd.figures.psf_figure`), ``NAME.json``
     (the `print_json` record), and for each entry
     ``key`` of ``PSF.figures``: ``NAME.key.npy`` and, when 2-D, ``NAME.key.png``;
-    and ``metrics.csv``, one row per estimate (`write_csv`).
+    ``metrics.csv``, one row per estimate (`write_csv`); and for grids of windows
+    (`_gridded`) ``grid.png``, all of them where they were measured (`psfd.figures.grid_figure`).
 
     ``extra`` maps further file names to functions that write them at the path
     given (e.g. a comparison figure), so they join the same atomic folder
@@ -316,6 +328,11 @@ def write_estimates(
                 files.append(f"{name}.png")
         if jobs:
             _write_figures(jobs)
+        if drawn and _gridded(estimates):
+            from psfd import figures
+
+            figures.save_grid(estimates, folder / GRID_FIGURE)
+            files.append(GRID_FIGURE)
         with open(folder / "metrics.csv", "w", newline="", encoding="utf-8") as stream:
             write_csv(records, stream)
         files.append("metrics.csv")
