@@ -39,7 +39,8 @@ def forked_map(task: Callable[[int], Any], count: int, workers: int) -> list[Any
 
     The task and everything it reads reach the workers by the fork, never pickled: only the indices go
     out and the results come back. The workers leave interrupts to this process (`worker_signals`), which
-    ends them; the first exception raised by a task is raised here.
+    ends them; the first exception raised by a task is raised here, and a worker's death as `ForkedWorkers`
+    says.
     """
     global _TASK
     workers = max(1, min(int(workers), count))
@@ -51,18 +52,70 @@ def forked_map(task: Callable[[int], Any], count: int, workers: int) -> list[Any
         return [task(i) for i in range(count)]
     _TASK = task
     try:
-        pool = multiprocessing.get_context("fork").Pool(workers, initializer=worker_signals)
-        try:
-            results = pool.map(_run_task, range(count), chunksize=1)
-            pool.close()
-        except BaseException:
-            pool.terminate()
-            raise
-        finally:
-            pool.join()
-        return results
+        with ForkedWorkers(workers) as pool:
+            futures = [pool.submit(_run_task, i) for i in range(count)]  # the first one forks the workers
+            return [pool.result(future) for future in futures]
     finally:
         _TASK = None
+
+
+class ForkedWorkers:
+    """Processes forked from this one at the first `submit`, for work they inherit by the fork.
+
+    concurrent.futures, not multiprocessing.Pool: a Pool replaces a worker that was killed (SIGKILL, the
+    OOM killer) and waits for ever for the task it held, so the command hangs; here the death fails the
+    work, and `result` raises `EstimationError` (exit code 3). Used as a context manager, the workers
+    end at once when the block is left by an exception (an interrupt, a task's failure), their queued
+    work cancelled, and are waited for otherwise.
+    """
+
+    def __init__(self, workers: int) -> None:
+        import concurrent.futures
+        import multiprocessing
+
+        self.pool = concurrent.futures.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                                                           initializer=worker_signals)
+
+    def submit(self, call: Callable[..., Any], *args: Any) -> Any:
+        """`concurrent.futures.Executor.submit`: ``call`` and ``args`` are pickled, so a module-level function."""
+        return self.pool.submit(call, *args)
+
+    @staticmethod
+    def result(future: Any) -> Any:
+        """What a submitted call returned, or the exception it raised; `EstimationError` if its worker died."""
+        from concurrent.futures.process import BrokenProcessPool
+
+        from psfd.errors import EstimationError
+
+        try:
+            return future.result()
+        except BrokenProcessPool:
+            raise EstimationError("a worker process ended abruptly (killed, or out of memory?)") from None
+
+    def close(self) -> None:
+        """Wait for the submitted work, then let the workers end."""
+        self.pool.shutdown()
+
+    def end(self) -> None:
+        """End the workers now, their queued work cancelled."""
+        terminate = getattr(self.pool, "terminate_workers", None)  # Python 3.14
+        if terminate is not None:
+            terminate()
+        else:  # before 3.14 the executor's processes are only in this attribute, which shutdown clears
+            processes = list((self.pool._processes or {}).values())
+            self.pool.shutdown(wait=False, cancel_futures=True)
+            for process in processes:
+                process.terminate()
+        self.pool.shutdown()  # reaps them
+
+    def __enter__(self) -> "ForkedWorkers":
+        return self
+
+    def __exit__(self, kind: type | None, *_: Any) -> None:
+        if kind is None:
+            self.close()
+        else:
+            self.end()
 
 
 def _run_task(index: int) -> Any:

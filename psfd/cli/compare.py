@@ -22,7 +22,7 @@ from typing import Any, Callable, Iterable, NamedTuple
 from psfd.cli import options, summary
 from psfd.errors import BadInputError, EstimationError, PsfdError
 from psfd.vocabulary import BERNOULLI, CHANNELS, DEFAULT_S, MONO, SHARP_EDGE, TWO_PHOTO
-from psfd.workers import concurrently, usable_cores, worker_signals
+from psfd.workers import ForkedWorkers, concurrently, usable_cores
 
 
 class Estimate(NamedTuple):
@@ -328,37 +328,27 @@ class _Beside:
 
     def __init__(self, call: Callable[[], Any]) -> None:
         global _BESIDE
-        import multiprocessing
-
         self.pool = self.pending = None
         if not _forks():
             self.call = call
             return
         _BESIDE = call
         try:
-            self.pool = multiprocessing.get_context("fork").Pool(1, initializer=worker_signals)  # forks here
+            self.pool = ForkedWorkers(1)
+            self.pending = self.pool.submit(_run_beside)  # forks here
         finally:
             _BESIDE = None
-        self.pending = self.pool.apply_async(_run_beside)
 
     def result(self) -> Any:
-        """What the call returned, waiting for the worker if it still runs."""
+        """What the call returned, waiting for the worker if it still runs (`ForkedWorkers.result`)."""
         if self.pool is None:
             return self.call()
-        try:
-            done = self.pending.get()
-            self.pool.close()
-            return done
-        except BaseException:
-            self.pool.terminate()
-            raise
-        finally:
-            self.pool.join()
+        with self.pool:
+            return self.pool.result(self.pending)
 
     def cancel(self) -> None:
         if self.pool is not None:
-            self.pool.terminate()
-            self.pool.join()
+            self.pool.end()
 
 
 _UNSENT = object()  # what a `_Message` holds until its value arrives
