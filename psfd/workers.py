@@ -54,7 +54,7 @@ def forked_map(task: Callable[[int], Any], count: int, workers: int) -> list[Any
     try:
         with ForkedWorkers(workers) as pool:
             futures = [pool.submit(_run_task, i) for i in range(count)]  # the first one forks the workers
-            return [pool.result(future) for future in futures]
+            return pool.results(futures)
     finally:
         _TASK = None
 
@@ -91,6 +91,17 @@ class ForkedWorkers:
             return future.result()
         except BrokenProcessPool:
             raise EstimationError("a worker process ended abruptly (killed, or out of memory?)") from None
+
+    def results(self, futures: list[Any]) -> list[Any]:
+        """`result` of each future, in order; the first failure raised as soon as it happens, not after the
+        futures before it."""
+        import concurrent.futures
+
+        concurrent.futures.wait(futures, return_when=concurrent.futures.FIRST_EXCEPTION)
+        for future in futures:
+            if future.done() and future.exception() is not None:
+                self.result(future)  # raises what the task raised
+        return [self.result(future) for future in futures]
 
     def close(self) -> None:
         """Wait for the submitted work, then let the workers end."""
