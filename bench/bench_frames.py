@@ -34,7 +34,7 @@ figure on extracted planes, 2.1 s per 1953 x 1301 plane (issue 11), times
 the four Bayer planes.
 
 The ``--out`` cases time the same commands writing their results (every PSF's
-files and figure, or ``--no-figures``), as a user keeps them.
+files and figure and the grid's ``grid.png``, or ``--no-figures``), as a user keeps them.
 
 The peak resident memory of each command (median over the runs, MB) is
 printed beside its time.
