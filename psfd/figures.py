@@ -434,21 +434,26 @@ ANNOTATED = 36  # windows per panel up to which each window's MTF50 is written i
 
 
 def _mosaic(estimates: Sequence[PSF], box: tuple[int, int, int, int], samples: int = 6,
-            largest: int = 4096) -> np.ndarray:
-    """The kernels of ``estimates`` each enlarged to fill its window (nearest sample), on one raster of the
-    channel plane's ``box`` (x0, y0, x1, y1): about ``samples`` raster pixels per kernel sample, at most
-    ``largest`` per side; NaN outside every window."""
+            largest: int = 1536) -> np.ndarray:
+    """The kernels of ``estimates`` each enlarged to fill its window (nearest sample), on one float32 raster of
+    the channel plane's ``box`` (x0, y0, x1, y1): about ``samples`` raster pixels per kernel sample, at most
+    ``largest`` per side (several times a panel's pixels: the memory of a 32 x 32 grid on a whole frame
+    stays a few MB); NaN outside every window."""
     x0, y0, x1, y1 = box
-    per_px = max(samples * e.psf.shape[1] / (e.window[2] - e.window[0]) for e in estimates)
-    per_px = max(1, min(math.ceil(per_px), largest // max(x1 - x0, y1 - y0, 1)))
-    out = np.full(((y1 - y0) * per_px, (x1 - x0) * per_px), np.nan)
+    scale = max(samples * e.psf.shape[1] / (e.window[2] - e.window[0]) for e in estimates)
+    scale = min(scale, largest / max(x1 - x0, y1 - y0))  # raster pixels per channel pixel
+    out = np.full((max(1, round((y1 - y0) * scale)), max(1, round((x1 - x0) * scale))), np.nan, dtype=np.float32)
+    sy, sx = out.shape[0] / (y1 - y0), out.shape[1] / (x1 - x0)
     for est in estimates:
         a, b, c, d = est.window
-        rows, cols = est.psf.shape
-        # the kernel sample each raster pixel centre of the window falls in
-        i = ((np.arange((d - b) * per_px) + 0.5) / ((d - b) * per_px) * rows).astype(int)
-        j = ((np.arange((c - a) * per_px) + 0.5) / ((c - a) * per_px) * cols).astype(int)
-        out[(b - y0) * per_px:(d - y0) * per_px, (a - x0) * per_px:(c - x0) * per_px] = est.psf[np.ix_(i, j)]
+        # the raster pixels whose centres fall in the window, and the kernel sample under each centre
+        r = np.arange(math.ceil((b - y0) * sy - 0.5), math.ceil((d - y0) * sy - 0.5))
+        q = np.arange(math.ceil((a - x0) * sx - 0.5), math.ceil((c - x0) * sx - 0.5))
+        if r.size and q.size:
+            rows, cols = est.psf.shape
+            i = np.minimum(((r + 0.5) / sy + y0 - b) / (d - b) * rows, rows - 1).astype(int)
+            j = np.minimum(((q + 0.5) / sx + x0 - a) / (c - a) * cols, cols - 1).astype(int)
+            out[r[0]:r[-1] + 1, q[0]:q[-1] + 1] = est.psf[np.ix_(i, j)]
     return out
 
 

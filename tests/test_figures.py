@@ -321,14 +321,14 @@ def test_grid_figure_draws_each_kernel_over_its_window_on_shared_scales():
         assert isinstance(image.norm, LogNorm) and image.norm.vmax == pytest.approx(peak)  # one scale for all
         assert image.norm.vmin == pytest.approx(peak * 1e-4)
         mosaic = image.get_array()
-        per_px = mosaic.shape[1] // 120
+        sy, sx = mosaic.shape[0] / 60, mosaic.shape[1] / 120  # raster pixels per channel pixel
         for est in (e for e in estimates if e.channel == channel):  # every kernel sample inside its own window
             a, b, c, d = est.window
-            block = mosaic[(b - 50) * per_px:(d - 50) * per_px, (a - 100) * per_px:(c - 100) * per_px]
             k = est.psf.shape[0]
-            rows = ((np.arange(k) + 0.5) * block.shape[0] / k).astype(int)
-            cols = ((np.arange(k) + 0.5) * block.shape[1] / k).astype(int)
-            np.testing.assert_array_equal(block[np.ix_(rows, cols)], est.psf)
+            at = (np.arange(k) + 0.5) / k  # the samples' centres, as fractions of the window
+            rows = ((b + at * (d - b) - 50) * sy).astype(int)
+            cols = ((a + at * (c - a) - 100) * sx).astype(int)
+            np.testing.assert_array_equal(mosaic[np.ix_(rows, cols)], est.psf.astype(np.float32))
         for axis, name in enumerate(("x", "y")):
             ax = titled[f"channel {channel}: MTF50 {name}"]
             (cells,) = ax.collections
@@ -361,3 +361,4 @@ def test_grid_figure_of_a_large_grid_writes_no_values_and_keeps_empty_channels_e
     alpha = tiles.get_alpha()  # the 400 x 300 pixels of b's windows drawn, nothing beyond them
     width = alpha.shape[1] * 400 // 1000
     assert alpha[:, :width].min() == 1 and alpha[:, width:].max() == 0
+    assert max(alpha.shape) <= 1536  # the raster of 1000 x 300 pixels of windows at 6 per kernel sample, bounded
