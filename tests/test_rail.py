@@ -377,21 +377,29 @@ def children(pid: int) -> list[int]:
     return found
 
 
+def killed_mid_move(fake, guard_too: bool = False) -> subprocess.Popen:
+    """`psfd rail move X=-150` killed with SIGKILL once the carriage is past -20 mm, and reaped; ``guard_too``:
+    its guard killed first (a SIGKILL of the whole control group, systemd-oomd)."""
+    proc = psfd_process("rail", "move", "X=-150", "--rail-port", fake.port)
+    try:
+        assert fake.wait_for(lambda f: f.machine_position()[0] < -20.0, timeout=30)
+        for pid in children(proc.pid) if guard_too else ():
+            os.kill(pid, signal.SIGKILL)
+    finally:
+        proc.kill()  # SIGKILL: no chance to stop anything
+        proc.wait()
+    return proc
+
+
 def test_sigkill_mid_move_is_stopped_by_the_guard(make_fake, connect):
     """kill -9 (the OOM killer, systemd's last SIGKILL of the main pid) mid-move: nothing in the process runs,
     its guard process stops the carriage as a Ctrl-C would (feed hold, Hold:0, reset) without any other
     psfd command opening the port, and then frees the port."""
     fake = make_fake(SLOW)
-    proc = psfd_process("rail", "move", "X=-150", "--rail-port", fake.port)
-    try:
-        assert fake.wait_for(lambda f: f.machine_position()[0] < -20.0, timeout=30)
-        proc.kill()
-        proc.wait()
-        killed_at = fake.machine_position()[0]
-        freed = fake.wait_for(lambda f: not f.peer_open, timeout=15)  # the guard's copy of the port closed too
-    finally:
-        proc.kill()
-    assert freed and settled(fake)
+    proc = killed_mid_move(fake)
+    killed_at = fake.machine_position()[0]
+    assert fake.wait_for(lambda f: not f.peer_open, timeout=15)  # the guard's copy of the port closed too
+    assert settled(fake)
     # 20 mm/s brakes over 1 mm at 200 mm/s^2: the carriage stands within the guard's reaction (tens of ms)
     assert killed_at - 5.0 < fake.machine_position()[0] < -20.0 and fake.physical_position()[0] > -100.0
     assert FEED_HOLD in [byte for _, byte in fake.realtime]
@@ -405,14 +413,8 @@ def test_open_right_after_a_sigkill_waits_for_the_guard(make_fake, connect):
     """`psfd run --resume` at once: the dead process's guard still holds the port while it stops the carriage;
     the open waits for it rather than report the port in use by a dead pid."""
     fake = make_fake(SLOW)
-    proc = psfd_process("rail", "move", "X=-150", "--rail-port", fake.port)
-    try:
-        assert fake.wait_for(lambda f: f.machine_position()[0] < -20.0, timeout=30)
-        proc.kill()
-        proc.wait()
-        rail = connect(fake)
-    finally:
-        proc.kill()
+    killed_mid_move(fake)
+    rail = connect(fake)
     assert fake.resets() == ["Hold:0"] and fake.alarms() == []  # the guard's stop; the open found it standing
     assert settled(fake) and rail.position().x == fake.machine_position()[0] > -100.0
 
@@ -523,12 +525,7 @@ def test_reopen_does_not_reset_a_moving_controller(make_fake, connect):
     """The process and its guard both killed (systemd-oomd, a SIGKILL of the whole control group): the
     controller goes on with the move; the next open stops it."""
     fake = make_fake(SLOW)
-    proc = psfd_process("rail", "move", "X=-150", "--rail-port", fake.port)
-    assert fake.wait_for(lambda f: f.machine_position()[0] < -20.0, timeout=30)
-    for pid in children(proc.pid):
-        os.kill(pid, signal.SIGKILL)
-    proc.kill()  # SIGKILL: no chance to stop anything; the controller goes on with the move
-    proc.wait()
+    killed_mid_move(fake, guard_too=True)  # the controller goes on with the move
     assert fake.wait_for(lambda f: not f.peer_open, timeout=5)
     assert fake.moving
     rail = connect(fake)  # what `psfd run --resume` does next
