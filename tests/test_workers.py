@@ -45,10 +45,13 @@ def test_concurrently_keeps_the_order_and_raises_the_first_error(monkeypatch):
     assert set(seen) == {threading.get_ident()}  # one core: all on this thread
 
 
-def python(code: str, **kwargs) -> subprocess.Popen:
-    """``code`` in a new interpreter (a hang must fail a test, never the suite: callers wait with a timeout)."""
-    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, **kwargs)
+def python(code: str, *args: str) -> subprocess.Popen:
+    """``code`` in a new interpreter with ``args`` (a hang must fail a test, never the suite: callers wait with a
+    timeout), Ctrl-C at its default: a suite started in the background runs with SIGINT ignored, and Python
+    keeps it ignored."""
+    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code), *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def test_a_worker_killed_under_its_task_fails_the_work_instead_of_hanging_it():
@@ -100,11 +103,7 @@ def test_a_failed_task_or_an_interrupt_ends_the_other_workers_at_once(tmp_path):
     for case in ("fail", "interrupt"):
         started = tmp_path / case
         started.mkdir()
-        # Ctrl-C restored in the child: a suite started in the background runs with SIGINT ignored, and
-        # Python keeps it ignored
-        proc = subprocess.Popen([sys.executable, "-c", textwrap.dedent(program), str(started), case],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        proc = python(program, str(started), case)
         if case == "interrupt":
             deadline = time.monotonic() + 30
             while len(list(started.iterdir())) < 2 and time.monotonic() < deadline:  # both workers at work
