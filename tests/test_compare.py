@@ -267,8 +267,7 @@ def real_pair_alone():
     return far, near, alone
 
 
-@pytest.mark.parametrize("schedule", ["forked", pytest.param("forked, one search at a time", marks=pytest.mark.slow),
-                                      pytest.param("one core", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("schedule", ["forked", "forked, one search at a time", "one core"])
 def test_compare_of_the_real_pair_is_each_method_run_alone(real_pair_alone, monkeypatch, schedule):
     """The largest frame searched and its methods run here, the other frame searched and its methods and the
     pair's run in the forked worker (which waits for this frame's kind before the pair, and before its own

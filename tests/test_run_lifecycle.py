@@ -418,8 +418,7 @@ def held_pid(tmp_path: Path) -> int | None:
     return int(marker.read_text()) if marker.exists() else None
 
 
-# SIGINT takes the same path as SIGTERM (systemctl stop) after the handler: the slow suite runs it
-@pytest.mark.parametrize("signum", [pytest.param(signal.SIGINT, marks=pytest.mark.slow), signal.SIGTERM])
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_to_the_whole_group_mid_estimate_pauses_the_run_cleanly(tmp_path, signum):
     """Ctrl-C (SIGINT to the terminal's process group) or `systemctl stop` (SIGTERM to the control group)
     reaches the estimation workers too: it must act as if sent to psfd alone (the estimate in flight
@@ -579,7 +578,7 @@ def test_a_stop_while_the_catalogue_is_opened_journals_no_run(tmp_path):
     check_complete(db, frames_dir_for(db), parse_plan(ONE_STEP, str(plan_path)))
 
 
-@pytest.mark.parametrize("signum", [signal.SIGTERM, pytest.param(signal.SIGINT, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
 def test_a_stop_once_the_run_is_journalled_pauses_it_with_the_hint(tmp_path, signum):
     """From the moment the run is journalled a stop ends as it does mid-run: the run is paused, the last line
     says how to continue, exit 143 or 130. A resume stopped before it reopens the run leaves it as it was."""

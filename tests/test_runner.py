@@ -271,7 +271,6 @@ def _has_run(db: Path) -> bool:
         return bool(cat.runs())
 
 
-@pytest.mark.slow  # the default suite kills in the commit phases (test_run_lifecycle), the slow one everywhere
 def test_sigkill_at_random_steps_then_resume(tmp_path):
     """Kill the whole process group (like a power cut) at random points several times, then resume."""
     plan_path = tmp_path / "plan.toml"
