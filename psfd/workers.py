@@ -15,6 +15,13 @@ def usable_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
+def can_fork() -> bool:
+    """Whether this system forks processes (`ForkedWorkers`): not on Windows, where work stays on one core."""
+    import multiprocessing  # here, not at the top: 13 ms of the start-up of a one-window estimate
+
+    return "fork" in multiprocessing.get_all_start_methods()
+
+
 def in_worker() -> bool:
     """True in a worker process that multiprocessing started (a forked pool's, the daemon's).
 
@@ -44,10 +51,8 @@ def forked_map(task: Callable[[int], Any], count: int, workers: int) -> list[Any
     """
     global _TASK
     workers = max(1, min(int(workers), count))
-    if workers > 1:
-        import multiprocessing  # here, not at the top: 13 ms of the start-up of a one-window estimate
-
-        workers = workers if "fork" in multiprocessing.get_all_start_methods() else 1
+    if workers > 1 and not can_fork():
+        workers = 1
     if workers == 1:
         return [task(i) for i in range(count)]
     _TASK = task

@@ -22,7 +22,7 @@ from typing import Any, Callable, Iterable, NamedTuple
 from psfd.cli import options, summary
 from psfd.errors import BadInputError, EstimationError, PsfdError
 from psfd.vocabulary import BERNOULLI, CHANNELS, DEFAULT_S, MONO, SHARP_EDGE, TWO_PHOTO
-from psfd.workers import ForkedWorkers, concurrently, usable_cores
+from psfd.workers import ForkedWorkers, can_fork, concurrently, usable_cores
 
 
 class Estimate(NamedTuple):
@@ -310,9 +310,7 @@ def _run_beside() -> Any:
 
 def _forks() -> bool:
     """Whether a `_Beside` call runs in a forked worker: with two cores or more, where fork exists."""
-    import multiprocessing  # only here: `psfd --help` loads this module too
-
-    return usable_cores() >= 2 and "fork" in multiprocessing.get_all_start_methods()
+    return usable_cores() >= 2 and can_fork()
 
 
 class _Beside:
