@@ -532,3 +532,16 @@ def test_export_out_makes_the_folder_but_no_missing_parent(catalogue, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == CATALOGUE_FILES
     made = _psfd("export", "--catalogue", catalogue, "--channel", "g1", "--aperture", "8", "--out", str(tmp_path / "ex"))
     assert made.returncode == 0 and len(list((tmp_path / "ex").iterdir())) == 9 + 2, made.stderr
+
+
+def test_metadata_out_never_replaces_the_catalogue(catalogue, tmp_path):
+    """`psfd metadata --catalogue C --out C` (a slip of the shell history) replaced every measurement with
+    the JSON; it, the -wal beside it and a link to it are refused with a one-line bad input, untouched."""
+    os.symlink(catalogue, tmp_path / "link.sqlite")
+    before = {name: (tmp_path / name).read_bytes() for name in CATALOGUE_FILES}
+    for out in (catalogue, catalogue + "-wal", str(tmp_path / "link.sqlite")):
+        refused = _psfd("metadata", "--catalogue", catalogue, "--out", out)
+        assert_one_line_error(refused.returncode, refused.stderr, 2, "the catalogue's own file")
+        assert refused.stdout == ""
+    assert {name: (tmp_path / name).read_bytes() for name in CATALOGUE_FILES} == before
+    assert _psfd("query", "--catalogue", catalogue, "--limit", "1").returncode == 0

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -249,6 +250,7 @@ def run_metadata(args: argparse.Namespace) -> int:
         from psfd.cli import output
 
         output.check_out_file(Path(args.out))
+        _check_not_catalogue(Path(args.out), path)
     # only a catalogue this psfd reads is described: a mistyped path or a newer schema is an error, not metadata
     Catalogue(path, readonly=True).close()
     text = json.dumps(datasette_metadata(path.stem), indent=2) + "\n"
@@ -258,3 +260,14 @@ def run_metadata(args: argparse.Namespace) -> int:
     output.write_file(Path(args.out), lambda staging: staging.write_text(text, encoding="utf-8"))
     print(f"wrote {args.out}: datasette {path} -m {args.out}")
     return 0
+
+
+def _check_not_catalogue(out: Path, catalogue: Path) -> None:
+    """Refuse an ``--out`` that is the catalogue or one of SQLite's files beside it: writing the metadata
+    there would replace every measurement with a page of JSON (a link to it counts: the same file)."""
+    for suffix in ("", "-wal", "-shm", "-journal"):
+        target = catalogue.with_name(catalogue.name + suffix)
+        same = out.exists() and target.exists() and os.path.samefile(out, target)
+        if same or out.absolute() == target.absolute():
+            raise BadInputError(f"--out {out} would replace {target.name}, the catalogue's own file; "
+                                "name another file for the metadata")
