@@ -72,6 +72,17 @@ def test_a_catalogue_with_an_interrupted_run_keeps_the_frames_another_stored_sin
     assert Path(frame["path"]).is_file()
 
 
+def test_capture_prints_its_psfs_as_query_shows_them(tmp_path, capsys):
+    """The table capture prints is `psfd query`'s for the same PSFs, with MTF50 in lp/mm from the frame's pitch:
+    it left the lp/mm column out, as if the pitch were unknown."""
+    argv = ["--catalogue", str(tmp_path / "c.sqlite"), "--socket", str(tmp_path / "none.sock")]
+    assert main(["capture", "--aperture", "5.6", "--simulate", "--channels", "g1", "--workers", "1", *argv]) == 0
+    captured = capsys.readouterr().out.splitlines()[1:]  # after "run 1 done: ..."
+    assert main(["query", *argv[:2]]) == 0
+    queried = capsys.readouterr().out.splitlines()
+    assert "lp/mm x/y" in queried[0] and captured == queried
+
+
 def test_quiet_capture_prints_no_progress(tmp_path, capsys):
     argv = ["capture", "--aperture", "5.6", "--simulate", "--channels", "g1", "--catalogue", str(tmp_path / "c.sqlite"),
             "--socket", str(tmp_path / "none.sock"), "--workers", "1"]
@@ -109,6 +120,7 @@ def test_capture_goes_through_the_service_when_it_is_up(served, tmp_path):  # no
     cli = subprocess.run(list(map(str, capture + ["--catalogue", db])), capture_output=True, text=True, timeout=300)
     assert cli.returncode == 0, cli.stderr
     assert "done: 1 step," in cli.stdout
+    assert "lp/mm x/y" in cli.stdout  # the pitch of the service's frames, as psfd query shows them
     with Catalogue(db) as cat:
         assert [r["aperture"] for r in cat.query().rows] == [8.0]
     assert client.request(sock, {"cmd": "status"})["last"]["state"] == "done"

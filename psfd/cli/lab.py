@@ -227,15 +227,16 @@ def run_plan_file(args: argparse.Namespace) -> int:
     return _report(result.to_dict(), again)
 
 
-def check_service_paths(args: argparse.Namespace, sock: Path, otherwise: str) -> None:
+def check_service_paths(args: argparse.Namespace, sock: Path, otherwise: str) -> dict:
     """Refuse a --catalogue or --frames other than the service's own: a run through the service stores there
-    only, and the user would look for the PSFs in the other place."""
+    only, and the user would look for the PSFs in the other place. Returns the service's status answer."""
     answer = client.request(sock, {"cmd": "status"})
     for option, given, key in (("--catalogue", args.catalogue, "catalogue"), ("--frames", args.frames, "frames")):
         theirs = answer.get(key)
         if given and theirs and os.path.abspath(given) != theirs:
             raise BadInputError(f"{option} {given}: the service at {sock} stores into {theirs}; leave {option} out, "
                                 f"{otherwise}")
+    return answer
 
 
 def capture_plan(args: argparse.Namespace) -> str:
@@ -303,7 +304,7 @@ def run_capture(args: argparse.Namespace) -> int:
     if client.service_up(sock):
         if args.out:
             raise BadInputError("--out cannot be used through the service (it writes to its own frame store)")
-        check_service_paths(args, sock, "or stop the service")
+        catalogue = Path(check_service_paths(args, sock, "or stop the service").get("catalogue") or catalogue)
         result = client.submit(sock, text, "capture", new=True, wait=True, oneshot=True)["result"]
     else:
         if args.out:
@@ -311,9 +312,24 @@ def run_capture(args: argparse.Namespace) -> int:
         result = run_here(plan, catalogue, frames, args.quiet, new=True, oneshot=True, rows=True, **runner).to_dict()
     code = _report(result, None)
     if result.get("rows"):
-        print(output.format_rows(result["rows"]))
-        print(output.units_line(result["rows"]))
+        rows = _with_units(catalogue, result["rows"])
+        print(output.format_rows(rows))
+        print(output.units_line(rows))
     return code
+
+
+def _with_units(catalogue: Path, rows: list[dict]) -> list[dict]:
+    """The stored rows with MTF50 in lp/mm where the frames or the plan tell the pitch, as `psfd query` shows
+    the same PSFs (`psfd.cli.query.with_units`); as they are when the catalogue cannot be read here."""
+    from psfd.catalogue import Catalogue
+    from psfd.cli.query import with_units
+    from psfd.errors import PsfdError
+
+    try:
+        with Catalogue(catalogue, readonly=True) as cat:
+            return with_units(cat, rows)
+    except (PsfdError, OSError):  # a service's catalogue this user may not read: the rows without lp/mm
+        return rows
 
 
 # -- status, plan check, serve -------------------------------------------------------------------
