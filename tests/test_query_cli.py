@@ -107,6 +107,22 @@ def test_readers_say_when_a_run_is_not_done(capsys, catalogue, tmp_path):
     assert f"Note: {note}." in title.replace("\n", " ")
 
 
+def test_readers_call_a_killed_run_interrupted_as_status_does(capsys, catalogue):
+    """A run whose process was killed stays journalled ``running``: the readers' note said "running", as if
+    it were still shooting, where `psfd status` says "interrupted" (nobody holds its frame store)."""
+    with Catalogue(catalogue) as cat:
+        rig = cat.add_rig(CameraInfo("Canon EOS 400D", "0420", "EF 50mm f/1.8", 50.0))
+        run = cat.start_run("killed.toml", "killed", rig, [("f11", {}), ("f16", {})])
+        cat.commit_step(run, "f11", [], [(PSF(gaussian(3.0), 4, "bernoulli", "g1", ["y.dng"], (0.5, 0.5),
+                                              (0, 0, 64, 64)), {"aperture": 11.0})])
+    code, out, err = run_cli(capsys, "status", "--catalogue", catalogue, "--json")
+    assert code == 0 and json.loads(out)["runs"][0]["state"] == "interrupted"
+    code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "11")
+    assert code == 0
+    assert err == f"psfd: note: run {run} is not done (interrupted, 1 of 2 steps): the PSFs of its other steps " \
+                  "are missing\n"
+
+
 def test_metadata_describes_a_catalogue_and_refuses_what_is_not_one(capsys, catalogue, tmp_path):
     code, out, err = run_cli(capsys, "metadata", "--catalogue", catalogue)
     assert code == 0 and "cat" in json.loads(out)["databases"]

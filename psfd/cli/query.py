@@ -105,12 +105,16 @@ def run_filters(cat, options: dict[str, Any], nothing: str = ""):
 
 def partial_runs(cat, rows: list[dict]) -> list[str]:
     """A note per run of ``rows`` with steps not done: its PSFs are a part of the plan's (a run under way,
-    stopped, killed, cancelled or failed)."""
+    stopped, killed, cancelled or failed). A run journalled ``running`` whose frame store nobody holds was
+    killed: ``interrupted``, as `psfd status` says (`psfd.daemon.store.shown_state`), not ``running``."""
+    from psfd.daemon.store import frames_dir_for, shown_state
+
     notes = []
     for run_id in sorted({row["run_id"] for row in rows if row.get("run_id") is not None}):
         summary = cat.run_summary(run_id)
         if summary["done"] < summary["total"]:
-            notes.append(f"run {run_id} is not done ({summary['state']}, {summary['done']} of {summary['total']} "
+            state = shown_state(summary["state"], frames_dir_for(cat.path))
+            notes.append(f"run {run_id} is not done ({state}, {summary['done']} of {summary['total']} "
                          "steps): the PSFs of its other steps are missing")
     return notes
 
