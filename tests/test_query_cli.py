@@ -19,6 +19,8 @@ from psfd.cli import query as query_cli
 from psfd.drivers.base import CameraInfo
 from psfd.estimator.kernels import PSF
 
+from test_run_lifecycle import small_disk  # noqa: F401 - fixture
+
 # a catalogue and the WAL files its writer keeps for readers without write access
 CATALOGUE_FILES = ["cat.sqlite", "cat.sqlite-shm", "cat.sqlite-wal"]
 GRID = [(x, y) for y in (1 / 6, 0.5, 5 / 6) for x in (1 / 6, 0.5, 5 / 6)]
@@ -540,6 +542,20 @@ def test_report_and_metadata_out_make_the_file_but_no_missing_folder(catalogue, 
         made = _psfd(command, "--catalogue", catalogue, "--out", str(tmp_path / name))
         assert made.returncode == 0 and (tmp_path / name).stat().st_size > 0, made.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([*CATALOGUE_FILES, "m.json", "notes.txt", "r.png"])
+
+
+def test_report_and_metadata_on_a_read_only_disk_name_the_file_asked_for(small_disk, catalogue):
+    """The one-line error names the --out file and the reason, not the hidden staging file: removing that
+    missing file failed too on a read-only file system (EROFS) and replaced the error."""
+    subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], check=True)
+    try:
+        for command, name in (("report", "r.png"), ("metadata", "m.json")):
+            refused = _psfd(command, "--catalogue", catalogue, "--out", str(small_disk / name))
+            assert (refused.returncode, refused.stdout) == (2, "")
+            assert refused.stderr == f"psfd: error: could not write {small_disk / name}: Read-only file system\n"
+    finally:
+        subprocess.run(["mount", "-o", "remount,rw", str(small_disk)], check=True)
+    assert list(small_disk.iterdir()) == []
 
 
 def test_export_out_makes_the_folder_but_no_missing_parent(catalogue, tmp_path):

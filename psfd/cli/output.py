@@ -190,7 +190,8 @@ def write_file(out: Path, write: Callable[[Path], None]) -> None:
         reason = f": {exc.strerror}" if exc.strerror else ""
         raise BadInputError(f"could not write {out}{reason}") from None
     finally:
-        staging.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # on a read-only disk even a missing file's unlink fails (EROFS)
+            staging.unlink(missing_ok=True)
 
 
 # ---------------------------------------------------------------- PSF estimates
