@@ -150,6 +150,21 @@ def test_apertures_the_camera_does_not_offer_are_refused_before_the_run(tmp_path
     assert not (private_data_home / "psfd" / "sim-rig.json").exists()  # nothing moved, set or shot
 
 
+def test_plan_check_refuses_the_apertures_the_run_refuses(tmp_path, private_data_home):
+    """`psfd plan check` said "ok" for a simulated plan that `psfd run` then refused at once (the camera does not
+    offer f/7.1): it asks the simulated camera as the run does, one line per problem, exit 2, nothing set or made."""
+    plan = tmp_path / "plan.toml"
+    plan.write_text(one_channel_plan("simulate = true", "5.6, 7.1, 3.3"))
+    check = psfd("plan", "check", plan)
+    assert check.returncode == 2 and check.stdout == ""
+    assert check.stderr.splitlines() == [f"{plan}: apertures f/7.1, f/3.3 are not offered by the camera {SIM_OFFERED}",
+                                         f"psfd: error: {plan}: 1 problem found on the rig"]
+    plan.write_text(one_channel_plan("simulate = true", "5.6, 8"))
+    assert psfd("plan", "check", plan).returncode == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.toml"]
+    assert not (private_data_home / "psfd" / "sim-rig.json").exists()
+
+
 def test_capture_through_the_service_refuses_an_aperture_not_offered(served, tmp_path, private_data_home):  # noqa: F811
     proc, sock, db, notes = served
     cli = psfd("capture", "--aperture", "7.1", "--simulate", "--channels", "g1", "--socket", sock)

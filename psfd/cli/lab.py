@@ -415,7 +415,7 @@ def run_plan_check(args: argparse.Namespace) -> int:
     for problem in problems:
         print(f"{path}: {problem}", file=sys.stderr)
     if problems:
-        raise BadInputError(f"{path}: {len(problems)} problem{'s' * (len(problems) > 1)} found on the rail")
+        raise BadInputError(f"{path}: {len(problems)} problem{'s' * (len(problems) > 1)} found on the rig")
     steps = len(plan.steps())
     nx, ny = plan.estimator_options().get("grid", (1, 1))
     print(f"{path}: ok, {plural(steps, 'step')}, {plural(steps * (2 if plan.kind == TWO_PHOTO else 1), 'frame')}, "
@@ -443,14 +443,18 @@ def _ask_rail(plan) -> tuple[list[str], str | None]:
 
     Returns the problems and what was asked; a rail that cannot be asked now (unplugged, in use by a
     run) is noted on stderr and the plan is judged on its own limits. The simulated rail is what
-    `check_text` already knows.
+    `check_text` already knows; the simulated camera's apertures are asked as `psfd run` asks them
+    (`runner.aperture_problems`), so that a plan check passes only what the run accepts.
     """
     from psfd.daemon.plan import check_rail
     from psfd.drivers import open_rail
     from psfd.errors import PsfdError
 
     if plan.rig.get("simulate") is True:
-        return [], None
+        from psfd.daemon.runner import aperture_problems
+        from psfd.drivers.sim import SimRig
+
+        return aperture_problems(plan, SimRig().camera), None
     try:
         rail = open_rail(plan.rig_config())
         try:
