@@ -338,6 +338,10 @@ def test_demo(tmp_path):
     assert again.returncode == 0, again.stderr
     assert "demo: already measured" in again.stdout and "(run 1, 108 PSFs)" in again.stdout
     assert "steps" not in again.stdout.splitlines()[0] and "$ psfd query" in again.stdout
+    # the corner's table comes with the note psfd query gives there: no PSF was measured at 0,0
+    corner = psfd("query", "--catalogue", workdir / "catalogue.sqlite", "--channel", "g1", "--near", "0,0")
+    assert corner.returncode == 0 and corner.stderr.startswith("psfd: note: no PSF measured near 0,0")
+    assert again.stderr == corner.stderr
     # physical sanity of what was stored: at every field point f/16 (diffraction) is softer than f/4
     mtf = {(r["aperture"], r["channel"], r["step"].split("/", 1)[1]): r["mtf50_x"] for r in rows}
     softer = [mtf[(16.0, c, where)] < mtf[(4.0, c, where)] for (a, c, where) in mtf if a == 4.0]

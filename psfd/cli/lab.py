@@ -543,7 +543,8 @@ def run_demo(args: argparse.Namespace) -> int:
 
 
 def _demo_outputs(catalogue: Path, workdir: Path) -> None:
-    """The query tables (centre and corner of the field) and the report figure, as `psfd query` and `psfd report`."""
+    """The query tables (centre and corner of the field) and the report figure, as `psfd query` and `psfd report`
+    print and draw them, with the note `psfd query` gives (the corner lies outside the measured windows)."""
     from psfd.catalogue import Catalogue
     from psfd.cli import output
     from psfd.cli.query import with_units
@@ -551,7 +552,11 @@ def _demo_outputs(catalogue: Path, workdir: Path) -> None:
     with Catalogue(catalogue, readonly=True) as cat:
         for name, near in (("centre", (0.5, 0.5)), ("corner", (0.0, 0.0))):
             print(f"\n$ psfd query --catalogue {catalogue} --channel g1 --near {near[0]:g},{near[1]:g}   # {name}")
-            rows = with_units(cat, cat.query(channel="g1", near=near).rows)
+            result = cat.query(channel="g1", near=near)
+            if result.note:
+                sys.stdout.flush()  # the note after its command line, as the command prints it
+                print(f"psfd: note: {result.note}", file=sys.stderr)
+            rows = with_units(cat, result.rows)
             print(output.format_rows(rows))
         print(output.units_line(rows))
         report = workdir / "report.png"
