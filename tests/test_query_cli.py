@@ -408,6 +408,20 @@ def test_channel_names_are_read_in_any_case_as_camera_names_are(catalogue, tmp_p
                                                   "(one of r, g1, g2, b, mono)\n")
 
 
+def test_method_names_are_read_in_any_case_as_channel_names_are(catalogue):
+    """--method Bernoulli is --method bernoulli (the README: the filters ignore case); it was an unknown method."""
+    lower = _psfd("query", "--catalogue", catalogue, "--method", "bernoulli", "--csv")
+    assert lower.returncode == 0 and len(lower.stdout.splitlines()) == 1 + 36, lower.stderr
+    for name in ("Bernoulli", "BERNOULLI", "Target"):  # target: psfd 0.1's word for it
+        upper = _psfd("query", "--catalogue", catalogue, "--method", name, "--csv")
+        assert upper.returncode == 0 and upper.stdout == lower.stdout, upper.stderr
+    pair = _psfd("query", "--catalogue", catalogue, "--method", "Two-Photo")
+    assert pair.returncode == 1 and "no PSF of method two-photo" in pair.stderr  # known, none stored
+    bad = _psfd("query", "--catalogue", catalogue, "--method", "Bernouli")
+    assert bad.returncode == 2 and bad.stderr == ("psfd: error: --method: unknown method 'Bernouli' "
+                                                  "(one of bernoulli, two-photo, sharp-edge)\n")
+
+
 def test_no_match_says_which_filter_left_no_psf_and_what_the_catalogue_has(catalogue, tmp_path):
     """One line, exit 1 as before: the first filter that leaves no PSF, and the values there are."""
     cases = [

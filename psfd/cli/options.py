@@ -136,6 +136,15 @@ def parse_channel(text: str, name: str = "--channel", allowed: tuple[str, ...] =
     return channel
 
 
+def parse_method(text: str, name: str = "--method") -> str:
+    """A method's one name (`psfd.vocabulary.method_name`: an older alias too), in any case, as a filter
+    ignores case: ``Bernoulli`` is ``bernoulli``, ``Two-Photo`` is ``two-photo``."""
+    try:
+        return vocabulary.method_name(text.strip().lower())
+    except BadInputError:
+        raise BadInputError(f"{name}: unknown method {text!r} (one of {', '.join(vocabulary.METHODS)})") from None
+
+
 def parse_near(text: str, name: str = "--near") -> tuple[float, float]:
     """A normalised field location ``"0.8,0.1"`` -> (0.8, 0.1), both in [0, 1]."""
     try:

@@ -16,7 +16,7 @@ from typing import Any
 
 from psfd.cli import options, summary
 from psfd.errors import BadInputError, NoMatchError
-from psfd.vocabulary import CHANNELS, METHODS, MONO, method_name
+from psfd.vocabulary import CHANNELS, METHODS, MONO
 
 EXPORT_FORMATS = ("npy", "tiff", "json")
 
@@ -79,7 +79,7 @@ def query_options(args: argparse.Namespace) -> dict[str, Any]:
         "lens": args.lens,
         "aperture": None if args.aperture is None else options.parse_fnumber(args.aperture),
         "channel": None if args.channel is None else options.parse_channel(args.channel, allowed=(*CHANNELS, MONO)),
-        "method": None if args.method is None else method_name(args.method),
+        "method": None if args.method is None else options.parse_method(args.method),
         "near": None if near is None else options.parse_near(near),
         "limit": None if limit is None else options.parse_int(limit, "--limit", minimum=1),
     }
