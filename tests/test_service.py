@@ -178,6 +178,31 @@ def test_pause_resume_then_sigterm_mid_run_and_resume_from_the_cli(served, tmp_p
     check_complete(db, db.with_name("cat-frames"), plan)
 
 
+def test_status_of_a_resumed_run_counts_the_steps_done_before(served, tmp_path):
+    """`status` of a run resumed through the service said "0/4 steps" as if it had started again: it counts
+    the run's steps done before the pause, as `psfd run --resume` does (and so does systemd's STATUS line)."""
+    proc, sock, db, notes = served
+    plan_path = tmp_path / "plan.toml"
+    plan_path.write_text(small_plan())
+    client.submit(sock, small_plan(), str(plan_path))
+    wait_status(sock, lambda s: s["current"] and s["current"]["done"] >= 1)
+    client.request(sock, {"cmd": "pause"})
+    wait_status(sock, lambda s: s["state"] == "paused")
+    with Catalogue(db, readonly=True) as cat:
+        (run,) = cat.runs()
+        before = cat.run_summary(run["id"])["done"]
+    if run["state"] == "done":
+        pytest.skip("the pause came after the last step")
+    notes.messages.clear()
+    assert client.request(sock, {"cmd": "resume"})["queued"] == 1
+    status = wait_status(sock, lambda s: s["current"] is not None or s["last"]["state"] != "paused", timeout=60)
+    if status["current"] is not None:
+        assert before >= 1 and status["current"]["done"] >= before and status["current"]["total"] == 4, status
+    message = notes.wait_for("STATUS=running", timeout=60)
+    assert int(message.split(": ", 1)[1].split("/", 1)[0]) >= before, message
+    wait_status(sock, lambda s: s["current"] is None and s["last"]["state"] == "done", timeout=300)
+
+
 def wait_until(ready, proc: subprocess.Popen, what: str, timeout: float = 120.0) -> None:
     deadline = time.monotonic() + timeout
     while not ready():

@@ -230,10 +230,11 @@ class Service:
                     self.waiting.remove(job)
                 job.done.set()
                 continue
+            done = self._done_before(job)
             with self.lock:
                 self.queued -= 1
                 self.control = Control()
-                self.current = {"plan": job.plan.path, "step": None, "done": 0,
+                self.current = {"plan": job.plan.path, "step": None, "done": done,
                                 "total": len(job.plan.steps())}
             log.info("starting %s%s", job.plan.path, " (resuming)" if job.resume else "")
             try:
@@ -254,6 +255,18 @@ class Service:
             with self.lock:
                 self.waiting.remove(job)
             job.done.set()
+
+    def _done_before(self, job: Job) -> int:
+        """The steps a resumed job's run has done already, so that `status` counts them as `psfd run --resume`
+        does (``3/12 steps``, not ``0/12`` as if the run started again); 0 for a new run."""
+        if not job.resume:
+            return 0
+        try:
+            with Catalogue(self.catalogue_path, readonly=True) as catalogue:
+                run_id = catalogue.unfinished_run(job.plan.text)
+                return 0 if run_id is None else int(catalogue.run_summary(run_id)["done"])
+        except PsfdError:  # the run itself says why the catalogue cannot be used
+            return 0
 
     def _on_step(self, key: str, state: str, reason: str | None) -> None:
         with self.lock:
