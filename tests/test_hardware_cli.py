@@ -118,10 +118,14 @@ def test_record_into_unwritable_place_is_one_line(capsys):
 
 
 def test_rail_limits_help_names_both_defaults(capsys):
-    with pytest.raises(SystemExit):
-        main(["rail", "home", "--help"])
-    text = " ".join(capsys.readouterr().out.split())
-    assert "X=0:500 on a real rail" in text and "--simulate" in text
+    """The default on a real rail is the controller's own travel, X only (`grbl._check_limits`, the README), not
+    the X=0:500 the help said: a user would have thought README's X=-1200 out of range."""
+    for command in (["rail", "home"], ["capture"], ["record"], ["camera", "info"]):
+        with pytest.raises(SystemExit):
+            main([*command, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert "0:500" not in text and "X only, over the controller's whole travel" in text, command
+        assert "the simulated rig's own travel with --simulate" in text, command
 
 
 def test_console_entry_point(tmp_path):

@@ -190,8 +190,9 @@ def add_rig_options(p: argparse.ArgumentParser) -> None:
     group.add_argument("--camera-port", help="gphoto2 port, e.g. usb:001,004 (default: the only camera)")
     group.add_argument("--rail-port", help="serial port of the rail, e.g. /dev/ttyUSB0")
     group.add_argument("--rail-limits", metavar="X=MIN:MAX[,Y=MIN:MAX]",
-                       help="soft limits in mm (default: X=0:500 on a real rail, the simulated rig's own travel "
-                            "with --simulate)")
+                       help="narrower soft limits in mm, and the rail's axes (default: X only, over the "
+                            "controller's whole travel as it reports it; the simulated rig's own travel with "
+                            "--simulate)")
 
 
 def rig_config(args: argparse.Namespace) -> dict:
