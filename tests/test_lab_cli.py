@@ -165,6 +165,20 @@ def test_plan_check_refuses_the_apertures_the_run_refuses(tmp_path, private_data
     assert not (private_data_home / "psfd" / "sim-rig.json").exists()
 
 
+def test_plan_check_refuses_a_recording_that_is_not_there(tmp_path):
+    """A plan replaying ``recording = "DIR"`` with a mistyped folder checked ok (a note only, as for a rail
+    unplugged for now) and then `psfd run` refused it: it is one of the plan's problems, exit 2."""
+    plan = tmp_path / "plan.toml"
+    plan.write_text(one_channel_plan(f'recording = "{tmp_path / "sesion"}"'))
+    check = psfd("plan", "check", plan)
+    assert check.returncode == 2 and check.stdout == "", check.stderr
+    problem, summary = check.stderr.splitlines()
+    assert problem.startswith(f"{plan}: [rig] recording: {tmp_path / 'sesion'}") and "not a readable recording" in problem
+    assert summary == f"psfd: error: {plan}: 1 problem found on the rig"
+    run = psfd("run", plan, "--catalogue", tmp_path / "cat.sqlite", "--socket", tmp_path / "none.sock")
+    assert run.returncode == 2 and "not a readable recording" in run.stderr  # what the check now says first
+
+
 def test_capture_through_the_service_refuses_an_aperture_not_offered(served, tmp_path, private_data_home):  # noqa: F811
     proc, sock, db, notes = served
     cli = psfd("capture", "--aperture", "7.1", "--simulate", "--channels", "g1", "--socket", sock)

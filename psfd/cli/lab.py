@@ -442,7 +442,8 @@ def _ask_rail(plan) -> tuple[list[str], str | None]:
     """The plan against the axes and travel its rail (the controller, or the recording) reports.
 
     Returns the problems and what was asked; a rail that cannot be asked now (unplugged, in use by a
-    run) is noted on stderr and the plan is judged on its own limits. The simulated rail is what
+    run) is noted on stderr and the plan is judged on its own limits, but a recording that cannot be read
+    (a mistyped folder) is a problem, as `psfd run` refuses it. The simulated rail is what
     `check_text` already knows; the simulated camera's apertures are asked as `psfd run` asks them
     (`runner.aperture_problems`), so that a plan check passes only what the run accepts.
     """
@@ -457,13 +458,18 @@ def _ask_rail(plan) -> tuple[list[str], str | None]:
         return aperture_problems(plan, SimRig().camera), None
     try:
         rail = open_rail(plan.rig_config())
-        try:
-            info = rail.info()
-        finally:
-            rail.close()
     except PsfdError as exc:
+        if plan.rig.get("recording") is not None:  # a folder on disk, not a device unplugged for now: run refuses it
+            return [f"[rig] recording: {exc}"], None
         print(f"psfd: note: rail not asked for its travel ({exc})", file=sys.stderr)
         return [], None
+    try:
+        info = rail.info()
+    except PsfdError as exc:  # an older recording that never asked: each move is checked when it is replayed
+        print(f"psfd: note: rail not asked for its travel ({exc})", file=sys.stderr)
+        return [], None
+    finally:
+        rail.close()
     travel = ", ".join(f"{axis.upper()} [{lo:g}, {hi:g}]" for axis, (lo, hi) in info.travel.items())
     return check_rail(plan, info), f"rail {info.controller}: {travel}"
 
