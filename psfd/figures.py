@@ -720,8 +720,13 @@ def report_figure(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: s
     ncols = len(channels) + 2
     aspect = bands[0][2].aspect
     panel_w = 2.9
-    fig = _figure(panel_w * ncols + 0.8, (panel_w / aspect + 0.8) * (len(bands) + 1.1) + 2.0)
-    grid = fig.add_gridspec(len(bands) + 1, ncols, height_ratios=[1] * len(bands) + [1.1])
+    # The colour bars take their room from the rows of panels (`Figure.colorbar`'s fraction of them): one or
+    # two rows leave too little for their ticks and two-line labels, which then ran over the height chart's
+    # title. An empty row under such panels (its spacing, and 0.15 of a row for one) gives back what they
+    # lack: 30 and 26 px clear of the title and its mm axis, as three rows leave 40 px without it.
+    spacer = [0.15 * (2 - len(bands))] if len(bands) <= 2 else []
+    fig = _figure(panel_w * ncols + 0.8, (panel_w / aspect + 0.8) * (len(bands) + sum(spacer) + 1.1) + 2.0)
+    grid = fig.add_gridspec(len(bands) + len(spacer) + 1, ncols, height_ratios=[1] * len(bands) + spacer + [1.1])
     psf_axes, mtf_axes, psf_image, mtf_markers = [], [], None, None
     rigs = {(camera, lens) for camera, lens, *_ in groups}
     for i, ((camera, lens, method, aperture), group, sensor, points) in enumerate(bands):

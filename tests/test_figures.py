@@ -362,3 +362,19 @@ def test_grid_figure_of_a_large_grid_writes_no_values_and_keeps_empty_channels_e
     width = alpha.shape[1] * 400 // 1000
     assert alpha[:, :width].min() == 1 and alpha[:, width:].max() == 0
     assert max(alpha.shape) <= 1536  # the raster of 1000 x 300 pixels of windows at 6 per kernel sample, bounded
+
+
+def test_the_colour_bars_clear_the_height_chart_with_one_aperture_or_many():
+    """A report of one aperture (`psfd report --aperture 5.6`, one capture) drew the colour bars' two-line labels
+    over the height chart's title and mm axis: the bars took their room from a single row of panels."""
+    grid = [(x, y) for y in (0.2, 0.5, 0.8) for x in (0.15, 0.5, 0.85)]
+    for apertures in ((5.6,), (4.0, 11.0), (4.0, 5.6, 8.0, 11.0)):
+        rows, arrays = rows_for(apertures, grid)
+        fig = figures.report_figure(rows, arrays, "g1", {r["id"]: figures.Sensor(640, 480, 8.0) for r in rows})
+        fig.canvas.draw()
+        renderer = fig.canvas.get_renderer()
+        bars = [ax.get_tightbbox(renderer) for ax in fig.axes if ax.get_label() == "<colorbar>"]
+        chart = next(ax for ax in fig.axes if ax.get_xlabel().startswith("image height"))
+        above = [chart.title.get_window_extent(renderer)] + [child.get_tightbbox(renderer) for child in chart.child_axes]
+        assert len(bars) == 2 and not any(bar.overlaps(box) for bar in bars for box in above), apertures
+        assert inside_figure(fig) == []
