@@ -1242,7 +1242,9 @@ COLUMNS: dict[str, dict[str, str]] = {
         "id": "frame id",
         "path": "the RAW file: relative to the catalogue's folder when inside it, else absolute",
         "sha256": "SHA-256 of the file's content (its name in the frame store)",
-        "settings": "camera settings asked for, JSON (aperture as an f-number, shutter speed in s, ISO)",
+        "settings": "camera settings asked for, JSON: aperture as an f-number (a number), the plan's [rig] settings "
+                    "as given, in the camera's own words (e.g. shutterspeed \"1/250\", iso \"200\": strings, not "
+                    "seconds; exif_exposure_s has the exposure in s)",
         "aperture": "f-number asked for",
         "rail": "rail position of the exposure, JSON {x, y, z} in mm",
         "taken_at": "exposure time, ISO 8601 UTC",

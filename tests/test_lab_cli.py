@@ -165,6 +165,23 @@ def test_plan_check_refuses_the_apertures_the_run_refuses(tmp_path, private_data
     assert not (private_data_home / "psfd" / "sim-rig.json").exists()
 
 
+def test_frame_settings_are_stored_as_the_metadata_describes_them(tmp_path, capsys):
+    """frames.settings keeps the plan's settings as the camera spells them ("1/250"); its description said
+    "shutter speed in s", which a reader of the catalogue (Datasette) would take for a number of seconds."""
+    from psfd.catalogue import datasette_metadata
+
+    plan = tmp_path / "plan.toml"
+    plan.write_text(one_channel_plan('simulate = true\nsettings = { iso = "200", shutterspeed = "1/250" }'))
+    db = tmp_path / "cat.sqlite"
+    assert main(["run", str(plan), "--catalogue", str(db), "--socket", str(tmp_path / "none.sock"),
+                 "--workers", "1"]) == 0, capsys.readouterr().err
+    with Catalogue(db, readonly=True) as cat:
+        ((settings, exposure),) = cat.db.execute("SELECT settings, exif_exposure_s FROM frames").fetchall()
+    assert json.loads(settings) == {"aperture": 8.0, "iso": "200", "shutterspeed": "1/250"} and exposure == 1 / 250
+    described = datasette_metadata("cat")["databases"]["cat"]["tables"]["frames"]["columns"]["settings"]
+    assert "in s," not in described and '"1/250"' in described and "exif_exposure_s" in described
+
+
 def test_plan_check_refuses_a_recording_that_is_not_there(tmp_path):
     """A plan replaying ``recording = "DIR"`` with a mistyped folder checked ok (a note only, as for a rail
     unplugged for now) and then `psfd run` refused it: it is one of the plan's problems, exit 2."""
