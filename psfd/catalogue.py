@@ -1247,7 +1247,8 @@ COLUMNS: dict[str, dict[str, str]] = {
                     "seconds; exif_exposure_s has the exposure in s)",
         "aperture": "f-number asked for",
         "rail": "rail position of the exposure, JSON {x, y, z} in mm",
-        "taken_at": "exposure time, ISO 8601 UTC",
+        "taken_at": "when the frame was taken, ISO 8601 UTC (the host's clock once the file is downloaded; how long "
+                    "the exposure lasted is exif_exposure_s)",
         "exif_focal_length_mm": "focal length the RAW's EXIF records, mm (NULL when absent)",
         "exif_f_number": "f-number the RAW's EXIF records",
         "exif_exposure_s": "exposure time the RAW's EXIF records, s",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from datetime import datetime, timezone
 from pathlib import Path
 
 import pytest
@@ -173,13 +174,17 @@ def test_frame_settings_are_stored_as_the_metadata_describes_them(tmp_path, caps
     plan = tmp_path / "plan.toml"
     plan.write_text(one_channel_plan('simulate = true\nsettings = { iso = "200", shutterspeed = "1/250" }'))
     db = tmp_path / "cat.sqlite"
+    started = datetime.now(timezone.utc).replace(microsecond=0)
     assert main(["run", str(plan), "--catalogue", str(db), "--socket", str(tmp_path / "none.sock"),
                  "--workers", "1"]) == 0, capsys.readouterr().err
     with Catalogue(db, readonly=True) as cat:
-        ((settings, exposure),) = cat.db.execute("SELECT settings, exif_exposure_s FROM frames").fetchall()
+        ((settings, exposure, taken),) = cat.db.execute("SELECT settings, exif_exposure_s, taken_at FROM frames")
     assert json.loads(settings) == {"aperture": 8.0, "iso": "200", "shutterspeed": "1/250"} and exposure == 1 / 250
-    described = datasette_metadata("cat")["databases"]["cat"]["tables"]["frames"]["columns"]["settings"]
-    assert "in s," not in described and '"1/250"' in described and "exif_exposure_s" in described
+    assert started <= datetime.fromisoformat(taken) <= datetime.now(timezone.utc)  # a moment, not a duration
+    columns = datasette_metadata("cat")["databases"]["cat"]["tables"]["frames"]["columns"]
+    assert "in s," not in columns["settings"] and '"1/250"' in columns["settings"]
+    assert "exif_exposure_s" in columns["settings"] and "exif_exposure_s" in columns["taken_at"]
+    assert not columns["taken_at"].startswith("exposure time")  # the name of exif_exposure_s's quantity
 
 
 def test_plan_check_refuses_a_recording_that_is_not_there(tmp_path):
