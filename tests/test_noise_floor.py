@@ -16,8 +16,9 @@ floor bounds it from above: the non-negative and regularised solutions are
 projections that can only come closer than the least-squares one (the
 posterior covariance of the regularised fit is larger than its sampling
 covariance): the floors are 1.4x the spread on the Bernoulli target, 1.4x
-(blind) and 3.4x (target form) on the sharp edges and 2.4x on the pair in
-these renders. The spread of 4 shots over a 17 x 17 kernel is
+(blind) and 4.6x (target form, whose noise is read on the print alone, where
+its edges raise the median of `sharpedge.noise_sigma`) on the sharp edges and
+2.4x on the pair in these renders. The spread of 4 shots over a 17 x 17 kernel is
 known to about 10 % (hundreds of samples add up in it), so the bounds are
 0.8 and 5 times the spread: a floor in another unit (the RMS per sample, 17x
 smaller) fails them by far.

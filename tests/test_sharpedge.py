@@ -13,7 +13,7 @@ from scipy import signal
 
 from psfd.errors import BadInputError, EstimationError, TargetNotFoundError
 from psfd.estimator import gamma, mtf, sharpedge, simulate
-from psfd.estimator.kernels import centroid
+from psfd.estimator.kernels import centroid, split_grid
 from psfd.estimator.raw import Frame
 
 from conftest import DATA
@@ -342,6 +342,43 @@ def test_the_marks_target_form_against_the_true_psf(defocused_bernoulli_marks):
     assert l2 < 0.045
     assert errors.max_mtf < 0.13
     assert 0 < errors.mean_signed < 0.035
+
+
+def test_the_target_form_is_measured_on_the_target_wherever_it_lies():
+    """The target form's PSF comes from the print alone: the same photograph of the edge target framed in a
+    larger one, off-centre in a dark room (read noise only, 8 DN of 16383), gives the same kernel, the same
+    noise floor and a window and field that follow the print.
+
+    Before, the window was the whole frame (field (0.5, 0.5) wherever the target lay, and the empty windows
+    of a grid refused the run) and the noise was read on the whole frame: the room's 6.3e-4 instead of the
+    print's 0.011, a noise floor 17 times too small (0.0024 for 0.042, with a kernel 0.053 from the truth).
+    Measured: the windows move by the offset exactly, the noise is the same, the floor within 0.3 % and the
+    kernel within 0.09 of its floor (the print is located anew in the larger frame, through another
+    stretch of its grey levels: its registration moves by a few thousandths of a pixel).
+    """
+    truth = simulate.gaussian_psf(0.8, 0.5, theta=0.5, s=S, support=SUPPORT)
+    alone = edge_frame(truth, px_per_square=16.0)  # the whole print, white border included, inside the frame
+    rows, cols = alone.shape
+    top, left = 40, 260
+    room = np.round(300.0 + 8.0 * np.random.default_rng(2).standard_normal((400, 600)))
+    room[top : top + rows, left : left + cols] = alone.data
+    clipped = np.zeros(room.shape, dtype=bool)
+    clipped[top : top + rows, left : left + cols] = alone.saturated
+    framed = Frame(data=room, channel="g1", white=WHITE, saturated=clipped, source="room.sim")
+
+    [a] = sharpedge.estimate_edges(alone, s=S, target_form=True)
+    [b] = sharpedge.estimate_edges(framed, s=S, target_form=True)
+    x0, y0, x1, y1 = a.window
+    assert b.window == (x0 + left, y0 + top, x1 + left, y1 + top)
+    assert x1 - x0 < cols and y1 - y0 < rows  # the print's box, not the frame
+    centre = ((cols - 1) / 2 + left, (rows - 1) / 2 + top)  # the board's centre (`edge_frame`)
+    assert b.field == pytest.approx((centre[0] / 600, centre[1] / 400), abs=0.01)
+    assert b.params["sigma"] == pytest.approx(a.params["sigma"], rel=0.01)
+    assert b.noise_floor == pytest.approx(a.noise_floor, rel=0.02)
+    assert np.linalg.norm(b.psf - a.psf) < 0.25 * a.noise_floor
+    # a grid splits the print, not the frame: every window holds part of it
+    windows = [e.window for e in sharpedge.estimate_edges(framed, s=S, target_form=True, grid=(2, 2))]
+    assert windows == split_grid(b.window, (2, 2))
 
 
 def test_grid_gives_one_psf_per_window(smooth_frame):
