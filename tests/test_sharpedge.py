@@ -120,6 +120,22 @@ def test_noise_sigma_ignores_edges():
     assert sharpedge.noise_sigma(image) == pytest.approx(0.01, rel=0.1)
 
 
+def test_clipped_pixels_are_no_evidence_of_a_noise_free_frame():
+    """The real example photo framed by a blown-out surround (saturated white, 80 pixels wide: two thirds
+    of the frame) has the photo's noise: clipped blocks show none, and the median over a frame more than
+    half clipped read 0 before (sigma 1e-6, a noise floor of 1.2e-5 for the photo's 0.089)."""
+    from psfd.estimator import raw
+
+    photo = raw.load_frame(DATA / "img_example.pgm")
+    data = np.pad(photo.data, 80, constant_values=photo.white)
+    framed = Frame(data=data, channel=photo.channel, white=photo.white, saturated=data >= photo.white,
+                   source="framed")
+    [a] = sharpedge.estimate_edges(photo, s=S)
+    [b] = sharpedge.estimate_edges(framed, s=S)
+    assert b.params["sigma"] == pytest.approx(a.params["sigma"], rel=0.02)
+    assert b.noise_floor == pytest.approx(a.noise_floor, rel=0.05)
+
+
 def test_solver_recovers_a_kernel_from_a_known_sharp_image():
     rng = np.random.default_rng(4)
     truth = simulate.gaussian_psf(0.6, 0.4, theta=0.3, s=S, support=SUPPORT)

@@ -1447,7 +1447,7 @@ def estimate_edges(
     rows, cols = image.shape
     if known is None:
         bounds = (0, 0, cols, rows)
-        sigma = max(noise_sigma(image), 1e-6)
+        sigma = max(noise_sigma(image, _unclipped_blocks(frame.saturated)), 1e-6)
     else:
         # the pattern's edges are all the form uses: its windows, field and noise are those of the pattern,
         # not of the rest of the frame (read on the whole frame, a dark room around the edge target gave a
@@ -1471,6 +1471,18 @@ def estimate_edges(
         ))
         _trim_heap()
     return out
+
+
+def _unclipped_blocks(saturated: np.ndarray) -> np.ndarray | None:
+    """The plane's 2 x 2 blocks (from its even rows and columns) that hold no clipped pixel, for `noise_sigma`;
+    None when none is clipped. A clipped block reads no noise at all: a frame more than half clipped (a blown
+    sky, the white board around a target) read as noise-free, sigma 1e-6 and a noise floor 1e-5."""
+    rows, cols = (saturated.shape[0] // 2) * 2, (saturated.shape[1] // 2) * 2
+    if not saturated[:rows, :cols].any():
+        return None
+    clipped = saturated[:rows, :cols]
+    blocks = ~(clipped[0::2, 0::2] | clipped[0::2, 1::2] | clipped[1::2, 0::2] | clipped[1::2, 1::2])
+    return blocks if blocks.any() else None
 
 
 def _pattern_noise(image: _Scaled, saturated: np.ndarray, known: KnownPattern, box: tuple[int, int, int, int]
