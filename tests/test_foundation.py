@@ -45,6 +45,19 @@ def test_other_cfa_phases_keep_their_names(tmp_path):
     assert planes == {"g1": (0, 0), "b": (0, 1), "r": (1, 0), "g2": (1, 1)}
 
 
+def test_an_x_trans_raw_is_refused_not_split_into_mixed_planes(tmp_path):
+    """A 6 x 6 X-Trans sensor (Fujifilm's layout): every 2 x 2 sub-grid of it mixes red, green and blue
+    photosites (the one from (0, 0) holds 5 green, 2 red and 2 blue in each 6 x 6 tile). It was read as a
+    Bayer mosaic whose top-left 2 x 2 was all green: a "g1" and a "g2" plane, each four ninths not green."""
+    xtrans = "GGRGGB" "GGBGGR" "BRGRBG" "GGBGGR" "GGRGGB" "RBGBRG"
+    path = tmp_path / "xtrans.dng"
+    raw.write_dng(path, np.random.default_rng(0).integers(600, 4000, (96, 144)).astype(np.uint16),
+                  pattern=xtrans, black=512, white=16383)
+    for channel in ("all", "g1"):
+        with pytest.raises(BadInputError, match="6x6 colour filter pattern, not a 2 x 2 Bayer mosaic"):
+            raw.load_frames(path, channel)
+
+
 def test_pgm_is_one_plane_named_mono(data_dir):
     frame = raw.load_frame(data_dir / "img_example.pgm")
     assert frame.channel == "mono" and frame.shape == (292, 328) and frame.white == 255

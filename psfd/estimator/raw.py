@@ -10,6 +10,7 @@ model v = S_s(u_D * h) + n that every method relies on.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import re
 import struct
@@ -164,6 +165,7 @@ def _load_raw(path: Path, wanted: str | None = None) -> dict[str, Frame]:
                 # are converted from it before it is freed, and only the 2 x 2 colour pattern is read
                 # (raw_colors_visible would build a second full-size array)
                 mosaic = raw.raw_image_visible
+                pattern = raw.raw_pattern
                 top, left = raw.sizes.top_margin, raw.sizes.left_margin
                 colors = np.array([[raw.raw_color(top + dy, left + dx) for dx in (0, 1)] for dy in (0, 1)])
                 desc = raw.color_desc.decode("ascii", "replace")
@@ -175,6 +177,12 @@ def _load_raw(path: Path, wanted: str | None = None) -> dict[str, Frame]:
             raise BadInputError(f"{path}: not a readable RAW file ({_libraw_reason(exc)})") from None
         if mosaic.ndim != 2 or min(mosaic.shape) < 4:
             raise BadInputError(f"{path}: not a Bayer mosaic")
+        if pattern is None or pattern.shape != (2, 2):
+            # a 6 x 6 X-Trans sensor (Fujifilm): its 2 x 2 sub-grids each mix red, green and blue photosites,
+            # so the planes would not be colour channels at all
+            shape = "no" if pattern is None else "x".join(str(n) for n in pattern.shape)
+            raise BadInputError(f"{path}: a {shape} colour filter pattern, not a 2 x 2 Bayer mosaic (psfd reads "
+                                "Bayer sensors only)")
         return _bayer_planes(path, mosaic, colors, desc, blacks, white, wanted)
 
 
@@ -327,7 +335,8 @@ def write_dng(
     mosaic : ndarray of uint16
         The raw photosite values, black level included.
     pattern : str
-        The 2x2 CFA pattern in raster order, e.g. ``RGGB``.
+        The CFA pattern in raster order, e.g. ``RGGB``: 4 letters for a 2x2 Bayer pattern, n^2 for n x n
+        (36 for a 6x6 X-Trans sensor).
     black, white : int
         Black and white levels of the raw values.
     model : str
@@ -342,13 +351,16 @@ def write_dng(
 
     mosaic = np.ascontiguousarray(mosaic, dtype=np.uint16)
     cfa_codes = {"R": 0, "G": 1, "B": 2}
+    side = math.isqrt(len(pattern))
+    if side < 2 or side * side != len(pattern):
+        raise ValueError(f"CFA pattern {pattern!r}: n x n letters, n >= 2")
     identity = [v for i in range(9) for v in ((1, 1) if i % 4 == 0 else (0, 1))]
     tags = [
         (50706, "B", 4, (1, 4, 0, 0), True),  # DNGVersion
         (50707, "B", 4, (1, 1, 0, 0), True),  # DNGBackwardVersion
         (50708, "s", 0, model, True),  # UniqueCameraModel
-        (33421, "H", 2, (2, 2), True),  # CFARepeatPatternDim
-        (33422, "B", 4, tuple(cfa_codes[c] for c in pattern.upper()), True),  # CFAPattern
+        (33421, "H", 2, (side, side), True),  # CFARepeatPatternDim
+        (33422, "B", side * side, tuple(cfa_codes[c] for c in pattern.upper()), True),  # CFAPattern
         (50714, "H", 1, int(black), True),  # BlackLevel
         (50717, "H", 1, int(white), True),  # WhiteLevel
         (50721, "2i", 9, identity, True),  # ColorMatrix1 (identity: values stay raw)
