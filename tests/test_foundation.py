@@ -42,7 +42,28 @@ def test_other_cfa_phases_keep_their_names(tmp_path):
     path = tmp_path / "g.dng"
     raw.write_dng(path, mosaic, pattern="GBRG")
     planes = {f.channel: f.offset for f in raw.load_frames(path)}
-    assert planes == {"g1": (0, 0), "b": (0, 1), "r": (1, 0), "g2": (1, 1)}
+    assert planes == {"g2": (0, 0), "b": (0, 1), "r": (1, 0), "g1": (1, 1)}  # g1 on the red rows, as LibRaw's 1
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "BGGR", "GRBG", "GBRG"])
+def test_a_green_keeps_its_name_in_every_phase_of_the_mosaic(tmp_path, pattern):
+    """g1 is the green on the rows of red and g2 the one on the rows of blue, as LibRaw numbers them (colour
+    1 and 3): the same photosites are named alike in a mosaic cropped by a row or a column, where the names
+    were given in raster order (a one-row crop of an RGGB frame swapped them)."""
+    mosaic = np.random.default_rng(1).integers(600, 4000, (66, 66)).astype(np.uint16)
+    raw.write_dng(tmp_path / "whole.dng", mosaic, pattern=pattern)
+    whole = {f.channel: f for f in raw.load_frames(tmp_path / "whole.dng")}
+    red_rows = whole["r"].offset[0]
+    assert whole["g1"].offset[0] == red_rows and whole["g2"].offset[0] != red_rows
+    cropped_pattern = {"RGGB": "GBRG", "BGGR": "GRBG", "GRBG": "BGGR", "GBRG": "RGGB"}[pattern]
+    raw.write_dng(tmp_path / "crop.dng", mosaic[1:-1], pattern=cropped_pattern)  # one row off each end
+    for frame in raw.load_frames(tmp_path / "crop.dng"):
+        dy, dx = whole[frame.channel].offset
+        # the plane of the crop starts one row of photosites lower: its rows are the whole plane's from where
+        # that row falls
+        first = (frame.offset[0] + 1 - dy) // 2
+        assert frame.offset[1] == dx and (frame.offset[0] + 1 - dy) % 2 == 0, frame.channel
+        np.testing.assert_array_equal(frame.data, whole[frame.channel].data[first: first + frame.data.shape[0]])
 
 
 def test_an_x_trans_raw_is_refused_not_split_into_mixed_planes(tmp_path):

@@ -188,16 +188,23 @@ def _load_raw(path: Path, wanted: str | None = None) -> dict[str, Frame]:
 
 def _bayer_planes(path: Path, mosaic: np.ndarray, colors: np.ndarray, desc: str, blacks: list, white: float,
                   wanted: str | None) -> dict[str, Frame]:
-    """The named planes of a mosaic (``colors``: the 2 x 2 indices into ``desc``), only ``wanted`` built."""
+    """The named planes of a mosaic (``colors``: the 2 x 2 indices into ``desc``), only ``wanted`` built.
+
+    The greens are named as LibRaw numbers them: index 1 (``g1``) is the green on the rows of red, index 3
+    (``g2``) the one on the rows of blue, whatever the pattern's phase, so ``g1`` is the same photosites of
+    every Bayer sensor and of every crop of one. A file whose two greens share one index has them in raster
+    order.
+    """
     planes: dict[str, Frame] = {}
     greens = 0
+    by_index = sorted(int(i) for i in colors.ravel() if int(i) < len(desc) and desc[int(i)].lower() == "g") == [1, 3]
     for dy in (0, 1):
         for dx in (0, 1):
             index = int(colors[dy, dx])
             letter = desc[index].lower() if index < len(desc) else "?"
             if letter == "g":
                 greens += 1
-                name = f"g{greens}"
+                name = ("g1" if index == 1 else "g2") if by_index else f"g{greens}"
             elif letter in ("r", "b"):
                 name = letter
             else:
