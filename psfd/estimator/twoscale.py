@@ -202,7 +202,8 @@ def _estimate_window(
             f"common region too small: {int(rows.sum())} usable far pixels for {p * p} unknowns "
             f"(need {2 * p * p}); enlarge the overlap or lower the support"
         )
-    # illumination: the IPOL 2013 text removes each image's mean (sec. 4.2)
+    # illumination: the IPOL 2013 text removes each image's mean (sec. 4.2); `solve_kernel` fits the offset
+    # left between the two on the pixels it uses
     upsampled = np.where(valid_fine, upsampled - upsampled[valid_fine].mean(), 0.0)
     v2 = v2 - v2[rows].mean()
     fit = solve_kernel(upsampled, v2, rows, s, p)
@@ -344,7 +345,8 @@ def solve_kernel(upsampled: np.ndarray, v2: np.ndarray, rows: np.ndarray, s: int
     """Least-squares inter-image kernel k_e = (S_s C[H_{lambda/s} v1])^+ v2 (SIAM 2012, eq. (9)).
 
     Only the masked rows of S_s C are built, CHUNK at a time, and folded into
-    the p^2 x p^2 normal equations; the pseudo-inverse drops eigenvalues below
+    the p^2 x p^2 normal equations, with a free offset beside k (the
+    illumination level, see below); the pseudo-inverse drops eigenvalues below
     1e-12 of the largest (singular values below 1e-6, the IPOL code's DGELSD rcond).
 
     Returns
@@ -363,12 +365,22 @@ def solve_kernel(upsampled: np.ndarray, v2: np.ndarray, rows: np.ndarray, s: int
     n = ii.size
     ata = np.zeros((p * p, p * p))
     atb = np.zeros(p * p)
+    col = np.zeros(p * p)
     b = v2[ii, jj]
     for start in range(0, n, CHUNK):
         sl = slice(start, start + CHUNK)
         a = windows[s * ii[sl] - half, s * jj[sl] - half].reshape(-1, p * p)
         ata += a.T @ a
         atb += a.T @ b[sl]
+        col += a.sum(axis=0)
+    # a free offset c beside k (v2 = S_s C[H v1] k + c): the least squares of k with every column of S_s C
+    # and v2 centred on the rows used. The IPOL 2013 text (sec. 4.2) removes each image's mean for the
+    # illumination; taken over different regions (the whole resampled near window, the far pixels kept
+    # after erosion) the two means leave a constant in v2 that no kernel explains, which biased k
+    # (tests/test_twoscale.py: the offset dominated the residual of noise-free renders)
+    mean_a, mean_b = col / n, float(b.mean())
+    ata -= n * np.outer(mean_a, mean_a)
+    atb -= n * mean_a * mean_b
     evals, evecs = np.linalg.eigh(ata)
     keep = evals > evals[-1] * 1e-12
     inv_evals = np.where(keep, 1.0 / np.where(keep, evals, 1.0), 0.0)
@@ -376,9 +388,10 @@ def solve_kernel(upsampled: np.ndarray, v2: np.ndarray, rows: np.ndarray, s: int
     kernel = flipped[::-1, ::-1]
     # prediction S_s(C * k) on the far grid, all at once: filter2D correlates, with the flipped kernel
     pred = cv2.filter2D(upsampled, -1, flipped, borderType=cv2.BORDER_CONSTANT)[::s, ::s]
+    pred += mean_b - float(mean_a @ flipped.ravel())  # the offset
     residual = np.where(rows, v2 - pred, 0.0)
     rss = float(np.sum(residual[rows] ** 2))
-    sigma = math.sqrt(rss / max(n - p * p, 1))
+    sigma = math.sqrt(rss / max(n - p * p - 1, 1))
     total = float(kernel.sum())
     scale = 1.0 / abs(total) if abs(total) > 1e-12 else float("inf")
     noise_floor = sigma * math.sqrt(float(np.sum(inv_evals))) * scale
