@@ -169,10 +169,16 @@ def match(
     # a k-d forest: exhaustive matching of tens of thousands of descriptors costs seconds
     flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
     pairs = flann.knnMatch(desc_a, desc_b, k=2)
-    good = [(m.queryIdx, m.trainIdx) for m, n in (p for p in pairs if len(p) == 2) if m.distance < RATIO * n.distance]
+    good = [(m.queryIdx, m.trainIdx, m.distance) for m, n in (p for p in pairs if len(p) == 2)
+            if m.distance < RATIO * n.distance]
     if not good:
         return np.zeros((0, 2)), np.zeros((0, 2))
-    idx = np.array(good)
+    # one-to-one: a keypoint of b that is the nearest of several of a keeps only its closest match. Many
+    # to one are no correspondences, and they let the robust fit accept a homography that collapses
+    # the plane onto that one point (a far photo of a print of repeated cells: 85 matches, 21 far points)
+    good.sort(key=lambda g: g[2])  # stable: ties keep the order of a
+    _, first = np.unique([g[1] for g in good], return_index=True)
+    idx = np.array([good[i][:2] for i in sorted(first, key=lambda i: (good[i][0], good[i][1]))])
     pa, pb = points_a[idx[:, 0]], points_b[idx[:, 1]]
     # several keypoints (orientations) at one place give the same match twice
     _, keep = np.unique(np.round(np.hstack([pa, pb]), 2), axis=0, return_index=True)
@@ -199,7 +205,9 @@ def _robust_fit(
         if h is not None and abs(h[2, 2]) > 1e-12:
             h = h / h[2, 2]
             inliers = mask.ravel().astype(bool)
-            found = int(inliers.sum())
+            # inliers count as distinct places in both photos: keypoints at one place (several scales or
+            # orientations) support a homography no more than one does
+            found = min(len(set(map(tuple, np.round(pts[inliers], 2).tolist()))) for pts in (src, dst))
             if found >= MIN_INLIERS and np.linalg.det(h[:2, :2]) > 0:
                 px, py = _apply(h, src[inliers, 0], src[inliers, 1])
                 eps = max(float(np.max(np.hypot(px - dst[inliers, 0], py - dst[inliers, 1]))), 0.5)
@@ -282,6 +290,9 @@ def _near_index(h_ab: np.ndarray, points_a: np.ndarray) -> int:
 def _finish(near: int, far_pts: np.ndarray, near_pts: np.ndarray, matches: int) -> Registration:
     """Least-squares refit of D (far -> near) on all inliers, as the IPOL 2013 code refines its ORSA model."""
     d, _ = cv2.findHomography(far_pts.astype(np.float32), near_pts.astype(np.float32), 0)
+    if d is None or abs(d[2, 2]) < 1e-12:  # degenerate inliers (collinear): no plane-to-plane map
+        raise PairError("the matches of the two photos do not determine a homography: "
+                        "photograph the same textured plane from two distances")
     d = d / d[2, 2]
     reg = Registration(near, d, far_pts, near_pts, matches, 0.0)
     # reprojection error measured in far pixels: map the near points back
