@@ -1284,37 +1284,20 @@ def _psf(plane: _TargetPlane, r: dict, s: int, support: int, solver: str, grid: 
 
 
 def recentre(kernel: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
-    """The kernel translated by -``shift`` (x, y) s-grid samples, by a Fourier phase ramp.
+    """The kernel translated by -``shift`` (x, y) s-grid samples, by a Fourier phase ramp (`kernels.translations`).
 
     h is band-limited to the s-grid band (IJCV 2012 sec. 3.1, Lemma 1), so
     its samples determine it and a sub-sample translation is exact in the
-    Fourier domain; zero padding to twice the support stops the shifted
-    tails from wrapping around.
+    Fourier domain.
     """
-    return _translations(kernel)(shift)
-
-
-def _translations(kernel: np.ndarray) -> Callable[[tuple[float, float]], np.ndarray]:
-    """`recentre` of ``kernel`` by any shift, its padded spectrum taken once for all of them."""
-    rows, cols = kernel.shape
-    padded = np.zeros((2 * rows, 2 * cols))
-    padded[:rows, :cols] = kernel
-    spectrum = np.fft.fft2(padded)
-    fy = np.fft.fftfreq(2 * rows)[:, None]
-    fx = np.fft.fftfreq(2 * cols)[None, :]
-
-    def translated(shift: tuple[float, float]) -> np.ndarray:
-        ramp = np.exp(2j * np.pi * (fx * shift[0] + fy * shift[1]))
-        return np.real(np.fft.ifft2(spectrum * ramp))[:rows, :cols]
-
-    return translated
+    return kernels.translations(kernel)(shift)
 
 
 def _recentred(kernel: np.ndarray, solver: str) -> tuple[np.ndarray, tuple[float, float]]:
     """The kernel with its core centred, and the shift removed (x, y samples)."""
     total = np.zeros(2)
     out = kernel
-    translated = _translations(kernel)
+    translated = kernels.translations(kernel)
     for _ in range(3):  # the core moves with the shift: a few passes converge
         total += kernels.core_centroid(out)
         out = translated((float(total[0]), float(total[1])))

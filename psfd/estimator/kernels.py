@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from psfd.estimator import mtf
 
-__all__ = ["PSF", "centroid", "clip_negatives", "core_centroid", "field_of_window", "normalise", "split_grid"]
+__all__ = ["PSF", "centroid", "clip_negatives", "core_centroid", "field_of_window", "normalise", "split_grid",
+           "translations"]
 
 
 @dataclass
@@ -149,6 +150,31 @@ def core_centroid(psf: np.ndarray, level: float = 0.05) -> tuple[float, float]:
     core carries the position. Both estimators centre their PSFs on it.
     """
     return centroid(np.where(psf > level * psf.max(), psf, 0.0))
+
+
+def translations(kernel: np.ndarray) -> Callable[[tuple[float, float]], np.ndarray]:
+    """The kernel translated by -shift (x, y) samples, for any shift: a function of the shift.
+
+    A Fourier phase ramp on the spectrum, taken once for all shifts: the
+    kernels of both methods are band-limited to the s-grid band (IJCV 2012,
+    sec. 3.1, Lemma 1; SIAM 2012, Lemma 1 for the inter-image kernel), so
+    their samples determine them and a sub-sample translation is exact; zero
+    padding to twice the support stops the shifted tails from wrapping
+    around. An interpolating kernel (Keys' cubic) would instead low-pass the
+    kernel by its own transfer function at the shift.
+    """
+    rows, cols = kernel.shape
+    padded = np.zeros((2 * rows, 2 * cols))
+    padded[:rows, :cols] = kernel
+    spectrum = np.fft.fft2(padded)
+    fy = np.fft.fftfreq(2 * rows)[:, None]
+    fx = np.fft.fftfreq(2 * cols)[None, :]
+
+    def translated(shift: tuple[float, float]) -> np.ndarray:
+        ramp = np.exp(2j * np.pi * (fx * shift[0] + fy * shift[1]))
+        return np.real(np.fft.ifft2(spectrum * ramp))[:rows, :cols]
+
+    return translated
 
 
 def field_of_window(window: tuple[int, int, int, int], plane_shape: tuple[int, int]) -> tuple[float, float]:

@@ -27,7 +27,8 @@ from numpy.lib.stride_tricks import sliding_window_view
 from psfd.errors import BadInputError, PairError
 from psfd.vocabulary import DEFAULT_S, TWO_PHOTO, check_sizes
 from psfd.estimator import fourier, pair_register, resample
-from psfd.estimator.kernels import PSF, clip_negatives, core_centroid, field_of_window, normalise, split_grid
+from psfd.estimator.kernels import (PSF, clip_negatives, core_centroid, field_of_window, normalise, split_grid,
+                                    translations)
 from psfd.estimator.raw import Frame
 from psfd.estimator.resample import keys_bicubic
 from psfd.workers import concurrently
@@ -428,10 +429,12 @@ def _shift(kernel: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
     A blind pair fixes h only up to the sub-pixel translation left by the
     registration (SIAM 2012, sec. 5.1: the PSFs "differ only by a subpixel
     translation"); the convention is a centred PSF, so that translation is removed.
+    k is band-limited to the s-grid band (SIAM 2012, Lemma 1), so the move is a
+    Fourier phase ramp (`kernels.translations`), exact, as for the Bernoulli
+    method's kernels; Keys' cubic at a shift of 0.2 (0.5) sample lowered the MTF
+    of a Gaussian of 0.3 pixel by up to 0.013 (0.037).
     """
-    rows, cols = kernel.shape
-    y, x = np.mgrid[0:rows, 0:cols].astype(np.float64)
-    return _sample(kernel, x + shift[0], y + shift[1])
+    return translations(kernel)(shift)
 
 
 def psf_from_kernel(
