@@ -1499,8 +1499,9 @@ def _pattern_noise(image: _Scaled, saturated: np.ndarray, known: KnownPattern, b
     rows, cols = (y1 - y0) // 2, (x1 - x0) // 2
     by, bx = np.mgrid[0:rows, 0:cols].astype(np.float64)
     blocks = np.asarray(known.region(*known.to_pattern(x0 + 2 * bx + 0.5, y0 + 2 * by + 0.5)), dtype=bool)
-    clipped = saturated[y0 : y0 + 2 * rows, x0 : x0 + 2 * cols]
-    blocks &= ~(clipped[0::2, 0::2] | clipped[0::2, 1::2] | clipped[1::2, 0::2] | clipped[1::2, 1::2])
+    unclipped = _unclipped_blocks(saturated[y0 : y0 + 2 * rows, x0 : x0 + 2 * cols])
+    if unclipped is not None:
+        blocks &= unclipped
     crop = image.crop(y0, y1, x0, x1)
     return noise_sigma(crop, blocks) if blocks.any() else noise_sigma(crop)
 
