@@ -207,7 +207,9 @@ def stored_frame_path(path: str | os.PathLike, folder: Path) -> str:
 FRAME_EXIF = {
     "exif_focal_length_mm": "focal_length_mm", "exif_f_number": "f_number", "exif_exposure_s": "exposure_s",
     "exif_iso": "iso", "exif_lens": "lens", "exif_serial": "serial", "exif_focus_distance_m": "focus_distance_m",
+    "exif_lens_serial": "lens_serial",
 }
+FRAME_EXIF_TEXT = ("exif_lens", "exif_serial", "exif_lens_serial")
 
 
 def _v3_frame_exif(db: sqlite_utils.Database) -> None:
@@ -218,7 +220,13 @@ def _v3_frame_exif(db: sqlite_utils.Database) -> None:
     have = set(db["frames"].columns_dict)
     for column in FRAME_EXIF:
         if column not in have:
-            db["frames"].add_column(column, str if column in ("exif_lens", "exif_serial") else float)
+            db["frames"].add_column(column, str if column in FRAME_EXIF_TEXT else float)
+
+
+def _v9_lens_serial(db: sqlite_utils.Database) -> None:
+    """Version 9: the lens serial number each frame's RAW records (NULL for older frames), so that two copies
+    of one lens model, which share a rig, can be told apart (`psfd query --lens SERIAL`)."""
+    _v3_frame_exif(db)  # adds the one column it lacks
 
 
 def _v5_prediction_error(db: sqlite_utils.Database) -> None:
@@ -281,7 +289,7 @@ def _v8_pending_frames(db: sqlite_utils.Database) -> None:
 # checks its columns before adding them, so a catalogue is the same whichever of them ran first.
 MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [
     _v1_tables, _v2_query_indexes, _v3_frame_exif, _v4_relative_frame_paths, _v5_prediction_error,
-    _v6_noise_floor_as_norm, _v7_relative_psf_sources, _v8_pending_frames]
+    _v6_noise_floor_as_norm, _v7_relative_psf_sources, _v8_pending_frames, _v9_lens_serial]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -1118,7 +1126,10 @@ def _filters(camera: str | None, lens: str | None, method: str | None, channel: 
         filters.append(("camera", f"camera {camera!r}", "(instr(lower(r.model), lower(?)) > 0 OR r.serial = ?)",
                         [camera, camera]))
     if lens:
-        filters.append(("lens", f"lens {lens!r}", "instr(lower(r.lens), lower(?)) > 0", [lens]))
+        # the name, or the exact serial of the lens copy that took one of the PSF's frames
+        filters.append(("lens", f"lens {lens!r}", "(instr(lower(r.lens), lower(?)) > 0 OR EXISTS (SELECT 1 FROM "
+                        "psf_frames pf JOIN frames f ON f.id = pf.frame_id WHERE pf.psf_id = p.id AND "
+                        "f.exif_lens_serial = ?))", [lens, lens]))
     if method:
         method = method_name(method)
         filters.append(("method", f"method {method}", "p.method = ?", [method]))
@@ -1255,6 +1266,7 @@ COLUMNS: dict[str, dict[str, str]] = {
         "exif_iso": "ISO speed the RAW's EXIF records",
         "exif_lens": "lens the RAW's EXIF names",
         "exif_serial": "camera serial number the RAW's EXIF records",
+        "exif_lens_serial": "lens serial number the RAW's EXIF records (NULL when the camera does not write it)",
         "exif_focus_distance_m": "focus distance the RAW's EXIF records, m (NULL when the lens does not say)",
     },
     "psfs": {

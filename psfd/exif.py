@@ -50,6 +50,7 @@ class FrameMetadata:
     model: str | None = None
     serial: str | None = None
     lens: str | None = None
+    lens_serial: str | None = None
     focal_length_mm: float | None = None
     f_number: float | None = None
     exposure_s: float | None = None
@@ -116,6 +117,7 @@ def _metadata(tags: dict) -> FrameMetadata:
         serial=_text(tags, "BodySerialNumber") or _text(tags, "SerialNumber", ("MakerNote",))
         or _text(tags, "Tag 0xC62F", ("Image",)),  # DNG CameraSerialNumber, unknown to exifread
         lens=_text(tags, "LensModel") or _text(tags, "LensModel", ("MakerNote",)),
+        lens_serial=_text(tags, "LensSerialNumber"),  # EXIF 2.3: tells two copies of one lens model apart
         focal_length_mm=focal if focal else None,
         f_number=f_number if f_number else None,
         exposure_s=exposure if exposure else None,

@@ -5,6 +5,7 @@ Every test uses a real SQLite file in tmp_path.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import multiprocessing
@@ -426,6 +427,22 @@ def fill(cat: Catalogue) -> None:
         cat.commit_step(run, key, [frame(int(aperture * 10))], psfs)
     nikon = new_run(cat, keys=("n",), rig=NIKON)
     cat.commit_step(nikon, "n", [], [(make_psf(channel="g1", method="two-photo"), {"aperture": 4})])
+
+
+def test_two_copies_of_one_lens_model_are_told_apart_by_the_serial_their_frames_record(tmp_path):
+    """A lab measuring several copies of one lens model mounts each on the same body: one rig (model, body
+    serial, lens name). The lens serial number each RAW records (EXIF LensSerialNumber) tells their PSFs
+    apart: --lens takes it exactly, as --camera takes the body's serial; the name still matches both."""
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        run = new_run(cat, keys=("copy A", "copy B"))
+        for key, n, serial in (("copy A", 1, "0000c1234"), ("copy B", 2, "0000c5678")):
+            shot = dataclasses.replace(frame(n), exif={"lens": CANON.lens, "lens_serial": serial})
+            cat.commit_step(run, key, [shot], [(make_psf(channel=c, sigma=n), {"aperture": 5.6}) for c in ("r", "g1")])
+        for serial, sigma in (("0000c1234", 1), ("0000c5678", 2)):
+            rows = cat.query(lens=serial).rows
+            assert len(rows) == 2 and all(np.array_equal(cat.psf(r["id"])[0], gaussian(sigma)) for r in rows)
+        assert len(cat.query(lens="50mm")) == 4 and len(cat.query(lens="0000c")) == 0  # a serial is exact
+        assert cat.why_empty(lens="0000c9999").startswith("no PSF of lens '0000c9999'")
 
 
 def test_query_filters_and_array_round_trip(tmp_path):

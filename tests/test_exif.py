@@ -20,7 +20,7 @@ from psfd.estimator import raw
 
 MOSAIC = np.full((64, 96), 1000, dtype=np.uint16)
 CAMERA = dict(make="psfd", model="psfd simulated camera", serial="SIM-3", lens="simulated 50 mm",
-              focal_length_mm=50.0, f_number=5.6, exposure_s=1 / 125, iso=200, pixel_pitch_um=4.3,
+              lens_serial="0000c1234", focal_length_mm=50.0, f_number=5.6, exposure_s=1 / 125, iso=200, pixel_pitch_um=4.3,
               focus_distance_m=1.25)
 
 
@@ -32,7 +32,8 @@ def _dng(path, **tags):
 def test_psfd_dng_carries_its_exposure_metadata(tmp_path):
     meta = exif.read_metadata(_dng(tmp_path / "a.dng", **CAMERA))
     assert meta == exif.FrameMetadata(
-        make="psfd", model="psfd simulated camera", serial="SIM-3", lens="simulated 50 mm", focal_length_mm=50.0,
+        make="psfd", model="psfd simulated camera", serial="SIM-3", lens="simulated 50 mm", lens_serial="0000c1234",
+        focal_length_mm=50.0,
         f_number=5.6, exposure_s=pytest.approx(1 / 125), iso=200.0, focus_distance_m=1.25, width=96, height=64,
         pixel_pitch_um=pytest.approx(4.3, rel=1e-6))
     assert raw.load_frame(tmp_path / "a.dng").data.shape == (32, 48)  # still a DNG LibRaw decodes

@@ -54,6 +54,7 @@ def test_frame_exif_is_stored_beside_the_requested_settings(tmp_path):
     assert frame["exif_exposure_s"] == pytest.approx(1 / 125)
     assert frame["exif_focal_length_mm"] == pytest.approx(50.0)
     assert frame["exif_lens"] == "simulated 50 mm" and frame["exif_serial"] == "SIM-5"
+    assert frame["exif_lens_serial"] == "SIM-LENS-5"
     # the simulated lens reports its focus distance (it is focused on the target)
     assert psfs[0]["focus_distance_m"] == pytest.approx(rig.distance_for_scale() / 1000, abs=1e-3)
 
@@ -161,6 +162,19 @@ def test_frame_exif_migration_adds_only_the_missing_columns(tmp_path):
         assert cat.schema_version() == catalogue_module.SCHEMA_VERSION
         columns = set(cat.db["frames"].columns_dict)
     assert set(catalogue_module.FRAME_EXIF) <= columns
+
+
+def test_lens_serial_migration_adds_the_column_to_a_version_8_catalogue(tmp_path):
+    path = tmp_path / "v8.sqlite"
+    Catalogue(path).close()
+    db = sqlite_utils.Database(sqlite3.connect(path))
+    db.execute("ALTER TABLE frames DROP COLUMN exif_lens_serial")
+    db.execute("PRAGMA user_version = 8")
+    db.conn.commit()
+    db.close()
+    with Catalogue(path) as cat:
+        assert cat.schema_version() == catalogue_module.SCHEMA_VERSION == 9
+        assert "exif_lens_serial" in cat.db["frames"].columns_dict
 
 
 # ---------------------------------------------------------------------- real libraries

@@ -26,7 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     filters = argparse.ArgumentParser(add_help=False)
     options.add_catalogue_option(filters)
     filters.add_argument("--camera", help="camera model (case-insensitive substring) or serial number")
-    filters.add_argument("--lens", help="lens name (case-insensitive substring)")
+    filters.add_argument("--lens", help="lens name (case-insensitive substring) or the serial number its frames "
+                                        "record")
     filters.add_argument("--aperture", metavar="F", help="f-number, e.g. 5.6; the nearest measured one if not measured")
     filters.add_argument("--channel", help=f"Bayer channel ({', '.join(CHANNELS)}, {MONO}; any case)")
     filters.add_argument("--method", help=", ".join(METHODS[:-1]) + " or " + METHODS[-1])

@@ -292,8 +292,8 @@ class SimRig:
         """The EXIF a real camera would write with the current settings (keys of `psfd.exif.FrameMetadata`)."""
         return {
             "make": "psfd", "model": "psfd simulated camera", "serial": f"SIM-{self.seed}",
-            "lens": f"simulated {self.focal_mm:g} mm", "focal_length_mm": self.focal_mm,
-            "f_number": float(self.settings["aperture"]),
+            "lens": f"simulated {self.focal_mm:g} mm", "lens_serial": f"SIM-LENS-{self.seed}",
+            "focal_length_mm": self.focal_mm, "f_number": float(self.settings["aperture"]),
             "exposure_s": exposure_seconds(self.settings["shutterspeed"]),
             "iso": float(self.settings["iso"]), "pixel_pitch_um": self.pitch_um,
             "focus_distance_m": self.pos.x / 1000.0,  # the simulated lens is focused on the target

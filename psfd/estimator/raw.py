@@ -389,7 +389,8 @@ def _exif_tags(exif: dict) -> list[tuple]:
         return f.numerator, f.denominator
 
     tags: list[tuple] = []
-    text = {"make": 271, "model": 272, "serial": 42033, "lens": 42036}  # Make, Model, BodySerialNumber, LensModel
+    # Make, Model, BodySerialNumber, LensModel, LensSerialNumber
+    text = {"make": 271, "model": 272, "serial": 42033, "lens": 42036, "lens_serial": 42037}
     for key, code in text.items():
         if exif.get(key):
             tags.append((code, "s", 0, str(exif[key]), True))
