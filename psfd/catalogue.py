@@ -223,12 +223,6 @@ def _v3_frame_exif(db: sqlite_utils.Database) -> None:
             db["frames"].add_column(column, str if column in FRAME_EXIF_TEXT else float)
 
 
-def _v9_lens_serial(db: sqlite_utils.Database) -> None:
-    """Version 9: the lens serial number each frame's RAW records (NULL for older frames), so that two copies
-    of one lens model, which share a rig, can be told apart (`psfd query --lens SERIAL`)."""
-    _v3_frame_exif(db)  # adds the one column it lacks
-
-
 def _v5_prediction_error(db: sqlite_utils.Database) -> None:
     """Version 5: the cross-validated prediction error beside the noise floor (NULL for older PSFs).
 
@@ -283,6 +277,12 @@ def _v8_pending_frames(db: sqlite_utils.Database) -> None:
     """
     if "pending_frames" not in db.table_names():
         db["pending_frames"].create({"sha256": str, "stored": str}, pk="sha256")
+
+
+def _v9_lens_serial(db: sqlite_utils.Database) -> None:
+    """Version 9: the lens serial number each frame's RAW records (NULL for older frames), so that two copies
+    of one lens model, which share a rig, can be told apart (`psfd query --lens SERIAL`)."""
+    _v3_frame_exif(db)  # adds the one column it lacks
 
 
 # In the order they landed: a catalogue's user_version counts the migrations it ran. Each later one
