@@ -120,14 +120,16 @@ def test_noise_sigma_ignores_edges():
     assert sharpedge.noise_sigma(image) == pytest.approx(0.01, rel=0.1)
 
 
-def test_clipped_pixels_are_no_evidence_of_a_noise_free_frame():
+@pytest.mark.parametrize("surround", ["white", "black"])
+def test_clipped_pixels_are_no_evidence_of_a_noise_free_frame(surround):
     """The real example photo framed by a blown-out surround (saturated white, 80 pixels wide: two thirds
-    of the frame) has the photo's noise: clipped blocks show none, and the median over a frame more than
-    half clipped read 0 before (sigma 1e-6, a noise floor of 1.2e-5 for the photo's 0.089)."""
+    of the frame), or by blacks crushed to 0 (a dark room), has the photo's noise: clipped blocks show none,
+    and the median over a frame more than half clipped read 0 before (sigma 1e-6, a noise floor of 1.2e-5
+    for the photo's 0.089)."""
     from psfd.estimator import raw
 
     photo = raw.load_frame(DATA / "img_example.pgm")
-    data = np.pad(photo.data, 80, constant_values=photo.white)
+    data = np.pad(photo.data, 80, constant_values=photo.white if surround == "white" else 0)
     framed = Frame(data=data, channel=photo.channel, white=photo.white, saturated=data >= photo.white,
                    source="framed")
     [a] = sharpedge.estimate_edges(photo, s=S)

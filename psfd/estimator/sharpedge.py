@@ -1447,14 +1447,14 @@ def estimate_edges(
     rows, cols = image.shape
     if known is None:
         bounds = (0, 0, cols, rows)
-        sigma = max(noise_sigma(image, _unclipped_blocks(frame.saturated)), 1e-6)
+        sigma = max(noise_sigma(image, _unclipped_blocks(_clipped(frame))), 1e-6)
     else:
         # the pattern's edges are all the form uses: its windows, field and noise are those of the pattern,
         # not of the rest of the frame (read on the whole frame, a dark room around the edge target gave a
         # noise of 6e-4 for the print's 0.011 and a floor 17 times too small, and a target off-centre was
         # reported at the frame's centre; tests/test_sharpedge.py)
         bounds = known.box((rows, cols))
-        sigma = max(_pattern_noise(image, frame.saturated, known, bounds), 1e-6)
+        sigma = max(_pattern_noise(image, _clipped(frame), known, bounds), 1e-6)
     windows = split_grid(bounds, grid)
     out = []
     for w, window in enumerate(windows):
@@ -1471,6 +1471,15 @@ def estimate_edges(
         ))
         _trim_heap()
     return out
+
+
+def _clipped(frame: Frame) -> np.ndarray:
+    """The frame's clipped pixels: its saturated ones and, in a single-channel image (black level 0, as a PGM
+    or TIFF holds it), those at 0, where the blacks were crushed. A plane of a RAW mosaic has its black level
+    subtracted, and its values at or below 0 are the sensor's noise around black, not clipped."""
+    if frame.from_mosaic:
+        return frame.saturated
+    return frame.saturated | (np.asarray(frame.data) <= 0)
 
 
 def _unclipped_blocks(saturated: np.ndarray) -> np.ndarray | None:
