@@ -1371,14 +1371,7 @@ def _check_noise(noise: np.ndarray | None) -> np.ndarray:
 
 def _target_box(to_image: Map, shape: tuple[int, int], margin: int) -> tuple[int, int, int, int]:
     """(x0, y0, x1, y1) of the plane rectangle holding the whole target, plus ``margin``."""
-    t = np.linspace(0.0, target.SIZE, 33)
-    edge = np.concatenate([t, np.full_like(t, target.SIZE), t[::-1], np.zeros_like(t)])
-    x, y = to_image(edge, np.roll(edge, 33))
-    rows, cols = shape
-    x0 = max(0, int(np.floor(np.min(x))) - margin)
-    y0 = max(0, int(np.floor(np.min(y))) - margin)
-    x1 = min(cols, int(np.ceil(np.max(x))) + margin + 1)
-    y1 = min(rows, int(np.ceil(np.max(y))) + margin + 1)
+    x0, y0, x1, y1 = geometry.image_box(to_image, (0.0, 0.0, target.SIZE, target.SIZE), shape, margin, 33)
     if x1 - x0 < 8 or y1 - y0 < 8:
         raise EstimationError("the detected target lies outside the image")
     return x0, y0, x1, y1

@@ -23,7 +23,7 @@ import numpy as np
 
 from psfd.estimator.detect import Detection
 
-__all__ = ["RadialHomography", "ThinPlateSpline", "target_maps"]
+__all__ = ["RadialHomography", "ThinPlateSpline", "image_box", "target_maps"]
 
 # Thesis App. A.2: lambda = 10 for the 12 corners (the distortion over the
 # target is almost affine).
@@ -311,6 +311,29 @@ def _apply(h: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.
     x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
     w = h[2, 0] * x + h[2, 1] * y + h[2, 2]
     return (h[0, 0] * x + h[0, 1] * y + h[0, 2]) / w, (h[1, 0] * x + h[1, 1] * y + h[1, 2]) / w
+
+
+def image_box(to_image: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
+              extent: tuple[float, float, float, float], shape: tuple[int, int], margin: int,
+              points: int) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1), end exclusive, of the pixels of a plane of ``shape`` that hold the image of the
+    pattern rectangle ``extent`` (X0, Y0, X1, Y1) through ``to_image``, grown by ``margin``, inside the plane
+    (empty when the image lies outside it).
+
+    The rectangle's edge is traced with ``points`` points a side: a homography with radial distortion maps
+    the rectangle's edge onto the edge of its image.
+    """
+    X0, Y0, X1, Y1 = extent
+    along_x, along_y = np.linspace(X0, X1, points), np.linspace(Y0, Y1, points)
+    X = np.concatenate([along_x, along_x, np.full_like(along_y, X0), np.full_like(along_y, X1)])
+    Y = np.concatenate([np.full_like(along_x, Y0), np.full_like(along_x, Y1), along_y, along_y])
+    x, y = to_image(X, Y)
+    rows, cols = shape
+    x0 = max(0, int(np.floor(np.min(x))) - margin)
+    y0 = max(0, int(np.floor(np.min(y))) - margin)
+    x1 = min(cols, int(np.ceil(np.max(x))) + margin + 1)
+    y1 = min(rows, int(np.ceil(np.max(y))) + margin + 1)
+    return x0, y0, x1, y1
 
 
 def target_maps(

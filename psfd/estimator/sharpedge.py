@@ -1022,17 +1022,12 @@ class KnownPattern:
         """(x0, y0, x1, y1), end exclusive: the pixels of a plane of ``shape`` whose centres may lie in the
         region, the part of the frame the pattern's PSF is measured on (its window and field).
 
-        The edge of ``extent`` traced through `to_image` (a homography with a radial distortion maps the
-        rectangle's edge onto the edge of its image), a pixel added on each side for the tracing's chords.
+        `extent` traced through `to_image` (`psfd.estimator.geometry.image_box`), a pixel added on each side
+        for the tracing's chords.
         """
-        X0, Y0, X1, Y1 = self.extent
-        t = np.linspace(0.0, 1.0, 257)
-        X = np.concatenate([X0 + (X1 - X0) * t, X0 + (X1 - X0) * t, np.full_like(t, X0), np.full_like(t, X1)])
-        Y = np.concatenate([np.full_like(t, Y0), np.full_like(t, Y1), Y0 + (Y1 - Y0) * t, Y0 + (Y1 - Y0) * t])
-        x, y = self.to_image(X, Y)
-        rows, cols = shape
-        x0, y0 = max(int(np.floor(np.min(x))) - 1, 0), max(int(np.floor(np.min(y))) - 1, 0)
-        x1, y1 = min(int(np.ceil(np.max(x))) + 2, cols), min(int(np.ceil(np.max(y))) + 2, rows)
+        from psfd.estimator import geometry  # as `bernoulli_pattern`: the registration steps load on demand
+
+        x0, y0, x1, y1 = geometry.image_box(self.to_image, self.extent, shape, 1, 257)
         if x1 <= x0 or y1 <= y0:
             raise TargetNotFoundError("the located pattern lies outside the frame")
         return x0, y0, x1, y1
