@@ -376,7 +376,9 @@ SELECT p.id, p.method, p.channel, p.aperture, p.focal_length_mm, p.focus_distanc
        p.field_x, p.field_y, p.window_x0, p.window_y0, p.window_x1, p.window_y1, p.s, p.support,
        p.mtf50_x, p.mtf50_y, p.fwhm_x, p.fwhm_y, p.noise_floor, p.prediction_error, p.residual, p.params,
        p.psfd_version, p.warnings, p.sources, p.created, p.rig_id, p.run_id,
-       st.key AS step, r.model AS camera, r.serial, r.lens
+       st.key AS step, r.model AS camera, r.serial, r.lens,
+       (SELECT group_concat(DISTINCT f.exif_lens_serial) FROM psf_frames pf JOIN frames f ON f.id = pf.frame_id
+        WHERE pf.psf_id = p.id) AS lens_serial
 FROM psfs p LEFT JOIN rigs r ON r.id = p.rig_id LEFT JOIN steps st ON st.id = p.step_id
 """
 
@@ -989,7 +991,7 @@ class Catalogue:
         channel, method : str, optional
             Exact channel (r, g1, g2, b, mono), and method (`psfd.vocabulary.METHODS`, or an older alias).
         near : (x, y), optional
-            Normalised field location: keeps, per (rig, focal length, aperture, channel, method),
+            Normalised field location: keeps, per (rig, lens copy, focal length, aperture, channel, method),
             the PSF whose field position is nearest, and orders rows by that distance.
         limit : int, optional
             At most this many rows.
@@ -1152,7 +1154,7 @@ def _empty_phrase(what: str, before: list[str], there: str) -> str:
 
 
 def _nearest_per_group(rows: list[dict], near: tuple[float, float]) -> tuple[list[dict], str | None]:
-    """Keep the PSF nearest ``near`` per (rig, focal length, aperture, channel, method), nearest first,
+    """Keep the PSF nearest ``near`` per (rig, lens copy, focal length, aperture, channel, method), nearest first,
     and a note when one of them lies outside the grid of its group's stored locations (`_far_note`).
 
     Ties (repeated measurements at one location) go to the newest PSF. ``distance`` is in normalised
@@ -1164,7 +1166,8 @@ def _nearest_per_group(rows: list[dict], near: tuple[float, float]) -> tuple[lis
     best: dict[tuple, dict] = {}
     groups: dict[tuple, list[dict]] = {}
     for row in sorted(rows, key=lambda r: (r["distance"], -r["id"])):
-        group = (row["rig_id"], row["focal_length_mm"], row["aperture"], row["channel"], row["method"])
+        group = (row["rig_id"], row["lens_serial"], row["focal_length_mm"], row["aperture"], row["channel"],
+                 row["method"])
         best.setdefault(group, row)
         groups.setdefault(group, []).append(row)
     kept = sorted(best.values(), key=lambda r: (r["distance"], r["aperture"] or 0.0, r["channel"], r["method"]))

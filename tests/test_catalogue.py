@@ -445,6 +445,21 @@ def test_two_copies_of_one_lens_model_are_told_apart_by_the_serial_their_frames_
         assert cat.why_empty(lens="0000c9999").startswith("no PSF of lens '0000c9999'")
 
 
+def test_the_nearest_psf_is_kept_per_lens_copy_and_rows_name_the_copy(tmp_path):
+    """Two copies of one lens model measured at the same field location on one body: --near keeps the nearest
+    PSF of each copy (before, the newest copy's hid the other's), and every row names the copy it measured."""
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        run = new_run(cat, keys=("copy A", "copy B", "no serial"))
+        for key, n, serial in (("copy A", 1, "0000c1234"), ("copy B", 2, "0000c5678"), ("no serial", 3, None)):
+            shot = dataclasses.replace(frame(n), exif={"lens": CANON.lens, "lens_serial": serial})
+            cat.commit_step(run, key, [shot], [(make_psf(channel="g1", sigma=n), {"aperture": 5.6})])
+        rows = cat.query(near=(0.5, 0.5)).rows
+        sigma = {"0000c1234": 1, "0000c5678": 2, None: 3}
+        assert sorted(r["lens_serial"] or "" for r in rows) == ["", "0000c1234", "0000c5678"]
+        assert all(np.array_equal(cat.psf(r["id"])[0], gaussian(sigma[r["lens_serial"]])) for r in rows)
+        assert [r["lens_serial"] for r in cat.query(lens="0000c1234", near=(0.5, 0.5))] == ["0000c1234"]
+
+
 def test_query_filters_and_array_round_trip(tmp_path):
     with Catalogue(tmp_path / "cat.sqlite") as cat:
         fill(cat)

@@ -228,25 +228,28 @@ def test_report_of_one_point_and_no_pitch():
     assert not any(child.get_xlabel() == "x (mm)" for ax in fig.axes for child in ax.child_axes)
 
 
-def test_two_bodies_of_one_model_are_two_rows_not_one_map():
-    """Two bodies (serials) of one camera model and lens at one aperture: each its own row of tiles and
-    of MTF50 maps, never tiles drawn over each other nor values interpolated between the bodies."""
+@pytest.mark.parametrize("key, labels", [
+    ("serial", ["f/5.6 bernoulli cam #A1 lens", "f/5.6 bernoulli cam #B2 lens"]),
+    ("lens_serial", ["f/5.6 bernoulli cam lens #A1", "f/5.6 bernoulli cam lens #B2"]),
+])
+def test_two_bodies_or_lens_copies_of_one_model_are_two_rows_not_one_map(key, labels):
+    """Two bodies (serials) of one camera model, or two copies of one lens model (the serials their frames
+    record), at one aperture: each its own row of tiles and of MTF50 maps, never tiles drawn over each other
+    nor values interpolated between them."""
     grid = [(x, y) for y in (0.2, 0.5, 0.8) for x in (0.15, 0.5, 0.85)]
     rows, arrays = rows_for((5.6,), grid, channels=("g1",))
     other, other_arrays = rows_for((5.6,), grid, channels=("g1",))
     for row in rows:
-        row["serial"] = "A1"
+        row[key] = "A1"
     for row in other:
         arrays[row["id"] + 100] = other_arrays[row["id"]]
-        row.update(id=row["id"] + 100, serial="B2")
+        row.update({"id": row["id"] + 100, key: "B2"})
     fig = figures.report_figure(rows + other, arrays, "g1")
     psf_axes = [ax for ax in fig.axes if ax.get_title().endswith(": PSFs")]
     assert [len(ax.get_images()) for ax in psf_axes] == [9, 9]
-    assert sorted(ax.get_ylabel().split("\n")[0] for ax in psf_axes) == [
-        "f/5.6 bernoulli cam #A1 lens", "f/5.6 bernoulli cam #B2 lens"]
+    assert sorted(ax.get_ylabel().split("\n")[0] for ax in psf_axes) == labels
     chart = next(ax for ax in fig.axes if ax.get_xlabel().startswith("image height"))
-    assert {t.get_text() for t in chart.get_legend().get_texts()} >= {
-        "f/5.6 bernoulli cam #A1 lens", "f/5.6 bernoulli cam #B2 lens"}
+    assert {t.get_text() for t in chart.get_legend().get_texts()} >= set(labels)
 
 
 def inside_figure(fig) -> list[str]:

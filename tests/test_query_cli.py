@@ -13,7 +13,7 @@ import pytest
 import tifffile
 
 from psfd import figures
-from psfd.catalogue import Catalogue
+from psfd.catalogue import Catalogue, FrameRecord
 from psfd.cli import main
 from psfd.cli import query as query_cli
 from psfd.drivers.base import CameraInfo
@@ -80,6 +80,21 @@ def test_the_table_names_the_body_when_two_bodies_of_one_model_answer(capsys, ca
     assert sorted(row.split()[4] for row in rows) == ["0420", "0777"]  # after "Canon EOS 400D"
     code, out, _ = run_cli(capsys, "query", "--catalogue", catalogue, "--camera", "0420", "--limit", "1")
     assert code == 0 and "serial" not in out.splitlines()[0]  # one body: no column for it
+
+
+def test_the_table_names_the_lens_copy_when_two_copies_of_one_model_answer(capsys, catalogue):
+    with Catalogue(catalogue) as cat:  # two copies of the fixture's lens on its body, told apart by their EXIF
+        rig = cat.add_rig(CameraInfo("Canon EOS 400D", "0420", "EF 50mm f/1.8", 50.0))
+        run = cat.start_run("copies.toml", "copies plan", rig, [("A", {}), ("B", {})])
+        for n, copy in enumerate(("A", "B")):
+            shot = FrameRecord(f"/raw/{copy}.dng", f"{n:064x}", {"aperture": "5.6"}, {}, "t",
+                               exif={"lens": "EF 50mm f/1.8", "lens_serial": f"LENS-{copy}"})
+            cat.commit_step(run, copy, [shot], [(PSF(gaussian(1.0 + n), 4, "bernoulli", "b", [shot.path],
+                                                     (0.5, 0.5), (0, 0, 64, 64)), {"aperture": 5.6})])
+    code, out, _ = run_cli(capsys, "query", "--catalogue", catalogue, "--channel", "b", "--near", "0.5,0.5")
+    header, *rows, _ = out.splitlines()
+    assert code == 0 and header.split()[:4] == ["id", "camera", "lens", "lens"]  # "lens #"
+    assert sorted(row.split("  ")[2:4] for row in rows) == [["EF 50mm f/1.8", "LENS-A"], ["EF 50mm f/1.8", "LENS-B"]]
 
 
 def test_readers_say_when_a_run_is_not_done(capsys, catalogue, tmp_path):

@@ -444,6 +444,7 @@ def estimate_record(est: PSF, sensor: Any = None) -> dict:
 # (record key, CSV header with its unit): one row per PSF, for spreadsheets and pandas.
 CSV_COLUMNS = (
     ("id", "id"), ("file", "file"), ("camera", "camera"), ("serial", "serial"), ("lens", "lens"),
+    ("lens_serial", "lens_serial"),
     ("method", "method"), ("channel", "channel"), ("aperture", "aperture [f-number]"),
     ("focal_length_mm", "focal_length [mm]"), ("focus_distance_m", "focus_distance [m]"),
     ("field_x", "field_x [0-1 of width]"), ("field_y", "field_y [0-1 of height]"),
@@ -626,6 +627,10 @@ def format_rows(rows: list[dict]) -> str:
     if len({(r["camera"], r.get("serial")) for r in rows}) > len({r["camera"] for r in rows}):
         # two bodies of one model (`--near` keeps the nearest PSF of each): the serial tells their rows apart
         columns.insert(2, ("serial", lambda r: r.get("serial") or "-"))
+    if len({(r["lens"], r.get("lens_serial")) for r in rows}) > len({r["lens"] for r in rows}):
+        # two copies of one lens model, told apart by the serial their frames' EXIF records
+        at = [name for name, _ in columns].index("lens") + 1
+        columns.insert(at, ("lens #", lambda r: r.get("lens_serial") or "-"))
     if _has_lp_mm(rows):
         columns.insert(-1, ("lp/mm x/y", lambda r: f"{fmt(r.get('mtf50_x_lp_mm'), '.1f')}/"
                                                   f"{fmt(r.get('mtf50_y_lp_mm'), '.1f')}"))
