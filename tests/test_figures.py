@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 from matplotlib.collections import PathCollection, TriMesh
 from matplotlib.colors import LogNorm
-from matplotlib.image import AxesImage
 
 from psfd import figures
 from psfd.estimator import mtf
