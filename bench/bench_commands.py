@@ -208,6 +208,7 @@ def main() -> None:
     parser.add_argument("--raw24", action="store_true", help="also a simulated 24-megapixel RAW (slow to make)")
     options = parser.parse_args()
     options.reference = dict(item.split("=", 1) for item in options.reference)
+    print(whole.machine())
     for tree in [TREE] + ([Path(options.before).resolve()] if options.before else []):
         warn_stale(tree)
     with tempfile.TemporaryDirectory() as tmp:

@@ -31,7 +31,8 @@ interleaved with it, so the machine's load weighs on both alike:
 ``--reference DIR`` times the same command on another checkout of psfd
 (e.g. the previous commit), and without it the reference is the C program's
 figure on extracted planes, 2.1 s per 1953 x 1301 plane (issue 11), times
-the four Bayer planes.
+the four Bayer planes: a figure from the issue's machine, not measured in
+this run (machines of this kind differ by up to 2.6x: `whole.machine`).
 
 The ``--out`` cases time the same commands writing their results (every PSF's
 files and figure and the grid's ``grid.png``, or ``--no-figures``), as a user keeps them.
@@ -116,6 +117,7 @@ def main() -> None:
         folder.mkdir(parents=True, exist_ok=True)
         our_env = checkout_env(Path(__file__).resolve().parents[1])
         reference_env = checkout_env(Path(args.reference)) if args.reference else None
+        print(whole.machine())
         print(f"{'case':>18} {'psfd s':>7} {'ref s':>7} {'ratio':>6} {'goal s':>7} {'psfd MB':>8} {'ref MB':>7}   reference")
         for name, frame_name, extra, goal in CASES:
             frame = folder / f"{frame_name}.dng"

@@ -45,6 +45,23 @@ def run(argv: list[str], env: dict[str, str] | None = None, cwd: str | None = No
     return Run(wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024.0, proc.returncode, error)
 
 
+def machine() -> str:
+    """The processor and the cores this process may use, for the first line of a benchmark's output.
+
+    Machines of one kind differ: the same psfd commit took 8.6 s on one 2-core machine and 3.3 s on another
+    for the same 400-PSF command, so a time means little without the machine it was measured on, and a
+    figure remembered from another machine (the published C programs' in issue 11) is no reference.
+    """
+    model = "unknown processor"
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as info:
+            model = next((line.split(":", 1)[1].strip() for line in info if line.startswith("model name")), model)
+    except OSError:
+        pass
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return f"machine: {model}, {cores} usable cores"
+
+
 def _now() -> float:
     import time
 
