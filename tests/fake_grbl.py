@@ -261,6 +261,13 @@ class FakeGrbl:
         with self._lock:
             self._flags.add("feed_hold")
 
+    def press_reset(self) -> None:
+        """The operator presses the controller's reset (abort) button: the pin interrupt calls mc_reset(), as
+        Ctrl-X does (system.c, CONTROL_INT_vect)."""
+        with self._lock:
+            self.events.append(("reset", self._state_name()))
+            self._mc_reset()
+
     def open_door(self) -> None:
         with self._lock:
             self._door_ajar = True

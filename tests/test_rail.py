@@ -555,6 +555,19 @@ def test_operator_feed_hold_is_reported_at_once(make_fake, connect):
     assert rail.position().x == fake.machine_position()[0]
 
 
+def test_reset_button_mid_move_is_reported_as_its_alarm(make_fake, connect):
+    """The controller's own reset (abort) button mid-move: ALARM:3, then the 500 ms delay that follows an alarm
+    message, then the system abort (protocol.c), whose re-initialisation clears a '?' asked during the delay
+    (main.c clears sys_rt_exec_state). The alarm, not a lost status report, is what the operator is told."""
+    fake = make_fake(SLOW)
+    fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.press_reset)
+    rail = connect(fake)
+    with pytest.raises(RailAlarm, match=r"ALARM:3 \(reset while in motion\) .*at X=-2\d.*homing needed"):
+        rail.move(x=-150)
+    assert settled(fake) and fake.alarms() == [3]
+    assert rail.info().state == "Alarm"  # the state the alarm set survives the abort (main.c prior_state)
+
+
 def test_safety_door_is_reported_at_once(make_fake, connect):
     fake = make_fake(SLOW)
     fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.open_door)

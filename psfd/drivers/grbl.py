@@ -11,7 +11,8 @@ commands.md and the firmware source it describes):
 - A line (``$$``, ``$H``, ``$X``, G-code) gets ``ok`` or ``error:N``. ``ALARM:N`` is pushed when the machine
   stops by itself. After ALARM:1 (hard limit) and ALARM:2 (soft limit) the firmware prints
   ``[MSG:Reset to continue]`` after a 500 ms delay and then answers nothing but Ctrl-X (a reset sent during
-  that delay is forgotten); homing failures (ALARM:6-9) reset the controller by themselves.
+  that delay is forgotten); homing failures (ALARM:6-9) and a reset in motion (ALARM:3, also from the controller's
+  own reset button) are followed by the reset itself, its banner after the same delay.
 - With homing enabled (``$22=1``) the controller starts locked in Alarm; ``$H`` homes it (no status reports
   are answered during the cycle), ``$X`` unlocks it without homing. Homing goes to the + end unless ``$23``
   says otherwise and leaves the machine position at -``$27``: machine space is [-``$130``, 0].
@@ -151,6 +152,9 @@ ALARMS_BY_FIRMWARE = {
 # Alarms after which the position is kept (the documentation says so); every other one needs homing.
 POSITION_KEPT = {2, 4, 5}
 CRITICAL = {1, 2}  # the firmware answers nothing but Ctrl-X after these
+# Raised with a reset (mc_reset): the system abort follows the alarm's 500 ms delay and clears a '?' asked during it
+# (protocol.c, main.c), so the banner is what tells the controller is back.
+RESETTING = {3, 6, 7, 8, 9}
 
 
 class PortGone(RailError):
@@ -958,8 +962,8 @@ class GrblRail:
             # before it; only then does Ctrl-X bring it back.
             self._wait_for(lambda ln: "Reset to continue" in ln, self.timeout)
             self._reset()
-        elif code in (6, 7, 8, 9):
-            self._wait_for(lambda ln: bool(BANNER.match(ln)), self.timeout)  # homing failures reset by themselves
+        elif code in RESETTING:
+            self._wait_for(lambda ln: bool(BANNER.match(ln)), self.timeout)
             self._drain(0.2, watch=False)
         else:
             self._drain(0.2, watch=False)
