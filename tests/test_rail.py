@@ -183,6 +183,24 @@ def test_a_startup_line_that_moves_the_carriage_is_refused_at_open(make_fake, co
     assert rail.move(x=-5).x == -5.0
 
 
+@pytest.mark.parametrize("mode, state, after", [("$C", "Check", "Idle"), ("$SLP", "Sleep", "Alarm")])
+def test_a_controller_left_in_check_mode_or_asleep_is_reset_at_once(make_fake, connect, mode, state, after):
+    """Check mode ($C) and sleep ($SLP) ignore a feed hold (protocol.c: no hold in STATE_CHECK_MODE; SLEEP is
+    kept from changing to HOLD) and nothing moves in them: the open resets at the first report after its feed
+    hold instead of waiting for a Hold:0 that never comes. Sleep comes back as Alarm (protocol_main_loop)."""
+    fake = make_fake()
+    link = serial.Serial(fake.port, 115200, timeout=0.2)
+    link.write(mode.encode() + b"\n")
+    assert fake.wait_for(lambda f: f.status() == state)
+    link.close()
+    rail = connect(fake)
+    sent = [byte for _, byte in fake.realtime]
+    hold, reset = sent.index(FEED_HOLD), sent.index(0x18)
+    assert sent[hold + 1:reset] == [ord("?")]  # one report after the feed hold, then the reset
+    assert fake.resets() == [state] and fake.alarms() == []
+    assert rail.info().state == after
+
+
 def test_info_gives_where_a_restarted_controller_reads_in_work_coordinates(make_fake, connect):
     """GRBL counts from machine position 0 at power-up (main.c) and keeps the G54 offset in EEPROM: in the
     work coordinates psfd moves in, a restarted controller reads minus the work offset."""

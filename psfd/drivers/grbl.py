@@ -62,8 +62,9 @@ from typing import Iterator, NoReturn
 import serial
 
 from psfd.drivers.base import Position, RailInfo
-# GRBL's realtime bytes, one definition for the driver and its guard (which imports nothing of psfd)
-from psfd.drivers.grbl_guard import FEED_HOLD, SOFT_RESET, STATUS
+# GRBL's realtime bytes and its standing states, one definition for the driver and its guard (which imports nothing
+# of psfd)
+from psfd.drivers.grbl_guard import FEED_HOLD, SOFT_RESET, STANDING, STATUS
 from psfd.errors import RailAlarm, RailError
 
 log = logging.getLogger(__name__)
@@ -895,8 +896,8 @@ class GrblRail:
                     return f"the controller stopped it: {alarm}"
                 except RailError:
                     status = None
-                if status is not None and (status.state in ("Idle", "Alarm") or status.name in ("Hold:0", "Door:0",
-                                                                                                "Door:1")):
+                # standing: check mode and sleep ignore the feed hold (protocol.c) and move nothing
+                if status is not None and (status.state in STANDING or status.name in ("Hold:0", "Door:0", "Door:1")):
                     break
                 waited = time.monotonic() - started
                 # Silent: once the worst-case deceleration has run out, reset blind. Answering but still
