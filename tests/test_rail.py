@@ -22,6 +22,7 @@ from psfd.cli import main
 from psfd.drivers import open_rail
 from psfd.drivers.base import Position, Rail, RailInfo
 from psfd.drivers.grbl import GrblRail, PortLock, homing_time, move_time, parse_status
+from psfd.drivers.grbl_guard import watch
 from psfd.errors import RailAlarm, RailError
 
 # A bench rail that moves quickly (100 mm/s, 200 mm/s^2) and homes in about a second; homing off, as grbl ships.
@@ -537,6 +538,23 @@ def test_sigkill_during_homing_is_stopped_by_the_guard(make_fake, connect):
         proc.kill()
     assert settled(fake) and fake.alarms() == [6] and fake.resets() == ["Home"]
     assert fake.physical_position()[0] < -60.0  # far from the switch it was searching for
+
+
+def test_guard_meeting_a_vanished_port_says_so_in_one_line(capsys):
+    """The owner dies and the USB cable is out (the pty's other side gone): the guard's first tty call fails with
+    termios.error, which is no OSError; it ends with its one-line message, not a traceback."""
+    master, slave = os.openpty()
+    os.close(master)
+    child = subprocess.Popen([sys.executable, "-c", ""])
+    owner = os.pidfd_open(child.pid)
+    child.wait()
+    try:
+        assert watch(slave, owner, 0.2, 0.5) == 0
+    finally:
+        os.close(slave)
+        os.close(owner)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the port failed" in err and "the carriage may still be moving" in err
 
 
 def test_reopen_does_not_reset_a_moving_controller(make_fake, connect):
