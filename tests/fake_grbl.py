@@ -12,8 +12,11 @@ What it does as the firmware does:
   and are dropped when it is full. Lines are filtered as protocol.c does (spaces, comments, case, 80
   characters at most: error:11).
 - The main loop runs realtime flags at its check points: several ``?`` before a report give one report;
-  no report during the homing cycle or in the critical-alarm loop; lines wait while a hold or door suspends
-  the main program, and while the 15-block planner is full.
+  no report during the homing cycle or in the critical-alarm loop; lines wait while a hold, a door or the
+  sleep (``$SLP``, answered first) suspends the main program, and while the 15-block planner is full. A cycle
+  start flagged together with a hold is dropped.
+- ``ok`` comes when a motion line is planned, not run; ``G4 P<s>`` is answered once the planner has run empty
+  and the dwell has passed (mc_dwell), and a reset during it still answers it before the banner.
 - Motion runs in (scaled) real time: one trapezoidal profile per planner block, rate and acceleration
   limited per axis by ``$110..`` and ``$120..`` (planner.c's limit_value_by_axis_maximum), targets
   rounded to whole steps (``$100..``), positions reported from the step count.
@@ -26,7 +29,8 @@ What it does as the firmware does:
   host must reset after the message.
 - ``$H``: cycle 0 (Z) then cycle 1 (X, Y), each a search at ``$25`` over 1.5 x ``$13x``, a pull-off, a
   locate at ``$24`` over 5 x ``$27`` and a final pull-off; homes to the + end unless ``$23`` says otherwise;
-  machine position then -``$27`` (all machine space negative). ALARM:8/9 on failure, then a self reset.
+  machine position then -``$27`` (all machine space negative), and the startup lines run before its ``ok``.
+  ALARM:8/9 on failure, then a self reset.
 - Status reports in the 1.1 format: ``<State|MPos:..|Bf:..|FS:..|Pn:..|WCO:..|Ov:..>``, MPos or WPos and Bf
   per ``$10``, WCO in the first report after a reset and then every 10 (idle) or 30 (busy) reports, Ov on the
   next but one; ``$13=1`` reports inches (4 decimals) and in/min.
@@ -355,6 +359,7 @@ class FakeGrbl:
         self._deaf = False
         self._soft_limit = False
         self._answer_after_reset = False
+        self._dwell: list | None = None  # [seconds, end]: a G4 waiting for the buffer, then for its time
         self._busy_until = 0.0
         self._after_busy = None
         self._wco_counter = 0
@@ -382,10 +387,14 @@ class FakeGrbl:
             self.state = "Idle"
             if self._door_ajar:
                 self._flags.add("door")
-            for text in filter(None, self.startup_lines):  # system_execute_startup(): each echoed with its answer
-                code = self._gcode(text)
-                self._write_line(f">{text}:" + ("ok" if not code else f"error:{code}"))
+            self._run_startup_lines()
         self._boot_alarm = False
+
+    def _run_startup_lines(self) -> None:
+        """system_execute_startup(): $N0 and $N1, each echoed with its answer."""
+        for text in filter(None, self.startup_lines):
+            code = self._gcode(text)
+            self._write_line(f">{text}:" + ("ok" if not code else f"error:{code}"))
 
     def _reboot(self) -> None:
         """The MCU itself resets (DTR pulse on an Arduino): motors stop dead, position restarts at 0."""
@@ -510,9 +519,23 @@ class FakeGrbl:
             return
         if self._suspend or self._soft_limit or self._homing is not None:
             return  # protocol_exec_rt_suspend() holds the main program
-        self._process_lines()
+        if self._dwell is not None:
+            self._dwell_step()  # mc_dwell() holds the main program: no line is read meanwhile
+        else:
+            self._process_lines()
         if self._homing is None and self._planner and self.state == "Idle":
             self._flags.add("cycle_start")  # protocol_auto_cycle_start()
+
+    def _dwell_step(self) -> None:
+        """mc_dwell(): protocol_buffer_synchronize() until the planner is empty and the cycle over, then
+        delay_sec(); the G4 line's 'ok' comes after both."""
+        if self._planner or self._block is not None or self.state == "Run":
+            return
+        if self._dwell[1] is None:
+            self._dwell[1] = self.now() + self._dwell[0]
+        elif self.now() >= self._dwell[1]:
+            self._dwell = None
+            self._write_line("ok")
 
     def _exec_rt_system(self) -> bool:
         """protocol_exec_rt_system(); False when the main program must not go on in this pass."""
@@ -534,12 +557,15 @@ class FakeGrbl:
             return False
         flags = self._flags
         if "reset" in flags:
+            if self._dwell is not None:
+                self._write_line("ok")  # mc_dwell() returns on the abort and gc_execute_line() answers the G4
             self._reinit()
             return False
         if "status" in flags:
             flags.discard("status")
             self._write_line(self._status_report())
-        if flags & {"motion_cancel", "feed_hold", "door"}:
+        held = bool(flags & {"motion_cancel", "feed_hold", "door"})
+        if held:
             if self.state not in ("Alarm", "Check"):
                 if self.state in ("Run", "Jog") and not self._suspend & {"jog_cancel"}:
                     self._hold = True
@@ -557,17 +583,15 @@ class FakeGrbl:
             flags -= {"motion_cancel", "feed_hold", "door"}
         if self.state == "Door" and not self._door_ajar and "hold_complete" in self._suspend:
             self._suspend.discard("door_ajar")  # the suspend loop sees the door closed
+        if "sleep" in flags:  # only from Idle or Alarm: nothing to decelerate, the sleep starts at once
+            flags.discard("sleep")
+            self.state = "Sleep"
+            self._suspend = {"hold_complete", "sleep"}
+            self._write_line("[MSG:Sleeping]")
         if "cycle_start" in flags:
             flags.discard("cycle_start")
-            if self.state == "Door" and "door_ajar" not in self._suspend and "hold_complete" in self._suspend:
-                self.state = "Hold"  # door closed: resume like a completed hold
-            if self.state == "Idle" or (self.state == "Hold" and "hold_complete" in self._suspend):
-                self._suspend = set()
-                if self._planner:
-                    self.state = "Run"
-                    self._start_block()
-                else:
-                    self.state = "Idle"
+            if not held:  # a cycle start flagged together with a hold is dropped: no resume without the user
+                self._cycle_start()
         if "cycle_stop" in flags:
             flags.discard("cycle_stop")
             if self.state in ("Hold", "Door") and not self._soft_limit and "jog_cancel" not in self._suspend:
@@ -582,6 +606,17 @@ class FakeGrbl:
                 self.state = "Idle"
         return True
 
+    def _cycle_start(self) -> None:
+        if self.state == "Door" and "door_ajar" not in self._suspend and "hold_complete" in self._suspend:
+            self.state = "Hold"  # door closed: resume like a completed hold
+        if self.state == "Idle" or (self.state == "Hold" and "hold_complete" in self._suspend):
+            self._suspend = set()
+            if self._planner:
+                self.state = "Run"
+                self._start_block()
+            else:
+                self.state = "Idle"
+
     def _process_lines(self) -> None:
         while True:
             ends = [i for i in (self._rx.find(b"\n"), self._rx.find(b"\r")) if i >= 0]
@@ -595,7 +630,8 @@ class FakeGrbl:
             del self._rx[: end + 1]
             self.lines.append(raw.decode("ascii", "replace").strip())
             self._answer(line, overflow, raw)
-            if self._exec_alarm or self._after_busy or self._flags & {"reset"} or self._homing or self._soft_limit:
+            if (self._exec_alarm or self._after_busy or self._flags & {"reset", "sleep"} or self._homing
+                    or self._soft_limit or self._dwell is not None):
                 return
 
     @staticmethod
@@ -701,8 +737,7 @@ class FakeGrbl:
             self.startup_lines[int(rest[1])] = rest[3:]
             return 0
         if rest == "SLP":
-            self._write_line("[MSG:Sleeping]")
-            self.state = "Sleep"
+            self._flags.add("sleep")  # EXEC_SLEEP: the line is answered first, the sleep follows
             return 0
         match = _NUMBER_SETTING.match(rest)
         if match is None or int(match.group(1)) not in DEFAULTS:
@@ -783,10 +818,10 @@ class FakeGrbl:
             values[letter] = value
         if jog and "F" not in values:
             return 22
+        if any(values.get(letter, 0.0) < 0 for letter in "FNPST"):
+            return 4  # checked as the words are read, before anything else (gcode.c)
         if "N" in values and not 1 <= values["N"] <= 9999999:
             return 27
-        if "F" in values and values["F"] < 0:
-            return 4
         scale = MM_PER_INCH if units_inch else 1.0
         axes = {i: values[a] * scale for i, a in enumerate("XYZ") if a in values}
         allowed = {"N", "F", "S", "T"} | (set("XYZ") if axes else set())
@@ -829,7 +864,12 @@ class FakeGrbl:
                 gc.g92[i] = gc.position[i] - self._coords[coord_select][i] - v
             self._wco_counter = 0
             return 0
-        if non_modal == 4 or not axes:
+        if non_modal == 4:
+            if self.state == "Check":
+                return 0
+            self._dwell = [values["P"], None]
+            return None  # answered by _dwell_step
+        if not axes:
             return 0
         offset = [self._coords[coord_select][i] + gc.g92[i] for i in range(N_AXIS)]
         target = list(gc.position)
@@ -997,6 +1037,7 @@ class FakeGrbl:
                 self._homing = None
                 self.state = "Idle"
                 self._gc.position = self._reported_mpos()
+                self._run_startup_lines()  # system.c: after a completed $H, before its 'ok'
                 self._write_line("ok")
                 return
             h["axes"], h["phase"] = h["cycles"].pop(0), -1

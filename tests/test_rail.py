@@ -168,6 +168,54 @@ def test_fake_feed_hold_and_reset_in_motion_as_the_firmware(make_fake):
     link.close()
 
 
+def test_fake_dwell_homing_and_sleep_as_the_firmware(make_fake):
+    """G4 answers once the buffered motion has run and the dwell has passed (motion_control.c mc_dwell:
+    protocol_buffer_synchronize, then delay_sec); a completed $H runs the startup lines before its 'ok'
+    (system.c); $SLP is answered, then the sleep holds the main program until a reset, which ends in Alarm
+    (protocol.c)."""
+    fake = make_fake(time_scale=2.0)
+    fake.startup_lines[0] = "G21G90"
+    link = serial.Serial(fake.port, 115200, timeout=0.3)
+
+    def say(data: bytes, wait: float = 0.15) -> list[str]:
+        link.write(data)
+        time.sleep(wait)
+        return [ln for ln in link.read(4096).decode().split("\r\n") if ln]
+
+    arrived = []
+    fake.when(lambda f: not f.moving and f.machine_position()[0] == -50.0,
+              lambda f: arrived.append((f.now(), f.written.count(b"ok"))))
+    assert say(b"G0 X-50\nG4 P1\n", 0.05) == ["ok"]  # the motion line is buffered at once, the dwell waits
+    assert fake.wait_for(lambda f: f.written.count(b"ok") == 2)
+    done = fake.now()
+    assert arrived[0][1] == 1 and done - arrived[0][0] >= 1.0  # answered after the move and then one second
+    assert say(b"G4 P-1\n") == ["ok", "error:4"]  # the dwell's 'ok'; P, like F, N, S and T, is never negative
+
+    fake.settings[22] = 1
+    assert say(b"$H\n", 1.5) == [">G21G90:ok", "ok"]
+    assert say(b"$SLP\n") == ["ok", "[MSG:Sleeping]"]
+    assert say(b"G0 X-20\n") == [] and not fake.moving  # held with the main program
+    assert say(b"?")[0].startswith("<Sleep|")
+    assert say(b"\x18") == ["Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
+    assert say(b"?")[0].startswith("<Alarm|MPos:-1.000,") and fake.lines[-1] == "$SLP"  # the G0 was dropped
+    link.close()
+
+
+def test_fake_drops_a_cycle_start_flagged_with_a_hold(make_fake):
+    """protocol.c: a cycle start set in the same pass as a feed hold is dropped ("auto-cycle-start doesn't
+    resume a hold without an explicit user-input"): a '!' meeting the auto cycle start of a line just taken
+    leaves the move queued in Hold:0 until '~'."""
+    fake = make_fake()
+    fake.when(lambda f: "cycle_start" in f._flags and f._planner, lambda f: f._flags.add("feed_hold"))
+    link = serial.Serial(fake.port, 115200, timeout=0.3)
+    link.write(b"G0 X-50\n")
+    assert fake.wait_for(lambda f: f.status() == "Hold:0") and settled(fake)
+    assert fake.machine_position()[0] == 0.0
+    link.write(b"~")
+    assert fake.wait_for(lambda f: f.status() == "Idle" and f.machine_position()[0] == -50.0)
+    link.close()
+
+
 # ---------------------------------------------------------------------------------------------- connecting
 
 
