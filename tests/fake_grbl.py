@@ -22,7 +22,8 @@ What it does as the firmware does:
   rounded to whole steps (``$100..``), positions reported from the step count.
 - ``!`` decelerates to Hold:1 then Hold:0; ``~`` resumes; 0x18 in motion, in Hold:1 or during homing
   throws ALARM:3 (ALARM:6 when homing), after a completed hold it keeps the position (mc_reset).
-- Hard limits (``$21``) stop dead on a switch: ALARM:1. Soft limits (``$20``) check every G-code target
+- Hard limits (``$21``) are a pin-change interrupt: a switch closing or opening, in motion or standing (not in
+  Alarm, not while homing), stops everything dead: ALARM:1. Soft limits (``$20``) check every G-code target
   against the machine travel [-$130, 0]: ALARM:2 (a feed hold first when in motion). Both are critical:
   ``[MSG:Reset to continue]``, then nothing but Ctrl-X is answered, not even ``?``. A reset swallowed by
   the 500 ms delay that follows an ALARM message is cleared before that loop starts (protocol.c), so the
@@ -340,6 +341,7 @@ class FakeGrbl:
     def _power_up(self) -> None:
         """Power-up: position zeroed where the carriage stands; HOMING_INIT_LOCK with $22=1."""
         self._mpos = [0.0] * N_AXIS
+        self._pins = frozenset(self._switches())  # as the pins read at boot: no change yet
         self.state = "Alarm" if self.settings[22] else "Idle"
         self._boot_alarm = bool(self.settings[22])
         self._reinit()
@@ -433,6 +435,7 @@ class FakeGrbl:
                     if trigger[0](self):
                         self._triggers.remove(trigger)
                         trigger[1](self)
+                self._limit_pin_change()  # a carriage pushed by hand
                 if self._booting_until is not None:
                     if now >= self._booting_until:
                         self._booting_until = None
@@ -988,11 +991,19 @@ class FakeGrbl:
                 self._block, self._v = None, 0.0
                 return True
             return False
-        if pressed and self.settings[21] and self.state != "Alarm" and not self._exec_alarm:
-            self._mc_reset()  # the limit pin interrupt: kill everything,
-            self._exec_alarm = 1  # then the hard-limit alarm
-            return True
-        return False
+        self._limit_pin_change()
+        return self._block is None
+
+    def _limit_pin_change(self) -> None:
+        """The limit pin-change interrupt (limits.c): with hard limits on, any change of a switch, closing or
+        opening, moving or standing, kills everything and throws ALARM:1; ignored in Alarm and while homing
+        (limits_disable() for the cycle)."""
+        pins = frozenset(self._switches())
+        changed, self._pins = pins != self._pins, pins
+        if (changed and self.settings[21] and self.state != "Alarm" and self._homing is None
+                and not self._exec_alarm and self._booting_until is None):
+            self._mc_reset()
+            self._exec_alarm = 1
 
     def _switches(self) -> dict[int, bool]:
         pressed = {}

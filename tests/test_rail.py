@@ -707,6 +707,23 @@ def test_hard_limit_mid_move_is_reset_and_homing_needed(make_fake, connect):
     assert fake.crashes == 0
 
 
+def test_a_switch_closed_while_the_rail_stands_is_reported_at_the_next_move(make_fake, connect):
+    """Hard limits are a pin-change interrupt (limits.c): any change of a limit pin outside Alarm, the carriage
+    standing too, kills everything and throws the critical ALARM:1; here the carriage is pushed by hand onto
+    the + switch between two moves. The next move reports the alarm and the switch and sends no motion."""
+    fake = make_fake({21: 1, 22: 1}, start=(-20.0, -50.0, -50.0))
+    rail = connect(fake)
+    assert rail.home().x == -1.0 and rail.move(x=-30).x == -30.0
+    fake.push(0, 30.5)  # physically 0.5 mm past the + switch's trigger point
+    assert fake.wait_for(lambda f: f.alarms() == [1])
+    sent = len(fake.lines)
+    with pytest.raises(RailAlarm, match=r"ALARM:1 \(hard limit triggered\).*homing needed.*switch X still pressed"):
+        rail.move(x=-50)
+    assert not [line for line in fake.lines[sent:] if line.startswith("G")] and fake.resets() == ["Alarm"]
+    fake.push(0, -10.0)  # freed: in Alarm the pin change is ignored
+    assert fake.alarms() == [1] and rail.home().x == -1.0
+
+
 def test_travel_keeps_off_the_homing_switch_when_hard_limits_are_on(make_fake, connect):
     """Homing leaves machine 0 where the + switch closed and the carriage at -$27 (grbl limits.c); a move
     back to 0 closes the switch again, which with hard limits on is ALARM:1 and a lost position. The
