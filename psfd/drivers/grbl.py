@@ -716,9 +716,10 @@ class GrblRail:
     def _check_startup_lines(self) -> None:
         """Refuse a controller whose startup lines (``$N0``, ``$N1``) move the carriage or shift its coordinates.
 
-        GRBL runs them after every reset that ends Idle (protocol.c, system_execute_startup), and psfd resets
-        the controller after every stop: a line with an axis word (G0 X10, G92 X0, G10 L20 X0) or a move to a
-        stored position (G28, G30) would move the carriage unattended, or shift every position after it.
+        GRBL runs them after every reset that ends Idle (protocol.c, system_execute_startup) and after every
+        completed ``$H`` (system.c), and psfd resets the controller after every stop: a line with an axis word
+        (G0 X10, G92 X0, G10 L20 X0) or a move to a stored position (G28, G30) would move the carriage
+        unattended, or shift every position after it.
         """
         try:
             lines = self._command("$N", self.timeout)
