@@ -9,8 +9,9 @@ What it does as the firmware does:
   HOMING_INIT_LOCK) it starts in Alarm and prints ``[MSG:'$H'|'$X' to unlock]`` after the banner.
 - The serial ISR picks realtime bytes out of the stream at once (``?``, ``!``, ``~``, 0x18, 0x84 safety
   door, 0x85 jog cancel, the 0x90.. overrides); other bytes go to the RX ring (128 bytes, RX_BUFFER_SIZE)
-  and are dropped when it is full. Lines are filtered as protocol.c does (spaces, comments, case, 80
-  characters at most: error:11).
+  and are dropped when it is full; a line waiting in mc_line() for room in the planner (15 blocks, the
+  running one included) has been read out of the ring. Lines are filtered as protocol.c does (spaces,
+  comments, case, 80 characters at most: error:11).
 - The main loop runs realtime flags at its check points: several ``?`` before a report give one report;
   no report during the homing cycle or in the critical-alarm loop; lines wait while a hold, a door or the
   sleep (``$SLP``, answered first) suspends the main program, and while the 15-block planner is full. A cycle
@@ -50,8 +51,10 @@ delay), ``wake_on_line`` (a board that says nothing, not even to ``?``, until it
 ``time_scale`` (simulated seconds per wall second).
 
 Simplifications: each planner block starts and ends at rest (no junction speeds: slower than the
-firmware, never faster); arcs, probing, G28/G30, inverse time, parking and spindle/coolant outputs are not
-modelled (error:20).
+firmware, never faster); bytes arrive as fast as the pty delivers them, not at 115200 baud, so a burst of
+more than 128 bytes loses characters even where the firmware would have drained it into an empty planner
+(harsher, never more forgiving); arcs, probing, G28/G30, inverse time, parking and spindle/coolant outputs
+are not modelled (error:20).
 """
 
 from __future__ import annotations
@@ -90,7 +93,7 @@ BUILD_INFO = {
 }
 
 N_AXIS = 3
-PLANNER_BLOCKS = 15  # BLOCK_BUFFER_SIZE 16, one kept free
+PLANNER_BLOCKS = 15  # BLOCK_BUFFER_SIZE 16, one kept free; the running block is one of them
 LINE_BUFFER = 80
 MM_PER_INCH = 25.4
 HOMING_SEARCH_SCALAR = 1.5
@@ -352,6 +355,7 @@ class FakeGrbl:
         self._flags: set[str] = set()
         self._exec_alarm = 0
         self._rx = bytearray()
+        self._held = 0  # bytes at the head of _rx already read into the line waiting in mc_line() (not in the ring)
         self._planner: list[Block] = []
         self._block: Block | None = None
         self._v = 0.0
@@ -494,7 +498,7 @@ class FakeGrbl:
                 self._flags.add("motion_cancel")
         elif byte > 0x7F:
             pass  # overrides are accepted but not modelled; unknown extended bytes are dropped
-        elif len(self._rx) < self.rx_size:
+        elif len(self._rx) - self._held < self.rx_size:
             self._rx.append(byte)
 
     def _write_line(self, text: str) -> None:
@@ -628,8 +632,10 @@ class FakeGrbl:
             end = min(ends)
             raw = bytes(self._rx[:end])
             line, overflow = self._filter(raw)
-            if line and not line.startswith("$") and len(self._planner) >= PLANNER_BLOCKS:
-                return  # mc_line() waits for room in the planner; the line stays in the RX buffer
+            if line and not line.startswith("$") and self._queued() >= PLANNER_BLOCKS:
+                self._held = end + 1  # mc_line() waits for room in the planner with the line read out of the ring
+                return
+            self._held = 0
             del self._rx[: end + 1]
             self.lines.append(raw.decode("ascii", "replace").strip())
             self._answer(line, overflow, raw)
@@ -935,6 +941,10 @@ class FakeGrbl:
         rate = rapid_rate if rapid else min(feed, rapid_rate)
         self._planner.append(Block(list(start), list(target), length, unit, rate / 60.0, accel, homing))
 
+    def _queued(self) -> int:
+        """Planner blocks in use, the running one included (plan_get_block_buffer_available)."""
+        return len(self._planner) + (self._block is not None)
+
     def _spmm(self, axis: int) -> float:
         return float(self.settings[100 + axis])
 
@@ -1128,7 +1138,7 @@ class FakeGrbl:
         else:
             fields.append("WPos:" + self._axis_text([p - w for p, w in zip(position, wco)]))
         if mask & 2:
-            fields.append(f"Bf:{PLANNER_BLOCKS - len(self._planner)},{self.rx_size - len(self._rx)}")
+            fields.append(f"Bf:{PLANNER_BLOCKS - self._queued()},{self.rx_size - len(self._rx) + self._held}")
         fields.append(f"FS:{self._rate_text(self._v * 60.0)},0")
         pins = "".join(a for i, a in enumerate("XYZ") if i in self._switches()) + ("D" if self._door_ajar else "")
         if pins:

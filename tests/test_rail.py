@@ -201,6 +201,26 @@ def test_fake_dwell_homing_and_sleep_as_the_firmware(make_fake):
     link.close()
 
 
+def test_fake_planner_and_serial_buffer_as_the_firmware(make_fake):
+    """planner.c: 16 blocks, one kept free, the running block among them: 15 motion lines are acknowledged and
+    the 16th waits in mc_line(), already read out of the 128-byte RX ring (protocol.c reads it character by
+    character), so the ring has room for the 128 bytes after it; what comes beyond is lost (serial.c)."""
+    fake = make_fake({10: 3, 110: 60})  # 1 mm/s: nothing completes meanwhile
+    link = serial.Serial(fake.port, 115200, timeout=0.3)
+    for n in range(1, 16):
+        link.write(b"G1X-%dF60\n" % (5 * n))
+        assert fake.wait_for(lambda f: len(f.lines) == n)
+    link.write(b"G1X-80F60\n")  # the 16th
+    time.sleep(0.2)
+    assert link.read(4096).decode().split() == ["ok"] * 15
+    link.write(b"G1X-2F60\n" * 15)  # 135 bytes behind the waiting line: the last 7 are lost
+    time.sleep(0.2)
+    link.write(b"?")
+    time.sleep(0.2)
+    assert re.search(r"\|Bf:0,0\|", link.read(4096).decode())
+    link.close()
+
+
 def test_fake_drops_a_cycle_start_flagged_with_a_hold(make_fake):
     """protocol.c: a cycle start set in the same pass as a feed hold is dropped ("auto-cycle-start doesn't
     resume a hold without an explicit user-input"): a '!' meeting the auto cycle start of a line just taken
