@@ -672,6 +672,46 @@ def test_reset_button_mid_move_is_reported_as_its_alarm(make_fake, connect):
     assert rail.info().state == "Alarm"  # the state the alarm set survives the abort (main.c prior_state)
 
 
+@pytest.mark.parametrize("homing", [0, 1])
+def test_a_controller_restarted_between_moves_is_refused_not_followed(make_fake, connect, homing):
+    """A power blip of the controller between two moves (a brown-out as the motors start, a loose supply): it
+    boots again, prints its banner unasked and counts from machine 0 where the carriage stands (main.c), in
+    Alarm only when homing is enabled (HOMING_INIT_LOCK). The next move is refused, not sent 30 mm off."""
+    fake = make_fake({22: homing}, boot_time=0.3)
+    rail = connect(fake)
+    if homing:
+        rail.unlock()
+    assert rail.move(x=-30).x == -30.0
+    fake.power_cycle()
+    assert fake.wait_for(lambda f: f.written.count(b"Grbl 1.1h") == 2)  # booted again
+    sent = len(fake.lines)
+    lost = r"controller on .* restarted \(.*reads X=0, .*\(was at X=-30\); the position is lost"
+    with pytest.raises(RailError, match=lost):
+        rail.move(x=-60)
+    assert fake.lines[sent:] == [] and fake.machine_position()[0] == 0.0
+
+
+def test_a_controller_restarted_mid_move_says_so(make_fake, connect):
+    """The same blip mid-move: the carriage stops dead with the motors; the '?' asked while it booted is lost
+    with the restart. The error says what happened, not that the controller stopped answering."""
+    fake = make_fake(SLOW, boot_time=0.3)
+    fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.power_cycle)
+    rail = connect(fake)
+    with pytest.raises(RailError, match=r"controller on .* restarted during the move .*reads X=0.*position is lost"):
+        rail.move(x=-150)
+    assert settled(fake) and fake.machine_position()[0] == 0.0 and fake.resets() == []
+
+
+def test_the_reset_button_pressed_while_standing_keeps_the_position(make_fake, connect):
+    """A reset while nothing moves keeps the position (mc_reset kills nothing then): no false restart."""
+    fake = make_fake()
+    rail = connect(fake)
+    assert rail.move(x=-30).x == -30.0
+    fake.press_reset()
+    assert fake.wait_for(lambda f: f.written.count(b"Grbl 1.1h") == 2)
+    assert rail.move(x=-40).x == -40.0 and fake.alarms() == [] and fake.resets() == ["Idle"]
+
+
 def test_safety_door_is_reported_at_once(make_fake, connect):
     fake = make_fake(SLOW)
     fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.open_door)

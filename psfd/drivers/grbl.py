@@ -29,6 +29,9 @@ narrowed by the ``limits`` the rig configures.
 
 Ctrl-C, SIGTERM (which the CLI raises as an exception), a deadline, an error or a lost answer during a move
 end in `_halt`: feed hold, wait for the carriage to stand, reset, and the error says where it stopped.
+A banner no reset of ours asked for is a controller that restarted: in a move, or reading another machine
+position than before (a power blip counts again from 0 where the carriage stands), the position is lost and
+the move is refused; its reset button pressed while the carriage stands changes nothing.
 A process killed outright (SIGKILL, the OOM killer) runs nothing: before the first line that can move the
 carriage the driver starts a guard process (`psfd.drivers.grbl_guard`, standard library only, in its own
 session, SIGINT/SIGTERM/SIGHUP/SIGQUIT/SIGABRT ignored) holding the same port. It watches this process through
@@ -496,6 +499,8 @@ class GrblRail:
         self._buffer = b""
         self._moving = False
         self._alarmed = False
+        self._restarted = False  # a banner came that no reset of ours asked for
+        self._last: GrblStatus | None = None  # the latest status report
         self._serial: serial.Serial | None = None
         self._guard: subprocess.Popen | None = None
         self._guard_owner = os.getpid()
@@ -1019,10 +1024,38 @@ class GrblRail:
                                 + (" (the controller stopped answering)" if self._moving else ""))
             if reply.startswith("<"):
                 status, self._wco = parse_status(reply, self._wco, self._scale)
+                if self._restarted:
+                    self._check_restart(status)
+                self._last = status
                 return status
             if reply.startswith("ALARM:") and not self._alarmed:
                 self._moving = False
                 self._on_alarm(_code(reply), "")
+            if BANNER.match(reply):
+                self.banner, self._restarted = reply, True
+                self._write(STATUS)  # the '?' asked before went with the restart (main.c clears the realtime flags)
+                deadline = time.monotonic() + seconds
+
+    def _check_restart(self, status: GrblStatus) -> None:
+        """After a banner no reset of ours asked for: refuse to go on where the position is lost.
+
+        A controller that restarts by itself (a power blip, a brown-out as the motors start) counts again from
+        machine position 0 wherever the carriage stands (main.c), in Alarm only with homing enabled. Its reset
+        button while nothing moves keeps the position (mc_reset kills nothing then; in motion it throws
+        ALARM:3, handled as an alarm): the machine position it reads then is the one it read before.
+        """
+        self._restarted = False
+        before, moving = self._last, self._moving
+        if not moving and (before is None or all(abs(a - b) <= 1e-3 for a, b in zip(status.machine, before.machine))):
+            log.warning("rail %s: the controller was reset while standing; its position is unchanged", self.port)
+            return
+        self._moving = False
+        advice = ("homing needed: `psfd rail home`" if self._homing_enabled else
+                  "move the carriage by hand to the + end and reset the controller")
+        was = f" (was at {self._where(before)})" if before is not None else ""
+        raise RailError(f"the controller on {self.port} restarted{' during the move' if moving else ''} (its banner "
+                        f"came unasked: a power blip, a brown-out): it reads {self._where(status)}, its power-up "
+                        f"position{was}; the position is lost: {advice}")
 
     def _reset(self, attempts: int = 2) -> None:
         """Ctrl-X and wait for the banner (twice by default: a reset can be lost in an alarm's delay)."""
@@ -1053,6 +1086,7 @@ class GrblRail:
                 return
             if BANNER.match(line):
                 self.banner = line
+                self._restarted = self._restarted or watch  # unasked: the next status report tells what it cost
             elif watch and line.startswith("ALARM:"):
                 self._moving = False
                 self._on_alarm(_code(line), "")
