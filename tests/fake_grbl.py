@@ -9,24 +9,30 @@ What it does as the firmware does:
   HOMING_INIT_LOCK) it starts in Alarm and prints ``[MSG:'$H'|'$X' to unlock]`` after the banner.
 - The serial ISR picks realtime bytes out of the stream at once (``?``, ``!``, ``~``, 0x18, 0x84 safety
   door, 0x85 jog cancel, the 0x90.. overrides); other bytes go to the RX ring (128 bytes, RX_BUFFER_SIZE)
-  and are dropped when it is full. Lines are filtered as protocol.c does (spaces, comments, case, 80
-  characters at most: error:11).
+  and are dropped when it is full; a line waiting in mc_line() for room in the planner (15 blocks, the
+  running one included) has been read out of the ring. Lines are filtered as protocol.c does (spaces,
+  comments, case, 80 characters at most: error:11).
 - The main loop runs realtime flags at its check points: several ``?`` before a report give one report;
-  no report during the homing cycle or in the critical-alarm loop; lines wait while a hold or door suspends
-  the main program, and while the 15-block planner is full.
+  no report during the homing cycle or in the critical-alarm loop; lines wait while a hold, a door or the
+  sleep (``$SLP``, answered first) suspends the main program, and while the 15-block planner is full. A cycle
+  start flagged together with a hold is dropped.
+- ``ok`` comes when a motion line is planned, not run; ``G4 P<s>`` is answered once the planner has run empty
+  and the dwell has passed (mc_dwell), and a reset during it still answers it before the banner.
 - Motion runs in (scaled) real time: one trapezoidal profile per planner block, rate and acceleration
   limited per axis by ``$110..`` and ``$120..`` (planner.c's limit_value_by_axis_maximum), targets
   rounded to whole steps (``$100..``), positions reported from the step count.
 - ``!`` decelerates to Hold:1 then Hold:0; ``~`` resumes; 0x18 in motion, in Hold:1 or during homing
   throws ALARM:3 (ALARM:6 when homing), after a completed hold it keeps the position (mc_reset).
-- Hard limits (``$21``) stop dead on a switch: ALARM:1. Soft limits (``$20``) check every G-code target
+- Hard limits (``$21``) are a pin-change interrupt: a switch closing or opening, in motion or standing (not in
+  Alarm, not while homing), stops everything dead: ALARM:1. Soft limits (``$20``) check every G-code target
   against the machine travel [-$130, 0]: ALARM:2 (a feed hold first when in motion). Both are critical:
   ``[MSG:Reset to continue]``, then nothing but Ctrl-X is answered, not even ``?``. A reset swallowed by
   the 500 ms delay that follows an ALARM message is cleared before that loop starts (protocol.c), so the
   host must reset after the message.
 - ``$H``: cycle 0 (Z) then cycle 1 (X, Y), each a search at ``$25`` over 1.5 x ``$13x``, a pull-off, a
   locate at ``$24`` over 5 x ``$27`` and a final pull-off; homes to the + end unless ``$23`` says otherwise;
-  machine position then -``$27`` (all machine space negative). ALARM:8/9 on failure, then a self reset.
+  machine position then -``$27`` (all machine space negative), and the startup lines run before its ``ok``.
+  ALARM:8/9 on failure, then a self reset.
 - Status reports in the 1.1 format: ``<State|MPos:..|Bf:..|FS:..|Pn:..|WCO:..|Ov:..>``, MPos or WPos and Bf
   per ``$10``, WCO in the first report after a reset and then every 10 (idle) or 30 (busy) reports, Ov on the
   next but one; ``$13=1`` reports inches (4 decimals) and in/min.
@@ -45,8 +51,10 @@ delay), ``wake_on_line`` (a board that says nothing, not even to ``?``, until it
 ``time_scale`` (simulated seconds per wall second).
 
 Simplifications: each planner block starts and ends at rest (no junction speeds: slower than the
-firmware, never faster); arcs, probing, G28/G30, inverse time, parking and spindle/coolant outputs are not
-modelled (error:20).
+firmware, never faster); bytes arrive as fast as the pty delivers them, not at 115200 baud, so a burst of
+more than 128 bytes loses characters even where the firmware would have drained it into an empty planner
+(harsher, never more forgiving); arcs, probing, G28/G30, inverse time, parking and spindle/coolant outputs
+are not modelled (error:20).
 """
 
 from __future__ import annotations
@@ -85,7 +93,7 @@ BUILD_INFO = {
 }
 
 N_AXIS = 3
-PLANNER_BLOCKS = 15  # BLOCK_BUFFER_SIZE 16, one kept free
+PLANNER_BLOCKS = 15  # BLOCK_BUFFER_SIZE 16, one kept free; the running block is one of them
 LINE_BUFFER = 80
 MM_PER_INCH = 25.4
 HOMING_SEARCH_SCALAR = 1.5
@@ -261,6 +269,13 @@ class FakeGrbl:
         with self._lock:
             self._flags.add("feed_hold")
 
+    def press_reset(self) -> None:
+        """The operator presses the controller's reset (abort) button: the pin interrupt calls mc_reset(), as
+        Ctrl-X does (system.c, CONTROL_INT_vect)."""
+        with self._lock:
+            self.events.append(("reset", self._state_name()))
+            self._mc_reset()
+
     def open_door(self) -> None:
         with self._lock:
             self._door_ajar = True
@@ -329,6 +344,7 @@ class FakeGrbl:
     def _power_up(self) -> None:
         """Power-up: position zeroed where the carriage stands; HOMING_INIT_LOCK with $22=1."""
         self._mpos = [0.0] * N_AXIS
+        self._pins = frozenset(self._switches())  # as the pins read at boot: no change yet
         self.state = "Alarm" if self.settings[22] else "Idle"
         self._boot_alarm = bool(self.settings[22])
         self._reinit()
@@ -339,6 +355,7 @@ class FakeGrbl:
         self._flags: set[str] = set()
         self._exec_alarm = 0
         self._rx = bytearray()
+        self._held = 0  # bytes at the head of _rx already read into the line waiting in mc_line() (not in the ring)
         self._planner: list[Block] = []
         self._block: Block | None = None
         self._v = 0.0
@@ -348,6 +365,7 @@ class FakeGrbl:
         self._deaf = False
         self._soft_limit = False
         self._answer_after_reset = False
+        self._dwell: list | None = None  # [seconds, end]: a G4 waiting for the buffer, then for its time
         self._busy_until = 0.0
         self._after_busy = None
         self._wco_counter = 0
@@ -375,10 +393,14 @@ class FakeGrbl:
             self.state = "Idle"
             if self._door_ajar:
                 self._flags.add("door")
-            for text in filter(None, self.startup_lines):  # system_execute_startup(): each echoed with its answer
-                code = self._gcode(text)
-                self._write_line(f">{text}:" + ("ok" if not code else f"error:{code}"))
+            self._run_startup_lines()
         self._boot_alarm = False
+
+    def _run_startup_lines(self) -> None:
+        """system_execute_startup(): $N0 and $N1, each echoed with its answer."""
+        for text in filter(None, self.startup_lines):
+            code = self._gcode(text)
+            self._write_line(f">{text}:" + ("ok" if not code else f"error:{code}"))
 
     def _reboot(self) -> None:
         """The MCU itself resets (DTR pulse on an Arduino): motors stop dead, position restarts at 0."""
@@ -417,6 +439,7 @@ class FakeGrbl:
                     if trigger[0](self):
                         self._triggers.remove(trigger)
                         trigger[1](self)
+                self._limit_pin_change()  # a carriage pushed by hand
                 if self._booting_until is not None:
                     if now >= self._booting_until:
                         self._booting_until = None
@@ -475,7 +498,7 @@ class FakeGrbl:
                 self._flags.add("motion_cancel")
         elif byte > 0x7F:
             pass  # overrides are accepted but not modelled; unknown extended bytes are dropped
-        elif len(self._rx) < self.rx_size:
+        elif len(self._rx) - self._held < self.rx_size:
             self._rx.append(byte)
 
     def _write_line(self, text: str) -> None:
@@ -503,9 +526,23 @@ class FakeGrbl:
             return
         if self._suspend or self._soft_limit or self._homing is not None:
             return  # protocol_exec_rt_suspend() holds the main program
-        self._process_lines()
+        if self._dwell is not None:
+            self._dwell_step()  # mc_dwell() holds the main program: no line is read meanwhile
+        else:
+            self._process_lines()
         if self._homing is None and self._planner and self.state == "Idle":
             self._flags.add("cycle_start")  # protocol_auto_cycle_start()
+
+    def _dwell_step(self) -> None:
+        """mc_dwell(): protocol_buffer_synchronize() until the planner is empty and the cycle over, then
+        delay_sec(); the G4 line's 'ok' comes after both."""
+        if self._planner or self._block is not None or self.state == "Run":
+            return
+        if self._dwell[1] is None:
+            self._dwell[1] = self.now() + self._dwell[0]
+        elif self.now() >= self._dwell[1]:
+            self._dwell = None
+            self._write_line("ok")
 
     def _exec_rt_system(self) -> bool:
         """protocol_exec_rt_system(); False when the main program must not go on in this pass."""
@@ -527,12 +564,15 @@ class FakeGrbl:
             return False
         flags = self._flags
         if "reset" in flags:
+            if self._dwell is not None:
+                self._write_line("ok")  # mc_dwell() returns on the abort and gc_execute_line() answers the G4
             self._reinit()
             return False
         if "status" in flags:
             flags.discard("status")
             self._write_line(self._status_report())
-        if flags & {"motion_cancel", "feed_hold", "door"}:
+        held = bool(flags & {"motion_cancel", "feed_hold", "door"})
+        if held:
             if self.state not in ("Alarm", "Check"):
                 if self.state in ("Run", "Jog") and not self._suspend & {"jog_cancel"}:
                     self._hold = True
@@ -550,17 +590,15 @@ class FakeGrbl:
             flags -= {"motion_cancel", "feed_hold", "door"}
         if self.state == "Door" and not self._door_ajar and "hold_complete" in self._suspend:
             self._suspend.discard("door_ajar")  # the suspend loop sees the door closed
+        if "sleep" in flags:  # only from Idle or Alarm: nothing to decelerate, the sleep starts at once
+            flags.discard("sleep")
+            self.state = "Sleep"
+            self._suspend = {"hold_complete", "sleep"}
+            self._write_line("[MSG:Sleeping]")
         if "cycle_start" in flags:
             flags.discard("cycle_start")
-            if self.state == "Door" and "door_ajar" not in self._suspend and "hold_complete" in self._suspend:
-                self.state = "Hold"  # door closed: resume like a completed hold
-            if self.state == "Idle" or (self.state == "Hold" and "hold_complete" in self._suspend):
-                self._suspend = set()
-                if self._planner:
-                    self.state = "Run"
-                    self._start_block()
-                else:
-                    self.state = "Idle"
+            if not held:  # a cycle start flagged together with a hold is dropped: no resume without the user
+                self._cycle_start()
         if "cycle_stop" in flags:
             flags.discard("cycle_stop")
             if self.state in ("Hold", "Door") and not self._soft_limit and "jog_cancel" not in self._suspend:
@@ -575,6 +613,17 @@ class FakeGrbl:
                 self.state = "Idle"
         return True
 
+    def _cycle_start(self) -> None:
+        if self.state == "Door" and "door_ajar" not in self._suspend and "hold_complete" in self._suspend:
+            self.state = "Hold"  # door closed: resume like a completed hold
+        if self.state == "Idle" or (self.state == "Hold" and "hold_complete" in self._suspend):
+            self._suspend = set()
+            if self._planner:
+                self.state = "Run"
+                self._start_block()
+            else:
+                self.state = "Idle"
+
     def _process_lines(self) -> None:
         while True:
             ends = [i for i in (self._rx.find(b"\n"), self._rx.find(b"\r")) if i >= 0]
@@ -583,12 +632,15 @@ class FakeGrbl:
             end = min(ends)
             raw = bytes(self._rx[:end])
             line, overflow = self._filter(raw)
-            if line and not line.startswith("$") and len(self._planner) >= PLANNER_BLOCKS:
-                return  # mc_line() waits for room in the planner; the line stays in the RX buffer
+            if line and not line.startswith("$") and self._queued() >= PLANNER_BLOCKS:
+                self._held = end + 1  # mc_line() waits for room in the planner with the line read out of the ring
+                return
+            self._held = 0
             del self._rx[: end + 1]
             self.lines.append(raw.decode("ascii", "replace").strip())
             self._answer(line, overflow, raw)
-            if self._exec_alarm or self._after_busy or self._flags & {"reset"} or self._homing or self._soft_limit:
+            if (self._exec_alarm or self._after_busy or self._flags & {"reset", "sleep"} or self._homing
+                    or self._soft_limit or self._dwell is not None):
                 return
 
     @staticmethod
@@ -694,8 +746,7 @@ class FakeGrbl:
             self.startup_lines[int(rest[1])] = rest[3:]
             return 0
         if rest == "SLP":
-            self._write_line("[MSG:Sleeping]")
-            self.state = "Sleep"
+            self._flags.add("sleep")  # EXEC_SLEEP: the line is answered first, the sleep follows
             return 0
         match = _NUMBER_SETTING.match(rest)
         if match is None or int(match.group(1)) not in DEFAULTS:
@@ -776,10 +827,10 @@ class FakeGrbl:
             values[letter] = value
         if jog and "F" not in values:
             return 22
+        if any(values.get(letter, 0.0) < 0 for letter in "FNPST"):
+            return 4  # checked as the words are read, before anything else (gcode.c)
         if "N" in values and not 1 <= values["N"] <= 9999999:
             return 27
-        if "F" in values and values["F"] < 0:
-            return 4
         scale = MM_PER_INCH if units_inch else 1.0
         axes = {i: values[a] * scale for i, a in enumerate("XYZ") if a in values}
         allowed = {"N", "F", "S", "T"} | (set("XYZ") if axes else set())
@@ -822,7 +873,12 @@ class FakeGrbl:
                 gc.g92[i] = gc.position[i] - self._coords[coord_select][i] - v
             self._wco_counter = 0
             return 0
-        if non_modal == 4 or not axes:
+        if non_modal == 4:
+            if self.state == "Check":
+                return 0
+            self._dwell = [values["P"], None]
+            return None  # answered by _dwell_step
+        if not axes:
             return 0
         offset = [self._coords[coord_select][i] + gc.g92[i] for i in range(N_AXIS)]
         target = list(gc.position)
@@ -885,6 +941,10 @@ class FakeGrbl:
         rate = rapid_rate if rapid else min(feed, rapid_rate)
         self._planner.append(Block(list(start), list(target), length, unit, rate / 60.0, accel, homing))
 
+    def _queued(self) -> int:
+        """Planner blocks in use, the running one included (plan_get_block_buffer_available)."""
+        return len(self._planner) + (self._block is not None)
+
     def _spmm(self, axis: int) -> float:
         return float(self.settings[100 + axis])
 
@@ -941,11 +1001,19 @@ class FakeGrbl:
                 self._block, self._v = None, 0.0
                 return True
             return False
-        if pressed and self.settings[21] and self.state != "Alarm" and not self._exec_alarm:
-            self._mc_reset()  # the limit pin interrupt: kill everything,
-            self._exec_alarm = 1  # then the hard-limit alarm
-            return True
-        return False
+        self._limit_pin_change()
+        return self._block is None
+
+    def _limit_pin_change(self) -> None:
+        """The limit pin-change interrupt (limits.c): with hard limits on, any change of a switch, closing or
+        opening, moving or standing, kills everything and throws ALARM:1; ignored in Alarm and while homing
+        (limits_disable() for the cycle)."""
+        pins = frozenset(self._switches())
+        changed, self._pins = pins != self._pins, pins
+        if (changed and self.settings[21] and self.state != "Alarm" and self._homing is None
+                and not self._exec_alarm and self._booting_until is None):
+            self._mc_reset()
+            self._exec_alarm = 1
 
     def _switches(self) -> dict[int, bool]:
         pressed = {}
@@ -990,6 +1058,7 @@ class FakeGrbl:
                 self._homing = None
                 self.state = "Idle"
                 self._gc.position = self._reported_mpos()
+                self._run_startup_lines()  # system.c: after a completed $H, before its 'ok'
                 self._write_line("ok")
                 return
             h["axes"], h["phase"] = h["cycles"].pop(0), -1
@@ -1069,7 +1138,7 @@ class FakeGrbl:
         else:
             fields.append("WPos:" + self._axis_text([p - w for p, w in zip(position, wco)]))
         if mask & 2:
-            fields.append(f"Bf:{PLANNER_BLOCKS - len(self._planner)},{self.rx_size - len(self._rx)}")
+            fields.append(f"Bf:{PLANNER_BLOCKS - self._queued()},{self.rx_size - len(self._rx) + self._held}")
         fields.append(f"FS:{self._rate_text(self._v * 60.0)},0")
         pins = "".join(a for i, a in enumerate("XYZ") if i in self._switches()) + ("D" if self._door_ajar else "")
         if pins:

@@ -22,6 +22,7 @@ from psfd.cli import main
 from psfd.drivers import open_rail
 from psfd.drivers.base import Position, Rail, RailInfo
 from psfd.drivers.grbl import GrblRail, PortLock, homing_time, move_time, parse_status
+from psfd.drivers.grbl_guard import watch
 from psfd.errors import RailAlarm, RailError
 
 # A bench rail that moves quickly (100 mm/s, 200 mm/s^2) and homes in about a second; homing off, as grbl ships.
@@ -167,6 +168,74 @@ def test_fake_feed_hold_and_reset_in_motion_as_the_firmware(make_fake):
     link.close()
 
 
+def test_fake_dwell_homing_and_sleep_as_the_firmware(make_fake):
+    """G4 answers once the buffered motion has run and the dwell has passed (motion_control.c mc_dwell:
+    protocol_buffer_synchronize, then delay_sec); a completed $H runs the startup lines before its 'ok'
+    (system.c); $SLP is answered, then the sleep holds the main program until a reset, which ends in Alarm
+    (protocol.c)."""
+    fake = make_fake(time_scale=2.0)
+    fake.startup_lines[0] = "G21G90"
+    link = serial.Serial(fake.port, 115200, timeout=0.3)
+
+    def say(data: bytes, wait: float = 0.15) -> list[str]:
+        link.write(data)
+        time.sleep(wait)
+        return [ln for ln in link.read(4096).decode().split("\r\n") if ln]
+
+    arrived = []
+    fake.when(lambda f: not f.moving and f.machine_position()[0] == -50.0,
+              lambda f: arrived.append((f.now(), f.written.count(b"ok"))))
+    assert say(b"G0 X-50\nG4 P1\n", 0.05) == ["ok"]  # the motion line is buffered at once, the dwell waits
+    assert fake.wait_for(lambda f: f.written.count(b"ok") == 2)
+    done = fake.now()
+    assert arrived[0][1] == 1 and done - arrived[0][0] >= 1.0  # answered after the move and then one second
+    assert say(b"G4 P-1\n") == ["ok", "error:4"]  # the dwell's 'ok'; P, like F, N, S and T, is never negative
+
+    fake.settings[22] = 1
+    assert say(b"$H\n", 1.5) == [">G21G90:ok", "ok"]
+    assert say(b"$SLP\n") == ["ok", "[MSG:Sleeping]"]
+    assert say(b"G0 X-20\n") == [] and not fake.moving  # held with the main program
+    assert say(b"?")[0].startswith("<Sleep|")
+    assert say(b"\x18") == ["Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
+    assert say(b"?")[0].startswith("<Alarm|MPos:-1.000,") and fake.lines[-1] == "$SLP"  # the G0 was dropped
+    link.close()
+
+
+def test_fake_planner_and_serial_buffer_as_the_firmware(make_fake):
+    """planner.c: 16 blocks, one kept free, the running block among them: 15 motion lines are acknowledged and
+    the 16th waits in mc_line(), already read out of the 128-byte RX ring (protocol.c reads it character by
+    character), so the ring has room for the 128 bytes after it; what comes beyond is lost (serial.c)."""
+    fake = make_fake({10: 3, 110: 60})  # 1 mm/s: nothing completes meanwhile
+    link = serial.Serial(fake.port, 115200, timeout=0.3)
+    for n in range(1, 16):
+        link.write(b"G1X-%dF60\n" % (5 * n))
+        assert fake.wait_for(lambda f: len(f.lines) == n)
+    link.write(b"G1X-80F60\n")  # the 16th
+    time.sleep(0.2)
+    assert link.read(4096).decode().split() == ["ok"] * 15
+    link.write(b"G1X-2F60\n" * 15)  # 135 bytes behind the waiting line: the last 7 are lost
+    time.sleep(0.2)
+    link.write(b"?")
+    time.sleep(0.2)
+    assert re.search(r"\|Bf:0,0\|", link.read(4096).decode())
+    link.close()
+
+
+def test_fake_drops_a_cycle_start_flagged_with_a_hold(make_fake):
+    """protocol.c: a cycle start set in the same pass as a feed hold is dropped ("auto-cycle-start doesn't
+    resume a hold without an explicit user-input"): a '!' meeting the auto cycle start of a line just taken
+    leaves the move queued in Hold:0 until '~'."""
+    fake = make_fake()
+    fake.when(lambda f: "cycle_start" in f._flags and f._planner, lambda f: f._flags.add("feed_hold"))
+    link = serial.Serial(fake.port, 115200, timeout=0.3)
+    link.write(b"G0 X-50\n")
+    assert fake.wait_for(lambda f: f.status() == "Hold:0") and settled(fake)
+    assert fake.machine_position()[0] == 0.0
+    link.write(b"~")
+    assert fake.wait_for(lambda f: f.status() == "Idle" and f.machine_position()[0] == -50.0)
+    link.close()
+
+
 # ---------------------------------------------------------------------------------------------- connecting
 
 
@@ -181,6 +250,24 @@ def test_a_startup_line_that_moves_the_carriage_is_refused_at_open(make_fake, co
     fake.startup_lines[1] = "G21G90"  # modes only: harmless, and run after the resets psfd sends
     rail = connect(fake)
     assert rail.move(x=-5).x == -5.0
+
+
+@pytest.mark.parametrize("mode, state, after", [("$C", "Check", "Idle"), ("$SLP", "Sleep", "Alarm")])
+def test_a_controller_left_in_check_mode_or_asleep_is_reset_at_once(make_fake, connect, mode, state, after):
+    """Check mode ($C) and sleep ($SLP) ignore a feed hold (protocol.c: no hold in STATE_CHECK_MODE; SLEEP is
+    kept from changing to HOLD) and nothing moves in them: the open resets at the first report after its feed
+    hold instead of waiting for a Hold:0 that never comes. Sleep comes back as Alarm (protocol_main_loop)."""
+    fake = make_fake()
+    link = serial.Serial(fake.port, 115200, timeout=0.2)
+    link.write(mode.encode() + b"\n")
+    assert fake.wait_for(lambda f: f.status() == state)
+    link.close()
+    rail = connect(fake)
+    sent = [byte for _, byte in fake.realtime]
+    hold, reset = sent.index(FEED_HOLD), sent.index(0x18)
+    assert sent[hold + 1:reset] == [ord("?")]  # one report after the feed hold, then the reset
+    assert fake.resets() == [state] and fake.alarms() == []
+    assert rail.info().state == after
 
 
 def test_info_gives_where_a_restarted_controller_reads_in_work_coordinates(make_fake, connect):
@@ -521,6 +608,23 @@ def test_sigkill_during_homing_is_stopped_by_the_guard(make_fake, connect):
     assert fake.physical_position()[0] < -60.0  # far from the switch it was searching for
 
 
+def test_guard_meeting_a_vanished_port_says_so_in_one_line(capsys):
+    """The owner dies and the USB cable is out (the pty's other side gone): the guard's first tty call fails with
+    termios.error, which is no OSError; it ends with its one-line message, not a traceback."""
+    master, slave = os.openpty()
+    os.close(master)
+    child = subprocess.Popen([sys.executable, "-c", ""])
+    owner = os.pidfd_open(child.pid)
+    child.wait()
+    try:
+        assert watch(slave, owner, 0.2, 0.5) == 0
+    finally:
+        os.close(slave)
+        os.close(owner)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the port failed" in err and "the carriage may still be moving" in err
+
+
 def test_reopen_does_not_reset_a_moving_controller(make_fake, connect):
     """The process and its guard both killed (systemd-oomd, a SIGKILL of the whole control group): the
     controller goes on with the move; the next open stops it."""
@@ -553,6 +657,59 @@ def test_operator_feed_hold_is_reported_at_once(make_fake, connect):
     assert time.monotonic() - held[0] < 4.0  # not waited out: the move had more than 6 s to go, its deadline 12 s
     assert settled(fake) and fake.status() == "Idle" and fake.alarms() == []
     assert rail.position().x == fake.machine_position()[0]
+
+
+def test_reset_button_mid_move_is_reported_as_its_alarm(make_fake, connect):
+    """The controller's own reset (abort) button mid-move: ALARM:3, then the 500 ms delay that follows an alarm
+    message, then the system abort (protocol.c), whose re-initialisation clears a '?' asked during the delay
+    (main.c clears sys_rt_exec_state). The alarm, not a lost status report, is what the operator is told."""
+    fake = make_fake(SLOW)
+    fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.press_reset)
+    rail = connect(fake)
+    with pytest.raises(RailAlarm, match=r"ALARM:3 \(reset while in motion\) .*at X=-2\d.*homing needed"):
+        rail.move(x=-150)
+    assert settled(fake) and fake.alarms() == [3]
+    assert rail.info().state == "Alarm"  # the state the alarm set survives the abort (main.c prior_state)
+
+
+@pytest.mark.parametrize("homing", [0, 1])
+def test_a_controller_restarted_between_moves_is_refused_not_followed(make_fake, connect, homing):
+    """A power blip of the controller between two moves (a brown-out as the motors start, a loose supply): it
+    boots again, prints its banner unasked and counts from machine 0 where the carriage stands (main.c), in
+    Alarm only when homing is enabled (HOMING_INIT_LOCK). The next move is refused, not sent 30 mm off."""
+    fake = make_fake({22: homing}, boot_time=0.3)
+    rail = connect(fake)
+    if homing:
+        rail.unlock()
+    assert rail.move(x=-30).x == -30.0
+    fake.power_cycle()
+    assert fake.wait_for(lambda f: f.written.count(b"Grbl 1.1h") == 2)  # booted again
+    sent = len(fake.lines)
+    lost = r"controller on .* restarted \(.*reads X=0, .*\(was at X=-30\); the position is lost"
+    with pytest.raises(RailError, match=lost):
+        rail.move(x=-60)
+    assert fake.lines[sent:] == [] and fake.machine_position()[0] == 0.0
+
+
+def test_a_controller_restarted_mid_move_says_so(make_fake, connect):
+    """The same blip mid-move: the carriage stops dead with the motors; the '?' asked while it booted is lost
+    with the restart. The error says what happened, not that the controller stopped answering."""
+    fake = make_fake(SLOW, boot_time=0.3)
+    fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.power_cycle)
+    rail = connect(fake)
+    with pytest.raises(RailError, match=r"controller on .* restarted during the move .*reads X=0.*position is lost"):
+        rail.move(x=-150)
+    assert settled(fake) and fake.machine_position()[0] == 0.0 and fake.resets() == []
+
+
+def test_the_reset_button_pressed_while_standing_keeps_the_position(make_fake, connect):
+    """A reset while nothing moves keeps the position (mc_reset kills nothing then): no false restart."""
+    fake = make_fake()
+    rail = connect(fake)
+    assert rail.move(x=-30).x == -30.0
+    fake.press_reset()
+    assert fake.wait_for(lambda f: f.written.count(b"Grbl 1.1h") == 2)
+    assert rail.move(x=-40).x == -40.0 and fake.alarms() == [] and fake.resets() == ["Idle"]
 
 
 def test_safety_door_is_reported_at_once(make_fake, connect):
@@ -608,6 +765,23 @@ def test_hard_limit_mid_move_is_reset_and_homing_needed(make_fake, connect):
     fake.push(0, 170.0)  # the operator pushes the carriage off the far switch (both switches share one pin)
     assert rail.home().x == -1.0 and rail.move(x=-50).x == -50.0
     assert fake.crashes == 0
+
+
+def test_a_switch_closed_while_the_rail_stands_is_reported_at_the_next_move(make_fake, connect):
+    """Hard limits are a pin-change interrupt (limits.c): any change of a limit pin outside Alarm, the carriage
+    standing too, kills everything and throws the critical ALARM:1; here the carriage is pushed by hand onto
+    the + switch between two moves. The next move reports the alarm and the switch and sends no motion."""
+    fake = make_fake({21: 1, 22: 1}, start=(-20.0, -50.0, -50.0))
+    rail = connect(fake)
+    assert rail.home().x == -1.0 and rail.move(x=-30).x == -30.0
+    fake.push(0, 30.5)  # physically 0.5 mm past the + switch's trigger point
+    assert fake.wait_for(lambda f: f.alarms() == [1])
+    sent = len(fake.lines)
+    with pytest.raises(RailAlarm, match=r"ALARM:1 \(hard limit triggered\).*homing needed.*switch X still pressed"):
+        rail.move(x=-50)
+    assert not [line for line in fake.lines[sent:] if line.startswith("G")] and fake.resets() == ["Alarm"]
+    fake.push(0, -10.0)  # freed: in Alarm the pin change is ignored
+    assert fake.alarms() == [1] and rail.home().x == -1.0
 
 
 def test_travel_keeps_off_the_homing_switch_when_hard_limits_are_on(make_fake, connect):

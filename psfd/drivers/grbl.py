@@ -11,7 +11,8 @@ commands.md and the firmware source it describes):
 - A line (``$$``, ``$H``, ``$X``, G-code) gets ``ok`` or ``error:N``. ``ALARM:N`` is pushed when the machine
   stops by itself. After ALARM:1 (hard limit) and ALARM:2 (soft limit) the firmware prints
   ``[MSG:Reset to continue]`` after a 500 ms delay and then answers nothing but Ctrl-X (a reset sent during
-  that delay is forgotten); homing failures (ALARM:6-9) reset the controller by themselves.
+  that delay is forgotten); homing failures (ALARM:6-9) and a reset in motion (ALARM:3, also from the controller's
+  own reset button) are followed by the reset itself, its banner after the same delay.
 - With homing enabled (``$22=1``) the controller starts locked in Alarm; ``$H`` homes it (no status reports
   are answered during the cycle), ``$X`` unlocks it without homing. Homing goes to the + end unless ``$23``
   says otherwise and leaves the machine position at -``$27``: machine space is [-``$130``, 0].
@@ -28,6 +29,9 @@ narrowed by the ``limits`` the rig configures.
 
 Ctrl-C, SIGTERM (which the CLI raises as an exception), a deadline, an error or a lost answer during a move
 end in `_halt`: feed hold, wait for the carriage to stand, reset, and the error says where it stopped.
+A banner no reset of ours asked for is a controller that restarted: in a move, or reading another machine
+position than before (a power blip counts again from 0 where the carriage stands), the position is lost and
+the move is refused; its reset button pressed while the carriage stands changes nothing.
 A process killed outright (SIGKILL, the OOM killer) runs nothing: before the first line that can move the
 carriage the driver starts a guard process (`psfd.drivers.grbl_guard`, standard library only, in its own
 session, SIGINT/SIGTERM/SIGHUP/SIGQUIT/SIGABRT ignored) holding the same port. It watches this process through
@@ -61,8 +65,9 @@ from typing import Iterator, NoReturn
 import serial
 
 from psfd.drivers.base import Position, RailInfo
-# GRBL's realtime bytes, one definition for the driver and its guard (which imports nothing of psfd)
-from psfd.drivers.grbl_guard import FEED_HOLD, SOFT_RESET, STATUS
+# GRBL's realtime bytes and its standing states, one definition for the driver and its guard (which imports nothing
+# of psfd)
+from psfd.drivers.grbl_guard import FEED_HOLD, SOFT_RESET, STANDING, STATUS
 from psfd.errors import RailAlarm, RailError
 
 log = logging.getLogger(__name__)
@@ -151,6 +156,9 @@ ALARMS_BY_FIRMWARE = {
 # Alarms after which the position is kept (the documentation says so); every other one needs homing.
 POSITION_KEPT = {2, 4, 5}
 CRITICAL = {1, 2}  # the firmware answers nothing but Ctrl-X after these
+# Raised with a reset (mc_reset): the system abort follows the alarm's 500 ms delay and clears a '?' asked during it
+# (protocol.c, main.c), so the banner is what tells the controller is back.
+RESETTING = {3, 6, 7, 8, 9}
 
 
 class PortGone(RailError):
@@ -491,6 +499,8 @@ class GrblRail:
         self._buffer = b""
         self._moving = False
         self._alarmed = False
+        self._restarted = False  # a banner came that no reset of ours asked for
+        self._last: GrblStatus | None = None  # the latest status report
         self._serial: serial.Serial | None = None
         self._guard: subprocess.Popen | None = None
         self._guard_owner = os.getpid()
@@ -711,9 +721,10 @@ class GrblRail:
     def _check_startup_lines(self) -> None:
         """Refuse a controller whose startup lines (``$N0``, ``$N1``) move the carriage or shift its coordinates.
 
-        GRBL runs them after every reset that ends Idle (protocol.c, system_execute_startup), and psfd resets
-        the controller after every stop: a line with an axis word (G0 X10, G92 X0, G10 L20 X0) or a move to a
-        stored position (G28, G30) would move the carriage unattended, or shift every position after it.
+        GRBL runs them after every reset that ends Idle (protocol.c, system_execute_startup) and after every
+        completed ``$H`` (system.c), and psfd resets the controller after every stop: a line with an axis word
+        (G0 X10, G92 X0, G10 L20 X0) or a move to a stored position (G28, G30) would move the carriage
+        unattended, or shift every position after it.
         """
         try:
             lines = self._command("$N", self.timeout)
@@ -891,8 +902,8 @@ class GrblRail:
                     return f"the controller stopped it: {alarm}"
                 except RailError:
                     status = None
-                if status is not None and (status.state in ("Idle", "Alarm") or status.name in ("Hold:0", "Door:0",
-                                                                                                "Door:1")):
+                # standing: check mode and sleep ignore the feed hold (protocol.c) and move nothing
+                if status is not None and (status.state in STANDING or status.name in ("Hold:0", "Door:0", "Door:1")):
                     break
                 waited = time.monotonic() - started
                 # Silent: once the worst-case deceleration has run out, reset blind. Answering but still
@@ -958,8 +969,8 @@ class GrblRail:
             # before it; only then does Ctrl-X bring it back.
             self._wait_for(lambda ln: "Reset to continue" in ln, self.timeout)
             self._reset()
-        elif code in (6, 7, 8, 9):
-            self._wait_for(lambda ln: bool(BANNER.match(ln)), self.timeout)  # homing failures reset by themselves
+        elif code in RESETTING:
+            self._wait_for(lambda ln: bool(BANNER.match(ln)), self.timeout)
             self._drain(0.2, watch=False)
         else:
             self._drain(0.2, watch=False)
@@ -1013,10 +1024,38 @@ class GrblRail:
                                 + (" (the controller stopped answering)" if self._moving else ""))
             if reply.startswith("<"):
                 status, self._wco = parse_status(reply, self._wco, self._scale)
+                if self._restarted:
+                    self._check_restart(status)
+                self._last = status
                 return status
             if reply.startswith("ALARM:") and not self._alarmed:
                 self._moving = False
                 self._on_alarm(_code(reply), "")
+            if BANNER.match(reply):
+                self.banner, self._restarted = reply, True
+                self._write(STATUS)  # the '?' asked before went with the restart (main.c clears the realtime flags)
+                deadline = time.monotonic() + seconds
+
+    def _check_restart(self, status: GrblStatus) -> None:
+        """After a banner no reset of ours asked for: refuse to go on where the position is lost.
+
+        A controller that restarts by itself (a power blip, a brown-out as the motors start) counts again from
+        machine position 0 wherever the carriage stands (main.c), in Alarm only with homing enabled. Its reset
+        button while nothing moves keeps the position (mc_reset kills nothing then; in motion it throws
+        ALARM:3, handled as an alarm): the machine position it reads then is the one it read before.
+        """
+        self._restarted = False
+        before, moving = self._last, self._moving
+        if not moving and (before is None or all(abs(a - b) <= 1e-3 for a, b in zip(status.machine, before.machine))):
+            log.warning("rail %s: the controller was reset while standing; its position is unchanged", self.port)
+            return
+        self._moving = False
+        advice = ("homing needed: `psfd rail home`" if self._homing_enabled else
+                  "move the carriage by hand to the + end and reset the controller")
+        was = f" (was at {self._where(before)})" if before is not None else ""
+        raise RailError(f"the controller on {self.port} restarted{' during the move' if moving else ''} (its banner "
+                        f"came unasked: a power blip, a brown-out): it reads {self._where(status)}, its power-up "
+                        f"position{was}; the position is lost: {advice}")
 
     def _reset(self, attempts: int = 2) -> None:
         """Ctrl-X and wait for the banner (twice by default: a reset can be lost in an alarm's delay)."""
@@ -1047,6 +1086,7 @@ class GrblRail:
                 return
             if BANNER.match(line):
                 self.banner = line
+                self._restarted = self._restarted or watch  # unasked: the next status report tells what it cost
             elif watch and line.startswith("ALARM:"):
                 self._moving = False
                 self._on_alarm(_code(line), "")

@@ -153,7 +153,7 @@ def watch(port_fd: int, owner: int, timeout: float, stop: float) -> int:
         pass
     try:
         done = stop_carriage(Port(port_fd), stop, timeout)
-    except OSError as exc:  # the cable was pulled, or the port closed under us
+    except (OSError, termios.error) as exc:  # the cable was pulled, or the port closed under us (tcflush: EIO)
         done = f"the port failed ({exc}): the carriage may still be moving"
     if done:
         sys.stderr.write(f"psfd: the process driving the rail (pid {pid}) died with the rail open; {done}\n")
