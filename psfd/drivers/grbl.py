@@ -961,7 +961,7 @@ class GrblRail:
         switches = "".join(c for c in status.pins if c in "XYZABC")
         if switches:
             advice += f"; limit switch {switches} still pressed: free the carriage first"
-        raise RailAlarm(f"rail {text} {during} at {self._where(status)}; {advice}")
+        raise RailAlarm(f"rail {' '.join(filter(None, (text, during)))} at {self._where(status)}; {advice}")
 
     def _recover(self, code: int | None) -> GrblStatus:
         if code in CRITICAL:
