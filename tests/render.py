@@ -891,7 +891,7 @@ def wall_pair(kernel: Kernel, lam: float, near_shape: tuple[int, int], far_shape
     """
     samples = 32
     if lam * density / samples > 2.0:
-        raise ValueError("the raster is too coarse for a far pixel's 1/32 squares: lower density")
+        raise ValueError("a far pixel's 1/32 square spans more than 2 raster cells: lower the density")
     side = max(near_shape[0], near_shape[1], lam * (max(far_shape) + 40)) + 40
     raster = wall(side, seed, glints, density)
     centre = side / 2
