@@ -6,6 +6,8 @@ target is drawn from its vector description (DESIGN.md, "The published target
 layout"; the noise values are read from the published PGM by this module's own
 parser), the blur is a continuous kernel applied by its analytic transfer
 function, and the camera adds illumination, shot and read noise and an ADC.
+`wall_pair` photographs a painted wall with glints from two distances through
+the same blur and sensor, for the two-photo method.
 
 Image formation (Delbracio et al., IJCV 2012, sec. 2, model (M'), with a linear
 sensor g)::
@@ -89,6 +91,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 from scipy import fft, special
 
@@ -819,3 +822,90 @@ def compare(psf: np.ndarray, kernel: Kernel, s: int) -> Errors:
         max_continuous=float(np.abs(estimate - kernel.mtf(fx, fy)).max()),
         core_width_ratio=core_width(psf, s) / core_width(best, s),
     )
+
+
+# --------------------------------------------------------------------------- a painted wall at two distances
+
+
+def wall(side: float, seed: int, glints: float = 0.0, density: int = 6) -> np.ndarray:
+    """Radiance (1 = white paint in unit light) of a square wall ``side`` near pixels wide, as a raster of
+    ``density`` cells per near pixel, each cell of constant radiance.
+
+    Dead leaves: occluding discs of grey 0.05-0.6 with radii of density r^-3 from 0.5 to 60 near pixels
+    (a scale-invariant texture, as of natural surfaces), a 10 % grain per cell, and ``glints`` glints per
+    1000 near pixels^2: discs of 0.15-0.8 near pixel radius, 3 to 60 times white (both log-uniform), most
+    of them clipped in a near photo and the largest in a far one too. A glint is a bright speck of the
+    surface (mica, a drop of varnish), seen in both photos where it lies, unlike a mirror reflection,
+    which moves with the viewpoint.
+    """
+    rng = np.random.default_rng(seed)
+    n = int(math.ceil(side * density))
+    canvas = np.full((n, n), 0.3, dtype=np.float32)
+    # discs drawn at 1/16 cell (cv2's fixed-point shift of 4 bits)
+    lo, hi = 0.5 * density, 60.0 * density
+    count = int(2.0 * n * n / (2.0 * math.pi * lo**2 * math.log(hi / lo)))  # covered twice on average
+    radii = lo / np.sqrt(1.0 - rng.random(count) * (1.0 - (lo / hi) ** 2))  # inverse CDF of r^-3 on [lo, hi]
+    for x, y, r, v in zip(rng.uniform(0, n, count), rng.uniform(0, n, count), radii, rng.uniform(0.05, 0.6, count)):
+        cv2.circle(canvas, (int(16 * x), int(16 * y)), int(16 * r), float(v), -1, cv2.LINE_8, 4)
+    canvas *= (1.0 + 0.1 * rng.standard_normal(canvas.shape)).astype(np.float32)
+    k = rng.poisson(glints * side * side / 1000.0)
+    xs, ys = rng.uniform(0, n, k), rng.uniform(0, n, k)
+    radii = np.exp(rng.uniform(math.log(0.15), math.log(0.8), k)) * density
+    for x, y, r, v in zip(xs, ys, radii, np.exp(rng.uniform(math.log(3.0), math.log(60.0), k))):
+        cv2.circle(canvas, (int(16 * x), int(16 * y)), max(int(16 * r), 8), float(v), -1, cv2.LINE_8, 4)
+    return canvas
+
+
+def raster_mean(raster: np.ndarray, u: np.ndarray, v: np.ndarray, width: float) -> np.ndarray:
+    """Exact mean of a raster of constant cells (cell (i, j) covers [j, j+1) x [i, i+1)) over the squares of
+    side ``width`` <= 2 cells centred at (u, v): each square meets three cells at most along each axis."""
+    if width > 2.0:
+        raise ValueError("squares of at most 2 cells")
+    rows, cols = raster.shape
+
+    def shares(start, size):
+        """The cells floor(start) + 0, 1, 2 (clamped to the raster) and the length of [start, start + width) in each."""
+        first = np.floor(start)
+        return [(np.clip(first + d, 0, size - 1).astype(np.int64),
+                 np.maximum(np.minimum(first + d + 1, start + width) - np.maximum(first + d, start), 0.0))
+                for d in range(3)]
+
+    total = 0.0
+    for cy, wy in shares(v - width / 2, rows):
+        for cx, wx in shares(u - width / 2, cols):
+            total = total + raster[cy, cx] * (wy * wx)
+    return (total / (width * width)).astype(np.float32)
+
+
+def wall_pair(kernel: Kernel, lam: float, near_shape: tuple[int, int], far_shape: tuple[int, int], seed: int,
+              glints: float = 0.0, exposure: Exposure = Exposure(30000.0),
+              offset: tuple[float, float] = (1.3, -0.7), density: int = 6) -> tuple[Frame, Frame]:
+    """A near and a far photograph of one `wall`, fronto-parallel, the far one ``lam`` times farther.
+
+    Both see the same radiance through ``kernel`` (`blur`: the exact mean of the raster over each
+    1/32-pixel square, `raster_mean`, then the analytic transfer function), under flat light, and
+    go through the same sensor (`expose`: shot and read noise, 14-bit ADC, clipping at the white
+    level, which is reflectance 1 / 0.6). A near pixel covers one world unit, a far pixel ``lam``; the
+    far photo's centre lies ``offset`` near pixels from the near one's, and the far photo may see
+    beyond the near one (the common region is then the near photo's field).
+    """
+    samples = 32
+    if lam * density / samples > 2.0:
+        raise ValueError("a far pixel's 1/32 square spans more than 2 raster cells: lower the density")
+    side = max(near_shape[0], near_shape[1], lam * (max(far_shape) + 40)) + 40
+    raster = wall(side, seed, glints, density)
+    centre = side / 2
+
+    def view(scale: float, shape: tuple[int, int], at: tuple[float, float]):
+        cx, cy = (shape[1] - 1) / 2, (shape[0] - 1) / 2
+
+        def scene(x, y, pixel):
+            u = (at[0] + scale * (np.asarray(x, dtype=np.float64) - cx)) * density
+            v = (at[1] + scale * (np.asarray(y, dtype=np.float64) - cy)) * density
+            return raster_mean(raster, u, v, scale * pixel * density)
+
+        return scene
+
+    near = blur(view(1.0, near_shape, (centre, centre)), near_shape, kernel, samples)
+    far = blur(view(lam, far_shape, (centre + offset[0], centre + offset[1])), far_shape, kernel, samples)
+    return (expose(near, exposure, seed + 100, "near")[0], expose(far, exposure, seed + 200, "far")[0])

@@ -93,8 +93,9 @@ def test_saturated_pixels_are_left_out():
     # clip a bright patch in each photo, as an over-exposed spot would
     near_data, near_sat = near.data.copy(), near.saturated.copy()
     near_data[150:200, 150:200], near_sat[150:200, 150:200] = near.white, True
+    # the far patch apart from the near one's image (far pixels 53-66 in both directions)
     far_data, far_sat = far.data.copy(), far.saturated.copy()
-    far_data[60:70, 40:60], far_sat[60:70, 40:60] = far.white, True
+    far_data[90:100, 30:50], far_sat[90:100, 30:50] = far.white, True
     near = dataclasses.replace(near, data=near_data, saturated=near_sat)
     far = dataclasses.replace(far, data=far_data, saturated=far_sat)
     [est] = twoscale.estimate_pair(near, far, s=S)
@@ -213,22 +214,46 @@ def test_the_kernel_is_recentred_without_losing_its_high_frequencies(shift):
 
 def test_scattered_saturated_highlights_leave_fewer_equations_not_a_bias():
     """The near photo's brightest 0.2 % flagged as saturated, their values left as they are: only the holes in
-    the mask change, and so only the number of equations (2374 of 5184 here). Before, the means removed from
+    the mask change, and so only the number of equations (3373 of 5184 here; 2374 with a radius of 6 near
+    pixels around each hole instead of 1). Before, the means removed from
     the two photos (IPOL 2013, sec. 4.2) were taken over sets the holes made different, and the offset left
     between them biased k: residual 2.7 times the sensor noise, PSF error 0.056 for the unmasked pair's 0.011
     (the real 8-bit wall pair, 0.8 % of its near photo saturated: MTF50 0.655/0.642, against 0.590/0.577 for
     the same photos unflagged in 16 bits). With the constant fitted, the residual is the noise and the error
-    grows as the equations fall, by about sqrt(5184 / 2374) = 1.5 (measured 0.017).
+    grows as the equations fall, by about sqrt(5184 / 3373) = 1.24 (measured 0.013; 0.017 with 2374).
     """
     pair = simulate.simulate_pair(psf=TRUE_PSF, s=S, lam=5.0, seed=1)
     near, far = pair["near"], pair["far"]
     [plain] = twoscale.estimate_pair(near, far, s=S)
     flagged = dataclasses.replace(near, saturated=near.data >= np.quantile(near.data, 0.998))
     [est] = twoscale.estimate_pair(flagged, far, s=S)
-    assert est.params["equations"] < 0.6 * plain.params["equations"]
+    assert est.params["equations"] < 0.7 * plain.params["equations"]
     assert est.residual < 1.1 * plain.residual
     error, plain_error = (float(np.linalg.norm(e.psf - TRUE_PSF)) for e in (est, plain))
     assert error < 2.0 * plain_error
+
+
+def test_glints_clipped_in_the_near_photo_leave_out_only_their_surroundings():
+    """A wall with glints (tests/render.py `wall_pair`: its own raster, optics and sensor), 0.45 % of the near
+    photo and 0.3 % of the far one clipped, through a Gaussian of 0.4 pixel and f/8 diffraction (Airy tails
+    beyond the support), lambda = 4: the estimate against the known PSF, and the far pixels it keeps.
+
+    Measured over seeds 0-3: the glint-free photos keep 88 % of the window's far pixels as equations; a
+    near-pixel radius 2 + ceil(2 lambda / s) around each clipped pixel and the fill by cv2.inpaint kept 23-30 %
+    (max MTF error 0.039-0.070), radius 1 and the clipped values 45-51 % (0.039-0.048), the glint-free error
+    being 0.036-0.038 (the tails and the near photo's aliasing). Allowed: MTF_TOL, and 40 % of the window.
+    """
+    import render
+
+    optics, airy = render.gaussian(0.4), render.airy(8.0)
+    kernel = render.Kernel("gaussian 0.4 at f/8", lambda fx, fy: optics.optics(fx, fy) * airy.optics(fx, fy),
+                           airy.cutoff)
+    near, far = render.wall_pair(kernel, 4.0, (420, 420), (110, 110), seed=0, glints=2.5)
+    assert 0.003 < near.saturated.mean() < 0.01 and far.saturated.any()
+    [est] = twoscale.estimate_pair(near, far, s=S)
+    x0, y0, x1, y1 = est.window
+    assert est.params["equations"] > 0.4 * (x1 - x0) * (y1 - y0)
+    assert render.compare(est.psf, kernel, S).max_mtf_2d < MTF_TOL
 
 
 def test_psf_from_kernel_inverts_the_inter_image_relation():
