@@ -321,6 +321,27 @@ def catalogue_exists(path: str | os.PathLike) -> bool:
         conn.close()
 
 
+def discard_unused(path: str | os.PathLike) -> bool:
+    """Remove the catalogue at ``path`` (and its ``-wal`` and ``-shm``) when it holds no run: the one a run
+    created and was stopped, or refused, before it journalled anything. Only for a caller that made it and
+    holds it (`psfd.daemon.store.catalogue_lock`). Returns whether it was removed."""
+    path = Path(path)
+    if catalogue_exists(path):
+        try:
+            conn = sqlite3.connect(f"{path.absolute().as_uri()}?mode=ro", uri=True)
+            try:
+                if conn.execute("SELECT count(*) FROM runs").fetchone()[0]:
+                    return False
+            finally:
+                conn.close()
+        except sqlite3.Error:  # not a catalogue this process made: leave it as it is
+            return False
+    for suffix in ("", "-wal", "-shm"):
+        with contextlib.suppress(FileNotFoundError):
+            path.with_name(path.name + suffix).unlink()
+    return True
+
+
 def check_owner(path: Path, what: str) -> None:
     """Refuse to write into ``path`` (a catalogue, a frame store), when it exists, unless this process's user
     owns it: files this user made there would be theirs, and the owner (e.g. the service's user) could then
