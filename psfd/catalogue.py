@@ -285,11 +285,23 @@ def _v9_lens_serial(db: sqlite_utils.Database) -> None:
     _v3_frame_exif(db)  # adds the one column it lacks
 
 
+def _v10_pending_store(db: sqlite_utils.Database) -> None:
+    """Version 10: the frame store each pending frame was put into (NULL for older rows: any store).
+
+    A catalogue may have runs on several frame stores (`psfd capture --out DIR`); a run sweeps its own store
+    only, and must forget only that store's pending frames, or a killed run's leftovers in another store
+    would never be removed.
+    """
+    if "store" not in db["pending_frames"].columns_dict:
+        db["pending_frames"].add_column("store", str)
+
+
 # In the order they landed: a catalogue's user_version counts the migrations it ran. Each later one
 # checks its columns before adding them, so a catalogue is the same whichever of them ran first.
 MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [
     _v1_tables, _v2_query_indexes, _v3_frame_exif, _v4_relative_frame_paths, _v5_prediction_error,
-    _v6_noise_floor_as_norm, _v7_relative_psf_sources, _v8_pending_frames, _v9_lens_serial]
+    _v6_noise_floor_as_norm, _v7_relative_psf_sources, _v8_pending_frames, _v9_lens_serial,
+    _v10_pending_store]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -1114,23 +1126,27 @@ class Catalogue:
             row["rail"] = json.loads(row["rail"] or "{}")
         return rows
 
-    def pend_frame(self, sha256: str) -> None:
-        """Journal a frame about to be put into the frame store, before its step commits (`pending_frames`)."""
+    def pend_frame(self, sha256: str, store: str | os.PathLike | None = None) -> None:
+        """Journal a frame about to be put into the frame store ``store``, before its step commits
+        (`pending_frames`)."""
+        where = stored_frame_path(store, self.folder) if store is not None else None
         with self._write() as db:
-            db["pending_frames"].insert({"sha256": sha256, "stored": _now()}, replace=True)
+            db["pending_frames"].insert({"sha256": sha256, "stored": _now(), "store": where}, replace=True)
 
-    def pending_frames(self) -> set[str]:
-        """SHA-256 of the frames journalled by `pend_frame` whose step has not committed them."""
+    def pending_frames(self, store: str | os.PathLike | None = None) -> set[str]:
+        """SHA-256 of the frames journalled by `pend_frame` whose step has not committed them; with ``store``,
+        only those put into that frame store (and those of older catalogues, which did not say where)."""
+        sql, params = "SELECT sha256 FROM pending_frames", []
+        if store is not None:
+            sql += " WHERE store IS NULL OR store = ?"
+            params = [stored_frame_path(store, self.folder)]
         with self._read() as db:
-            return {row[0] for row in db.execute("SELECT sha256 FROM pending_frames").fetchall()}
+            return {row[0] for row in db.execute(sql, params).fetchall()}
 
-    def forget_pending(self, hashes: Iterable[str] | None = None) -> None:
-        """Drop ``hashes`` (all by default) from the pending frames: swept, discarded or committed."""
+    def forget_pending(self, hashes: Iterable[str]) -> None:
+        """Drop ``hashes`` from the pending frames: swept, discarded or committed."""
         with self._write() as db:
-            if hashes is None:
-                db.execute("DELETE FROM pending_frames")
-            else:
-                db.conn.executemany("DELETE FROM pending_frames WHERE sha256 = ?", [(h,) for h in hashes])
+            db.conn.executemany("DELETE FROM pending_frames WHERE sha256 = ?", [(h,) for h in hashes])
 
     def frame_hashes(self) -> set[str]:
         """SHA-256 of every catalogued frame (the daemon's frame store keeps exactly these files)."""
@@ -1333,6 +1349,8 @@ COLUMNS: dict[str, dict[str, str]] = {
     "pending_frames": {
         "sha256": "SHA-256 of a file a run put into its frame store, its step not yet committed",
         "stored": "when it was stored, ISO 8601 UTC",
+        "store": "the frame store it was put into: relative to the catalogue's folder when inside it, else "
+                 "absolute; NULL in older catalogues (any store)",
     },
 }
 TABLES = {
@@ -1343,7 +1361,7 @@ TABLES = {
     "psfs": "Sub-pixel PSFs, one per channel, field location and aperture, with their metrics.",
     "psf_frames": "Which frames each PSF was estimated from.",
     "pending_frames": "Frames stored by a run whose step is not committed yet: a crash's leftovers, removed by "
-                      "the next run.",
+                      "the next run on their frame store.",
 }
 # Units Datasette shows beside values (names from Pint's registry); the others are in the descriptions.
 UNITS = {"rigs": {"focal_length_mm": "mm"}, "psfs": {"focal_length_mm": "mm", "focus_distance_m": "m"}}

@@ -30,7 +30,7 @@ from psfd.daemon.store import frames_dir_for
 from psfd.drivers import open_rig
 from psfd.errors import EstimationError, StorageError
 
-from test_runner import check_complete, small_plan
+from test_runner import check_complete, small_plan, stored_files
 
 HERE = Path(__file__).resolve().parent
 ONE_STEP = small_plan().replace("apertures = [4, 11]", "apertures = [4]").split("y = [")[0] + 'channels = ["g1"]\n'
@@ -645,3 +645,27 @@ def test_ctrl_c_ignored_by_the_parent_stays_ignored_before_the_run_is_journalled
     assert done.returncode == 0 and "run 1 done" in done.stdout, done.stderr
     check_complete(db, frames_dir_for(db), parse_plan(ONE_STEP, str(plan_path)))
 
+
+
+def test_a_capture_into_another_store_keeps_the_journal_of_a_killed_runs_frames(tmp_path):
+    """A run killed after storing a frame (journalled, not committed) leaves it for its next sweep. A `psfd
+    capture --out DIR` into the same catalogue meanwhile swept its own store, found none of the journalled
+    frames there, and forgot them all: the resumed run then kept the killed run's frame in its store for ever,
+    a file no catalogue row holds. Each store's frames are forgotten only once swept from that store."""
+    plan_path = write_plan(tmp_path, TWO_STEPS)
+    plan = parse_plan(TWO_STEPS, str(plan_path))
+    db, other = tmp_path / "cat.sqlite", tmp_path / "other"
+    common = ("--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1")
+    assert killed_run(plan_path, db, "store", 1, False, tmp_path) == -signal.SIGKILL
+    orphan = stored_files(frames_dir_for(db))
+    assert len(orphan) == 1
+    capture = _psfd("capture", "--simulate", "--aperture", "8", "--channels", "g1", "--out", other, *common)
+    assert capture.returncode == 0, capture.stderr
+    resumed = _psfd("run", plan_path, "--resume", *common)
+    assert resumed.returncode == 0, resumed.stderr
+    with Catalogue(db, readonly=True) as cat:
+        assert cat.integrity_check() == [] and cat.pending_frames() == set()
+        hashes = cat.frame_hashes()
+        assert sorted(r["step"] for r in cat.query().rows if r["run_id"] == 1) == sorted(s.key for s in plan.steps())
+    assert stored_files(other) | stored_files(frames_dir_for(db)) == hashes  # no orphan in either store
+    assert not orphan & stored_files(frames_dir_for(db))

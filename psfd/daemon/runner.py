@@ -372,8 +372,9 @@ class Runner:
     # -- steps --------------------------------------------------------------------------------
 
     def _open_run(self, plan: Plan, camera: Camera, rail: Rail, resume: bool, new: bool) -> int:
-        sweep_frames(self.frames_dir, self.catalogue.frame_hashes(), self.catalogue.pending_frames())
-        self.catalogue.forget_pending()
+        pending = self.catalogue.pending_frames(self.frames_dir)  # another store's are swept by its own runs
+        sweep_frames(self.frames_dir, self.catalogue.frame_hashes(), pending)
+        self.catalogue.forget_pending(pending)
         # we hold the store lock, so a run journalled "running" here was killed: it is interrupted,
         # and done if it was killed between its last commit and its close (the one resumed here too:
         # it is reopened below and closed by _execute, so that its resume reports it done)
@@ -518,7 +519,8 @@ class Runner:
                 files = [p for p in camera.capture(incoming) if p.suffix.lower() in RAW_SUFFIXES]
                 if not files:
                     raise CameraError("the camera produced no RAW file: set imageformat to RAW")
-                path, sha = store_frame(files[0], self.frames_dir, self.catalogue.pend_frame)
+                path, sha = store_frame(files[0], self.frames_dir,
+                                        lambda sha: self.catalogue.pend_frame(sha, self.frames_dir))
             except (PsfdError, OSError):
                 check_room(self.frames_dir, max(self._frame_bytes, FRAME_BYTES_MIN))
                 raise
