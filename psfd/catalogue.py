@@ -368,6 +368,21 @@ def check_owner(path: Path, what: str) -> None:
                            f"cannot use; submit to the service, or run as {them}")
 
 
+def _check_sqlite_utils() -> None:
+    """Refuse to write with a sqlite-utils whose table methods commit the caller's transaction.
+
+    Every write is one transaction (`Catalogue._write`); before 4.0 (no ``Database.atomic``) each
+    ``create`` or ``insert`` ended it with ``with conn:``, so that a migration, or a step's frames and PSFs,
+    were committed piece by piece: a kill in between left tables under schema version 0 (a file no psfd
+    would open) or a step half stored.
+    """
+    if not hasattr(sqlite_utils.Database, "atomic"):
+        from importlib.metadata import version
+
+        raise CatalogueError(f"psfd needs sqlite-utils 4.0 or newer to write a catalogue (this is "
+                             f"{version('sqlite-utils')}): pip install 'sqlite-utils>=4.0'")
+
+
 def _storage_error(exc: sqlite3.Error, what: str) -> StorageError | None:
     """The StorageError of an SQLite failure to write the storage: disk full (SQLITE_FULL), a read-only
     file or file system (SQLITE_READONLY*), a failed write (SQLITE_IOERR*: EROFS after a remount)."""
@@ -462,6 +477,8 @@ class Catalogue:
         self.path = Path(path)
         self.readonly = readonly
         self.folder = Path(os.path.abspath(self.path)).parent  # frame paths are stored relative to it
+        if not readonly:
+            _check_sqlite_utils()
         if not self.path.exists():
             if readonly or not create:
                 raise CatalogueError(f"no catalogue at {self.path}")

@@ -727,3 +727,18 @@ def test_relative_frame_paths_migration_runs_again_without_change(tmp_path, monk
     assert [r[0] for r in db.execute("SELECT path FROM frames ORDER BY id").fetchall()] == [
         "cat-frames/aa/x.dng", "/mnt/raw/y.dng"]
     db.close()
+
+
+def test_a_sqlite_utils_that_commits_half_way_is_refused_before_any_file(tmp_path, monkeypatch):
+    """sqlite-utils before 4.0 (which pyproject allowed) ended the catalogue's transaction in each table
+    method: a catalogue killed while being made kept its tables under schema version 0, which every command
+    then refused as not a psfd catalogue, and a step's rows were committed one by one. Such a library is
+    refused in one line before the catalogue file is made; readers, which write nothing, still read."""
+    path = tmp_path / "new" / "cat.sqlite"
+    Catalogue(tmp_path / "old.sqlite").close()
+    monkeypatch.delattr(sqlite_utils.Database, "atomic")  # what 3.x lacks
+    with pytest.raises(CatalogueError, match=r"^psfd needs sqlite-utils 4.0 or newer .*: pip install "):
+        Catalogue(path)
+    assert not path.parent.exists()
+    with Catalogue(tmp_path / "old.sqlite", readonly=True) as cat:
+        assert cat.runs() == []
