@@ -225,11 +225,21 @@ def test_a_catalogue_commit_that_finds_the_disk_full_pauses_and_resume_continues
 @pytest.fixture
 def small_disk(tmp_path):
     """A 4 MiB tmpfs (root only): a real file system that fills up and can be remounted read-only."""
+    yield from _tmpfs(tmp_path, "4m")
+
+
+@pytest.fixture
+def tiny_disk(tmp_path):
+    """A 64 KiB tmpfs (root only): too small for a new catalogue."""
+    yield from _tmpfs(tmp_path, "64k")
+
+
+def _tmpfs(tmp_path: Path, size: str):
     if os.geteuid() != 0 or shutil.which("mount") is None:
         pytest.skip("mounting a size-limited tmpfs needs root")
     mount = tmp_path / "disk"
     mount.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m,mode=0755", "tmpfs", str(mount)],
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size},mode=0755", "tmpfs", str(mount)],
                           capture_output=True, text=True)
     if done.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")
@@ -267,6 +277,20 @@ def test_a_full_file_system_pauses_the_run_and_resume_continues_once_space_is_ba
     assert again.returncode == 0, again.stderr
     assert states(db) == ["done"]
     check_complete(db, frames_dir_for(db), plan)
+
+
+def test_a_disk_too_full_for_a_new_catalogue_is_refused_in_one_line_and_leaves_nothing(tiny_disk, tmp_path):
+    """A disk that fills up while a new catalogue is made: the run was refused in one line (exit 5), but an
+    empty catalogue file (WAL header, no table) and frame store stayed, and `psfd query` then called the
+    file 'empty, not a psfd catalogue'. Nothing is left, and a reader finds no catalogue."""
+    plan_path = write_plan(tmp_path, ONE_STEP)
+    db = tiny_disk / "lab" / "cat.sqlite"
+    done = _psfd("run", plan_path, "--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1")
+    assert done.returncode == 5, done.stderr
+    assert done.stderr.splitlines() == [f"psfd: error: cannot write to {db}: database or disk is full"]
+    assert list(tiny_disk.iterdir()) == []
+    query = _psfd("query", "--catalogue", db)
+    assert query.returncode == 5 and query.stderr.strip() == f"psfd: error: no catalogue at {db}", query.stderr
 
 
 def test_a_read_only_file_system_is_refused_in_one_line_and_resume_continues(small_disk, tmp_path):
