@@ -489,6 +489,8 @@ class Catalogue:
                                      ) from None
         elif self.path.is_dir():
             raise CatalogueError(f"{self.path} is a folder, not a catalogue file")
+        elif readonly and not catalogue_exists(self.path):  # a file a writer killed before its first commit left
+            raise CatalogueError(f"no catalogue at {self.path}")
         elif not readonly:
             check_owner(self.path, "the catalogue")
         self._lock = threading.RLock()

@@ -553,7 +553,8 @@ def test_a_catalogue_whose_creation_was_killed_is_created_by_the_next_run(tmp_pa
     """SQLite makes the catalogue's file when it opens it; a run killed (or a power cut) before the schema's
     first commit leaves an empty file, or one with WAL mode set and no table. Every command refused it
     ('is empty, not a psfd catalogue', exit 5), a new `psfd run` included, until someone deleted it by hand:
-    it is a catalogue not made yet, which the next run makes and `status` shows as no catalogue."""
+    it is a catalogue not made yet, which the next run makes and `status` shows as no catalogue; `query` and
+    `export` said 'is empty, not a psfd catalogue' of it, and now say no catalogue too."""
     plan_path = write_plan(tmp_path, ONE_STEP)
     plan = parse_plan(ONE_STEP, str(plan_path))
     for name, wal in (("zero.sqlite", False), ("wal.sqlite", True)):
@@ -565,6 +566,9 @@ def test_a_catalogue_whose_creation_was_killed_is_created_by_the_next_run(tmp_pa
         common = ("--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1")
         code, out, err = cli(capsys, "status", *common[:4])
         assert code == 0 and "no catalogue at" in out, err
+        for command in (["query"], ["export", "--out", tmp_path / "psfs"]):
+            code, out, err = cli(capsys, *command, "--catalogue", db)
+            assert code == 5 and err == f"psfd: error: no catalogue at {db}\n", err
         code, out, err = cli(capsys, "run", plan_path, "--resume", *common)
         assert code == 2 and "no unfinished run" in err, err  # nothing was journalled
         code, out, err = cli(capsys, "run", plan_path, *common)
