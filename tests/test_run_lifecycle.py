@@ -534,8 +534,9 @@ def test_a_second_writer_of_a_catalogue_in_use_is_refused_and_the_first_loses_no
         for second in (capture, again):
             assert second.returncode == 5, second.stderr
             assert second.stderr.splitlines() == [f"psfd: error: the catalogue {db} is in use by psfd process "
-                                                  f"{first.pid}: wait for it to end or stop it (Ctrl-C or "
-                                                  "SIGTERM pauses a run), or submit to the service"], second.stderr
+                                                  f"{first.pid} (one process writes a catalogue at a time): wait "
+                                                  "for it to end, or stop it (Ctrl-C or SIGTERM pauses a run)"], \
+                second.stderr
         assert not (tmp_path / "other").exists()
     finally:
         os.killpg(first.pid, signal.SIGKILL)  # a power cut: the stored frame is not committed

@@ -278,8 +278,8 @@ def check_catalogue_free(catalogue_path: str | os.PathLike) -> None:
 
 def _in_use(catalogue_path: str | os.PathLike, pid: int | None) -> str:
     holder = f"psfd process {pid}" if pid else "another psfd process"
-    return (f"the catalogue {catalogue_path} is in use by {holder}: wait for it to end or stop it (Ctrl-C or "
-            "SIGTERM pauses a run), or submit to the service")
+    return (f"the catalogue {catalogue_path} is in use by {holder} (one process writes a catalogue at a time): "
+            "wait for it to end, or stop it (Ctrl-C or SIGTERM pauses a run)")
 
 
 def shown_state(state: str, frames_dir: str | os.PathLike, catalogue_path: str | os.PathLike | None = None) -> str:
