@@ -859,15 +859,18 @@ def run_plan(
     """Run a plan on the rig its ``[rig]`` table names, into a catalogue and a frame store.
 
     The one way to run a plan: `preflight`, open the rig and `check_rig`, then take
-    the frame store (a path that cannot be one is refused before a catalogue is
-    created), open the catalogue (created when missing), `Runner.run` (``resume``,
+    the catalogue (`catalogue_lock`: no other process writes it) and the frame store
+    (a path that cannot be one is refused before a catalogue is created), open the
+    catalogue (created when missing), `Runner.run` (``resume``,
     ``new`` and ``oneshot`` as there), and with ``rows`` put the stored PSF rows
     (metadata, no arrays) into the result. ``runner_options`` go to `Runner`
     (``workers``, ``backlog``, ``control``, ``progress``, ``on_step``).
 
     A rig that cannot be opened, or refuses the plan, leaves no catalogue, catalogue
     folder or frame store behind: none is made before the rig has answered, and so
-    does a stop asked meanwhile with ``stop_before_journal`` (`Runner`). The rig is
+    does a stop asked meanwhile with ``stop_before_journal`` (`Runner`). A new catalogue
+    that the run leaves without a run journalled (stopped, a full disk, a camera gone
+    before the run started) is removed with what was made for it. The rig is
     released on every path.
     """
     preflight(plan, catalogue_path, frames_dir, resume, new)
@@ -912,7 +915,7 @@ def _discard_new(catalogue_path: Path, frames_dir: Path, made: list[Path]) -> No
     catalogue_lock_path(catalogue_path).unlink(missing_ok=True)
     if frames_dir in made:
         (frames_dir / ".lock").unlink(missing_ok=True)
-    for folder in made:
+    for folder in (path for path in made if path != catalogue_path):  # the deepest first
         with contextlib.suppress(OSError):  # a folder that is not empty keeps what is in it
             folder.rmdir()
 

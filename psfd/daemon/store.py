@@ -35,10 +35,11 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from psfd.catalogue import check_owner
-from psfd.errors import STORAGE_ERRNOS, BadInputError, CatalogueError, PsfdError, ServiceError, StorageError, path_reason
+from psfd.errors import (STORAGE_ERRNOS, BadInputError, CatalogueError, PsfdError, ServiceError, StorageError,
+                         path_reason)
 
-__all__ = ["INCOMING", "catalogue_busy", "catalogue_lock", "check_catalogue_free", "check_room", "frames_dir_for", "shown_state", "storage_error", "store_busy", "store_frame",
-           "store_lock", "sweep_frames"]
+__all__ = ["INCOMING", "catalogue_busy", "catalogue_lock", "catalogue_lock_path", "check_catalogue_free", "check_room",
+           "frames_dir_for", "shown_state", "storage_error", "store_busy", "store_frame", "store_lock", "sweep_frames"]
 
 FRAME_NAME = re.compile(r"^[0-9a-f]{64}\.[A-Za-z0-9]+$")
 INCOMING = ".incoming-"  # prefix of the temporary folders a capture downloads into
@@ -167,7 +168,7 @@ def catalogue_lock(catalogue_path: str | os.PathLike) -> Iterator[None]:
             raise failed(exc) from None
 
     with _exclusive(lock, opening, failed,
-                    lambda: ServiceError(_in_use(catalogue_path, catalogue_busy(catalogue_path))), pid=True):
+                    lambda: ServiceError(_in_use(catalogue_path)), pid=True):
         yield
 
 
@@ -178,8 +179,9 @@ def _exclusive(lock: Path, opening: Callable[[], None], failed: Callable[[OSErro
     ``failed(exc)`` is the error when the file cannot be opened, ``busy()`` when another process holds it,
     ``pid``: write this process's pid into the file.
 
-    A lock file may be removed by its holder (`remove_unused`): one found replaced or gone once locked is
-    opened again, so that two processes never hold two files of one name.
+    A lock file may be removed by its holder (a run that made a catalogue and journalled nothing,
+    `psfd.daemon.runner.run_plan`): one found replaced or gone once locked is opened again, so that two
+    processes never hold two files of one name.
     """
     key = Path(os.path.abspath(lock))
     with _held_lock:
@@ -254,30 +256,27 @@ def catalogue_lock_path(catalogue_path: str | os.PathLike) -> Path:
     return real.with_name(real.name + "-run.lock")
 
 
-def catalogue_busy(catalogue_path: str | os.PathLike) -> int | None:
-    """The pid of another process writing the catalogue (`catalogue_lock`), or None when none does (this
-    process may: the service checks a submitted plan while it runs another)."""
+def catalogue_busy(catalogue_path: str | os.PathLike) -> bool:
+    """Whether another process writes the catalogue (`catalogue_lock`); this one may (the service checks a
+    submitted plan while it runs another)."""
     lock = catalogue_lock_path(catalogue_path)
     with _held_lock:
         if Path(os.path.abspath(lock)) in _held:
-            return None
-    if not _held_by_other(lock):
-        return None
-    try:
-        return int(lock.read_text().strip() or 0) or None
-    except (OSError, ValueError):
-        return None
+            return False
+    return _held_by_other(lock)
 
 
 def check_catalogue_free(catalogue_path: str | os.PathLike) -> None:
     """Refuse (ServiceError) a catalogue another run writes (`catalogue_lock`), before anything is opened."""
-    pid = catalogue_busy(catalogue_path)
-    if pid is not None:
-        raise ServiceError(_in_use(catalogue_path, pid))
+    if catalogue_busy(catalogue_path):
+        raise ServiceError(_in_use(catalogue_path))
 
 
-def _in_use(catalogue_path: str | os.PathLike, pid: int | None) -> str:
-    holder = f"psfd process {pid}" if pid else "another psfd process"
+def _in_use(catalogue_path: str | os.PathLike) -> str:
+    try:  # the holder's pid, unless it has not written it yet (or could not: a full disk)
+        holder = f"psfd process {int(catalogue_lock_path(catalogue_path).read_text())}"
+    except (OSError, ValueError):
+        holder = "another psfd process"
     return (f"the catalogue {catalogue_path} is in use by {holder} (one process writes a catalogue at a time): "
             "wait for it to end, or stop it (Ctrl-C or SIGTERM pauses a run)")
 
