@@ -158,7 +158,7 @@ def catalogue_lock(catalogue_path: str | os.PathLike) -> Iterator[None]:
     lock = catalogue_lock_path(catalogue_path)
 
     def failed(exc: OSError) -> PsfdError:
-        what = f"cannot create catalogue {catalogue_path}"
+        what = f"cannot lock the catalogue {catalogue_path}"
         return storage_error(exc, what) or CatalogueError(f"{what}: {path_reason(lock.parent, exc)}")
 
     def opening() -> None:  # the catalogue's folder, as `Catalogue` makes it for a new catalogue
