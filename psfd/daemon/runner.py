@@ -322,6 +322,7 @@ class Runner:
         self._frame_bytes = 0  # the largest frame this run stored: the room the store needs for the next
         self.ready: CameraReady | None = None  # what `Camera.prepare` did for the current run
         self._estimators: Estimators | None = None  # the current run's workers
+        self._put: set[str] = set()  # frames this runner put into the store (others were there already)
 
     # -- public -------------------------------------------------------------------------------
 
@@ -519,8 +520,7 @@ class Runner:
                 files = [p for p in camera.capture(incoming) if p.suffix.lower() in RAW_SUFFIXES]
                 if not files:
                     raise CameraError("the camera produced no RAW file: set imageformat to RAW")
-                path, sha = store_frame(files[0], self.frames_dir,
-                                        lambda sha: self.catalogue.pend_frame(sha, self.frames_dir))
+                path, sha = store_frame(files[0], self.frames_dir, self._journal)
             except (PsfdError, OSError):
                 check_room(self.frames_dir, max(self._frame_bytes, FRAME_BYTES_MIN))
                 raise
@@ -529,12 +529,20 @@ class Runner:
         finally:
             shutil.rmtree(incoming, ignore_errors=True)
 
+    def _journal(self, sha: str) -> None:
+        """`store_frame`'s journal: the frame is this catalogue's to remove until its step commits."""
+        self.catalogue.pend_frame(sha, self.frames_dir)
+        self._put.add(sha)
+
     def _discard(self, records: list) -> None:
-        """Remove the frames of a failed step (the retry shoots new ones) unless another step holds them."""
+        """Remove the frames of a failed step (the retry shoots new ones) that this runner put into the store
+        and no step holds: a file that was there already (the same bytes: a replayed recording, the simulated
+        rig) is another catalogue's frame in a shared store."""
         known = self.catalogue.frame_hashes()
         for record in records:
-            if record.sha256 not in known:
+            if record.sha256 in self._put and record.sha256 not in known:
                 Path(record.path).unlink(missing_ok=True)
+            self._put.discard(record.sha256)
         self.catalogue.forget_pending(record.sha256 for record in records)
 
     def _hand_over(self, run_id: int, focal: float | None, step: Step, records: list, inflight: list,
