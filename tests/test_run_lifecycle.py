@@ -538,6 +538,12 @@ def test_a_second_writer_of_a_catalogue_in_use_is_refused_and_the_first_loses_no
                                                   "for it to end, or stop it (Ctrl-C or SIGTERM pauses a run)"], \
                 second.stderr
         assert not (tmp_path / "other").exists()
+        # another catalogue on the first run's frame store: refused by the store, and no new catalogue stays
+        elsewhere = _psfd("run", plan_path, "--catalogue", tmp_path / "lab" / "b.sqlite", "--frames",
+                          frames_dir_for(db), "--socket", sock, "--workers", "1")
+        assert elsewhere.returncode == 5, elsewhere.stderr
+        assert elsewhere.stderr == f"psfd: error: the frame store {frames_dir_for(db)} is in use by another run\n"
+        assert not (tmp_path / "lab").exists()
     finally:
         os.killpg(first.pid, signal.SIGKILL)  # a power cut: the stored frame is not committed
         first.wait()

@@ -887,9 +887,9 @@ def run_plan(
         check_rig(plan, camera, rail)  # Runner.run asks again for its other callers: two queries, no motion
         check_not_stopped(runner_options.get("control"), runner_options.get("stop_before_journal", False))
         made = [] if catalogue_exists(catalogue_path) else _absent(Path(catalogue_path), Path(frames_dir))
-        with catalogue_lock(catalogue_path), store_lock(Path(frames_dir)):
+        with catalogue_lock(catalogue_path):
             try:
-                with Catalogue(catalogue_path) as catalogue:
+                with store_lock(Path(frames_dir)), Catalogue(catalogue_path) as catalogue:
                     result = Runner(catalogue, frames_dir, **runner_options).run(plan, camera, rail, resume=resume,
                                                                                  new=new, oneshot=oneshot)
                     if rows:
