@@ -661,13 +661,19 @@ class Catalogue:
 
     def _check_is_catalogue(self, create: bool) -> None:
         """Refuse, before writing anything to it, a file that is not (and may not become) a catalogue,
-        or one of a newer psfd (whose files this one must not change, not even to WAL mode)."""
-        version = self.schema_version()
+        or one of a newer psfd (whose files this one must not change, not even to WAL mode).
+
+        The version and the tables are read in one snapshot: another process making the catalogue meanwhile
+        commits both at once, and read apart they looked like tables under version 0, a file no psfd made.
+        """
+        with self._read():
+            version = self.schema_version()
+            tables = version == 0 and self.db.table_names()
         if version > SCHEMA_VERSION:
             raise CatalogueError(self._newer(version))
         if version > 0:
             return
-        if self.db.table_names():
+        if tables:
             raise CatalogueError(f"{self.path} is a SQLite file but not a psfd catalogue")
         if not create:
             raise CatalogueError(f"{self.path} is empty, not a psfd catalogue")

@@ -742,3 +742,29 @@ def test_a_sqlite_utils_that_commits_half_way_is_refused_before_any_file(tmp_pat
     assert not path.parent.exists()
     with Catalogue(tmp_path / "old.sqlite", readonly=True) as cat:
         assert cat.runs() == []
+
+
+def test_a_catalogue_made_by_another_process_while_it_is_opened_is_a_catalogue(tmp_path, monkeypatch):
+    """Opening a file read its schema version and then its tables, apart: when another process made the
+    catalogue in between (two runs starting, a run and the service, a query while a run starts; here the file
+    a killed creation left, in WAL mode), the opener saw tables under version 0 and refused the file as 'a
+    SQLite file but not a psfd catalogue' (psfd run exit 5). Both are read in one snapshot."""
+    path = tmp_path / "cat.sqlite"
+    conn = sqlite3.connect(path)
+    conn.execute("PRAGMA journal_mode = WAL")  # a creation killed after its first statement
+    conn.close()
+    real = Catalogue.schema_version
+    made = []
+
+    def meanwhile(self):
+        version = real(self)
+        if not made:  # the other process makes the catalogue right after this one read version 0
+            made.append(subprocess.run([sys.executable, "-c", "import sys; from psfd.catalogue import Catalogue; "
+                                        "Catalogue(sys.argv[1]).close()", str(path)], capture_output=True,
+                                       text=True, timeout=120))
+        return version
+
+    monkeypatch.setattr(Catalogue, "schema_version", meanwhile)
+    with Catalogue(path) as cat:
+        assert made[0].returncode == 0, made[0].stderr
+        assert cat.schema_version() == SCHEMA_VERSION and cat.runs() == []
