@@ -285,11 +285,23 @@ def _v9_lens_serial(db: sqlite_utils.Database) -> None:
     _v3_frame_exif(db)  # adds the one column it lacks
 
 
+def _v10_pending_store(db: sqlite_utils.Database) -> None:
+    """Version 10: the frame store each pending frame was put into (NULL for older rows: any store).
+
+    A catalogue may have runs on several frame stores (`psfd capture --out DIR`); a run sweeps its own store
+    only, and must forget only that store's pending frames, or a killed run's leftovers in another store
+    would never be removed.
+    """
+    if "store" not in db["pending_frames"].columns_dict:
+        db["pending_frames"].add_column("store", str)
+
+
 # In the order they landed: a catalogue's user_version counts the migrations it ran. Each later one
 # checks its columns before adding them, so a catalogue is the same whichever of them ran first.
 MIGRATIONS: list[Callable[[sqlite_utils.Database], None]] = [
     _v1_tables, _v2_query_indexes, _v3_frame_exif, _v4_relative_frame_paths, _v5_prediction_error,
-    _v6_noise_floor_as_norm, _v7_relative_psf_sources, _v8_pending_frames, _v9_lens_serial]
+    _v6_noise_floor_as_norm, _v7_relative_psf_sources, _v8_pending_frames, _v9_lens_serial,
+    _v10_pending_store]
 SCHEMA_VERSION = len(MIGRATIONS)
 
 
@@ -321,6 +333,27 @@ def catalogue_exists(path: str | os.PathLike) -> bool:
         conn.close()
 
 
+def discard_unused(path: str | os.PathLike) -> bool:
+    """Remove the catalogue at ``path`` (and its ``-wal`` and ``-shm``) when it holds no run: the one a run
+    created and was stopped, or refused, before it journalled anything. Only for a caller that made it and
+    holds it (`psfd.daemon.store.catalogue_lock`). Returns whether it was removed."""
+    path = Path(path)
+    if catalogue_exists(path):
+        try:
+            conn = sqlite3.connect(f"{path.absolute().as_uri()}?mode=ro", uri=True)
+            try:
+                if conn.execute("SELECT count(*) FROM runs").fetchone()[0]:
+                    return False
+            finally:
+                conn.close()
+        except sqlite3.Error:  # not a catalogue this process made: leave it as it is
+            return False
+    for suffix in ("", "-wal", "-shm"):
+        with contextlib.suppress(FileNotFoundError):
+            path.with_name(path.name + suffix).unlink()
+    return True
+
+
 def check_owner(path: Path, what: str) -> None:
     """Refuse to write into ``path`` (a catalogue, a frame store), when it exists, unless this process's user
     owns it: files this user made there would be theirs, and the owner (e.g. the service's user) could then
@@ -333,6 +366,21 @@ def check_owner(path: Path, what: str) -> None:
         me, them = user_name(os.geteuid()), user_name(owner)
         raise StorageError(f"{what} {path} belongs to {them}: writing to it as {me} would leave files {them} "
                            f"cannot use; submit to the service, or run as {them}")
+
+
+def _check_sqlite_utils() -> None:
+    """Refuse to write with a sqlite-utils whose table methods commit the caller's transaction.
+
+    Every write is one transaction (`Catalogue._write`); before 4.0 (no ``Database.atomic``) each
+    ``create`` or ``insert`` ended it with ``with conn:``, so that a migration, or a step's frames and PSFs,
+    were committed piece by piece: a kill in between left tables under schema version 0 (a file no psfd
+    would open) or a step half stored.
+    """
+    if not hasattr(sqlite_utils.Database, "atomic"):
+        from importlib.metadata import version
+
+        raise CatalogueError(f"psfd needs sqlite-utils 4.0 or newer to write a catalogue (this is "
+                             f"{version('sqlite-utils')}): pip install 'sqlite-utils>=4.0'")
 
 
 def _storage_error(exc: sqlite3.Error, what: str) -> StorageError | None:
@@ -431,6 +479,8 @@ class Catalogue:
         self.path = Path(path)
         self.readonly = readonly
         self.folder = Path(os.path.abspath(self.path)).parent  # frame paths are stored relative to it
+        if not readonly:
+            _check_sqlite_utils()
         if not self.path.exists():
             if readonly or not create:
                 raise CatalogueError(f"no catalogue at {self.path}")
@@ -441,6 +491,8 @@ class Catalogue:
                                      ) from None
         elif self.path.is_dir():
             raise CatalogueError(f"{self.path} is a folder, not a catalogue file")
+        elif readonly and not catalogue_exists(self.path):  # a file a writer killed before its first commit left
+            raise CatalogueError(f"no catalogue at {self.path}")
         elif not readonly:
             check_owner(self.path, "the catalogue")
         self._lock = threading.RLock()
@@ -611,13 +663,19 @@ class Catalogue:
 
     def _check_is_catalogue(self, create: bool) -> None:
         """Refuse, before writing anything to it, a file that is not (and may not become) a catalogue,
-        or one of a newer psfd (whose files this one must not change, not even to WAL mode)."""
-        version = self.schema_version()
+        or one of a newer psfd (whose files this one must not change, not even to WAL mode).
+
+        The version and the tables are read in one snapshot: another process making the catalogue meanwhile
+        commits both at once, and read apart they looked like tables under version 0, a file no psfd made.
+        """
+        with self._read():
+            version = self.schema_version()
+            tables = version == 0 and self.db.table_names()
         if version > SCHEMA_VERSION:
             raise CatalogueError(self._newer(version))
         if version > 0:
             return
-        if self.db.table_names():
+        if tables:
             raise CatalogueError(f"{self.path} is a SQLite file but not a psfd catalogue")
         if not create:
             raise CatalogueError(f"{self.path} is empty, not a psfd catalogue")
@@ -1095,23 +1153,27 @@ class Catalogue:
             row["rail"] = json.loads(row["rail"] or "{}")
         return rows
 
-    def pend_frame(self, sha256: str) -> None:
-        """Journal a frame about to be put into the frame store, before its step commits (`pending_frames`)."""
+    def pend_frame(self, sha256: str, store: str | os.PathLike | None = None) -> None:
+        """Journal a frame about to be put into the frame store ``store``, before its step commits
+        (`pending_frames`)."""
+        where = stored_frame_path(store, self.folder) if store is not None else None
         with self._write() as db:
-            db["pending_frames"].insert({"sha256": sha256, "stored": _now()}, replace=True)
+            db["pending_frames"].insert({"sha256": sha256, "stored": _now(), "store": where}, replace=True)
 
-    def pending_frames(self) -> set[str]:
-        """SHA-256 of the frames journalled by `pend_frame` whose step has not committed them."""
+    def pending_frames(self, store: str | os.PathLike | None = None) -> set[str]:
+        """SHA-256 of the frames journalled by `pend_frame` whose step has not committed them; with ``store``,
+        only those put into that frame store (and those of older catalogues, which did not say where)."""
+        sql, params = "SELECT sha256 FROM pending_frames", []
+        if store is not None:
+            sql += " WHERE store IS NULL OR store = ?"
+            params = [stored_frame_path(store, self.folder)]
         with self._read() as db:
-            return {row[0] for row in db.execute("SELECT sha256 FROM pending_frames").fetchall()}
+            return {row[0] for row in db.execute(sql, params).fetchall()}
 
-    def forget_pending(self, hashes: Iterable[str] | None = None) -> None:
-        """Drop ``hashes`` (all by default) from the pending frames: swept, discarded or committed."""
+    def forget_pending(self, hashes: Iterable[str]) -> None:
+        """Drop ``hashes`` from the pending frames: swept, discarded or committed."""
         with self._write() as db:
-            if hashes is None:
-                db.execute("DELETE FROM pending_frames")
-            else:
-                db.conn.executemany("DELETE FROM pending_frames WHERE sha256 = ?", [(h,) for h in hashes])
+            db.conn.executemany("DELETE FROM pending_frames WHERE sha256 = ?", [(h,) for h in hashes])
 
     def frame_hashes(self) -> set[str]:
         """SHA-256 of every catalogued frame (the daemon's frame store keeps exactly these files)."""
@@ -1315,6 +1377,8 @@ COLUMNS: dict[str, dict[str, str]] = {
     "pending_frames": {
         "sha256": "SHA-256 of a file a run put into its frame store, its step not yet committed",
         "stored": "when it was stored, ISO 8601 UTC",
+        "store": "the frame store it was put into: relative to the catalogue's folder when inside it, else "
+                 "absolute; NULL in older catalogues (any store)",
     },
 }
 TABLES = {
@@ -1325,7 +1389,7 @@ TABLES = {
     "psfs": "Sub-pixel PSFs, one per channel, field location and aperture, with their metrics.",
     "psf_frames": "Which frames each PSF was estimated from.",
     "pending_frames": "Frames stored by a run whose step is not committed yet: a crash's leftovers, removed by "
-                      "the next run.",
+                      "the next run on their frame store.",
 }
 # Units Datasette shows beside values (names from Pint's registry); the others are in the descriptions.
 UNITS = {"rigs": {"focal_length_mm": "mm"}, "psfs": {"focal_length_mm": "mm", "focus_distance_m": "m"}}

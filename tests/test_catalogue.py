@@ -742,3 +742,44 @@ def test_relative_frame_paths_migration_runs_again_without_change(tmp_path, monk
     assert [r[0] for r in db.execute("SELECT path FROM frames ORDER BY id").fetchall()] == [
         "cat-frames/aa/x.dng", "/mnt/raw/y.dng"]
     db.close()
+
+
+def test_a_sqlite_utils_that_commits_half_way_is_refused_before_any_file(tmp_path, monkeypatch):
+    """sqlite-utils before 4.0 (which pyproject allowed) ended the catalogue's transaction in each table
+    method: a catalogue killed while being made kept its tables under schema version 0, which every command
+    then refused as not a psfd catalogue, and a step's rows were committed one by one. Such a library is
+    refused in one line before the catalogue file is made; readers, which write nothing, still read."""
+    path = tmp_path / "new" / "cat.sqlite"
+    Catalogue(tmp_path / "old.sqlite").close()
+    monkeypatch.delattr(sqlite_utils.Database, "atomic")  # what 3.x lacks
+    with pytest.raises(CatalogueError, match=r"^psfd needs sqlite-utils 4.0 or newer .*: pip install "):
+        Catalogue(path)
+    assert not path.parent.exists()
+    with Catalogue(tmp_path / "old.sqlite", readonly=True) as cat:
+        assert cat.runs() == []
+
+
+def test_a_catalogue_made_by_another_process_while_it_is_opened_is_a_catalogue(tmp_path, monkeypatch):
+    """Opening a file read its schema version and then its tables, apart: when another process made the
+    catalogue in between (two runs starting, a run and the service, a query while a run starts; here the file
+    a killed creation left, in WAL mode), the opener saw tables under version 0 and refused the file as 'a
+    SQLite file but not a psfd catalogue' (psfd run exit 5). Both are read in one snapshot."""
+    path = tmp_path / "cat.sqlite"
+    conn = sqlite3.connect(path)
+    conn.execute("PRAGMA journal_mode = WAL")  # a creation killed after its first statement
+    conn.close()
+    real = Catalogue.schema_version
+    made = []
+
+    def meanwhile(self):
+        version = real(self)
+        if not made:  # the other process makes the catalogue right after this one read version 0
+            made.append(subprocess.run([sys.executable, "-c", "import sys; from psfd.catalogue import Catalogue; "
+                                        "Catalogue(sys.argv[1]).close()", str(path)], capture_output=True,
+                                       text=True, timeout=120))
+        return version
+
+    monkeypatch.setattr(Catalogue, "schema_version", meanwhile)
+    with Catalogue(path) as cat:
+        assert made[0].returncode == 0, made[0].stderr
+        assert cat.schema_version() == SCHEMA_VERSION and cat.runs() == []

@@ -308,7 +308,7 @@ def test_bad_inputs_give_one_line_errors(capsys, catalogue, tmp_path):
     empty = tmp_path / "empty.sqlite"
     empty.touch()
     code, _, err = run_cli(capsys, "query", "--catalogue", str(empty))
-    assert_one_line_error(code, err, 5, "not a psfd catalogue")
+    assert_one_line_error(code, err, 5, "no catalogue")  # as `status` says: a writer makes a catalogue in it
     assert empty.stat().st_size == 0
     code, _, err = run_cli(capsys, "query", "--catalogue", str(tmp_path / "missing.sqlite"))
     assert_one_line_error(code, err, 5, "no catalogue")

@@ -30,7 +30,7 @@ from psfd.daemon.store import frames_dir_for
 from psfd.drivers import open_rig
 from psfd.errors import EstimationError, StorageError
 
-from test_runner import check_complete, small_plan
+from test_runner import check_complete, small_plan, stored_files
 
 HERE = Path(__file__).resolve().parent
 ONE_STEP = small_plan().replace("apertures = [4, 11]", "apertures = [4]").split("y = [")[0] + 'channels = ["g1"]\n'
@@ -225,11 +225,21 @@ def test_a_catalogue_commit_that_finds_the_disk_full_pauses_and_resume_continues
 @pytest.fixture
 def small_disk(tmp_path):
     """A 4 MiB tmpfs (root only): a real file system that fills up and can be remounted read-only."""
+    yield from _tmpfs(tmp_path, "4m")
+
+
+@pytest.fixture
+def tiny_disk(tmp_path):
+    """A 64 KiB tmpfs (root only): too small for a new catalogue."""
+    yield from _tmpfs(tmp_path, "64k")
+
+
+def _tmpfs(tmp_path: Path, size: str):
     if os.geteuid() != 0 or shutil.which("mount") is None:
         pytest.skip("mounting a size-limited tmpfs needs root")
     mount = tmp_path / "disk"
     mount.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m,mode=0755", "tmpfs", str(mount)],
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size},mode=0755", "tmpfs", str(mount)],
                           capture_output=True, text=True)
     if done.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")
@@ -267,6 +277,20 @@ def test_a_full_file_system_pauses_the_run_and_resume_continues_once_space_is_ba
     assert again.returncode == 0, again.stderr
     assert states(db) == ["done"]
     check_complete(db, frames_dir_for(db), plan)
+
+
+def test_a_disk_too_full_for_a_new_catalogue_is_refused_in_one_line_and_leaves_nothing(tiny_disk, tmp_path):
+    """A disk that fills up while a new catalogue is made: the run was refused in one line (exit 5), but an
+    empty catalogue file (WAL header, no table) and frame store stayed, and `psfd query` then called the
+    file 'empty, not a psfd catalogue'. Nothing is left, and a reader finds no catalogue."""
+    plan_path = write_plan(tmp_path, ONE_STEP)
+    db = tiny_disk / "lab" / "cat.sqlite"
+    done = _psfd("run", plan_path, "--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1")
+    assert done.returncode == 5, done.stderr
+    assert done.stderr.splitlines() == [f"psfd: error: cannot write to {db}: database or disk is full"]
+    assert list(tiny_disk.iterdir()) == []
+    query = _psfd("query", "--catalogue", db)
+    assert query.returncode == 5 and query.stderr.strip() == f"psfd: error: no catalogue at {db}", query.stderr
 
 
 def test_a_read_only_file_system_is_refused_in_one_line_and_resume_continues(small_disk, tmp_path):
@@ -472,37 +496,61 @@ def test_a_worker_killed_alone_fails_its_step_in_one_line_and_keeps_the_others(t
     check_complete(db, frames_dir_for(db), plan)
 
 
-# -- 13. two processes on one run ------------------------------------------------------------------------
+# -- 13. two processes on one catalogue ------------------------------------------------------------------
 
 
-def test_a_step_done_by_another_process_on_the_run_is_not_shot_and_stored_again(tmp_path):
-    """The frame store's lock keeps two runs of one store apart, not two runs of one catalogue: a second
-    `psfd run --resume` with another `--frames` (or the catalogue through a symbolic link, whose default store
-    is another folder) resumes the run the first is shooting. Here it finishes the run while the first is in
-    its first step; the first then finds the second step done and must neither mark it running again nor
-    store its PSFs a second time (it stored 3 PSFs for 2 steps)."""
+def stopped(pid: int) -> bool:
+    """Whether process ``pid`` is stopped (SIGSTOP: state T in /proc/PID/stat)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "T"
+    except (OSError, IndexError):
+        return False
+
+
+def test_a_second_writer_of_a_catalogue_in_use_is_refused_and_the_first_loses_nothing(tmp_path):
+    """The frame store's lock keeps two runs of one store apart, not two writers of one catalogue: a
+    `psfd capture --out DIR` (or a run with another --frames) into the catalogue a `psfd run` was writing
+    swept its own store and then forgot the whole catalogue's journal of frames being stored, the first
+    run's included; killed after storing a frame, the first run left it in its store for ever (a file no
+    catalogue row holds), and the capture's PSF was stored between the run's steps. A second writer is now
+    refused in one line while the first holds the catalogue, and the first resumes to a complete store."""
     plan_path = write_plan(tmp_path, TWO_STEPS)
     plan = parse_plan(TWO_STEPS, str(plan_path))
     db = tmp_path / "cat.sqlite"
-    other = tmp_path / "other-frames"
-
-    def second_process(key: str, state: str, reason: str | None) -> None:
-        if state == "running" and not other.exists():  # the first step is under way in the first run
-            with Catalogue(db) as cat:
-                camera, rail = open_rig(plan.rig_config())
-                done = Runner(cat, other, workers=1, progress=None).run(plan, camera, rail, resume=True)
-            assert done.state == "done" and done.steps_done == 2
-
-    with Catalogue(db) as cat:
-        camera, rail = open_rig(plan.rig_config())
-        first = Runner(cat, frames_dir_for(db), workers=1, progress=None, on_step=second_process)
-        result = first.run(plan, camera, rail)
-    assert result.state == "done" and result.error is None
-    with Catalogue(db, readonly=True) as cat:
-        assert cat.integrity_check() == []
-        assert sorted(r["step"] for r in cat.query().rows) == sorted(s.key for s in plan.steps())  # each once
-        assert [s["attempts"] for s in cat.steps(1)] == [2, 1]  # the second step was shot by one process only
-        assert [r["state"] for r in cat.runs()] == ["done"]
+    sock = tmp_path / "none.sock"
+    # the first run stops itself (and its workers) right after its first frame is stored, not yet committed
+    first = subprocess.Popen([sys.executable, str(HERE / "kill_at.py"), "store:1:STOP", "run", str(plan_path),
+                              "--catalogue", str(db), "--socket", str(sock), "--workers", "1"],
+                             start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 300
+        while not stopped(first.pid):
+            assert first.poll() is None and time.monotonic() < deadline, "the first run never stored a frame"
+            time.sleep(0.1)
+        capture = _psfd("capture", "--simulate", "--aperture", "4", "--channels", "g1", "--catalogue", db,
+                        "--out", tmp_path / "other", "--socket", sock, "--workers", "1")
+        again = _psfd("run", plan_path, "--resume", "--catalogue", db, "--frames", tmp_path / "other",
+                      "--socket", sock, "--workers", "1")
+        for second in (capture, again):
+            assert second.returncode == 5, second.stderr
+            assert second.stderr.splitlines() == [f"psfd: error: the catalogue {db} is in use by psfd process "
+                                                  f"{first.pid} (one process writes a catalogue at a time): wait "
+                                                  "for it to end, or stop it (Ctrl-C or SIGTERM pauses a run)"], \
+                second.stderr
+        assert not (tmp_path / "other").exists()
+        # another catalogue on the first run's frame store: refused by the store, and no new catalogue stays
+        elsewhere = _psfd("run", plan_path, "--catalogue", tmp_path / "lab" / "b.sqlite", "--frames",
+                          frames_dir_for(db), "--socket", sock, "--workers", "1")
+        assert elsewhere.returncode == 5, elsewhere.stderr
+        assert elsewhere.stderr == f"psfd: error: the frame store {frames_dir_for(db)} is in use by another run\n"
+        assert not (tmp_path / "lab").exists()
+    finally:
+        os.killpg(first.pid, signal.SIGKILL)  # a power cut: the stored frame is not committed
+        first.wait()
+    assert states(db) == ["running"]
+    resumed = _psfd("run", plan_path, "--resume", "--catalogue", db, "--socket", sock, "--workers", "1")
+    assert resumed.returncode == 0, resumed.stderr
+    check_complete(db, frames_dir_for(db), plan)
 
 
 # -- 14. a run killed while it created its catalogue -------------------------------------------------------
@@ -512,7 +560,8 @@ def test_a_catalogue_whose_creation_was_killed_is_created_by_the_next_run(tmp_pa
     """SQLite makes the catalogue's file when it opens it; a run killed (or a power cut) before the schema's
     first commit leaves an empty file, or one with WAL mode set and no table. Every command refused it
     ('is empty, not a psfd catalogue', exit 5), a new `psfd run` included, until someone deleted it by hand:
-    it is a catalogue not made yet, which the next run makes and `status` shows as no catalogue."""
+    it is a catalogue not made yet, which the next run makes and `status` shows as no catalogue; `query` and
+    `export` said 'is empty, not a psfd catalogue' of it, and now say no catalogue too."""
     plan_path = write_plan(tmp_path, ONE_STEP)
     plan = parse_plan(ONE_STEP, str(plan_path))
     for name, wal in (("zero.sqlite", False), ("wal.sqlite", True)):
@@ -524,6 +573,9 @@ def test_a_catalogue_whose_creation_was_killed_is_created_by_the_next_run(tmp_pa
         common = ("--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1")
         code, out, err = cli(capsys, "status", *common[:4])
         assert code == 0 and "no catalogue at" in out, err
+        for command in (["query"], ["export", "--out", tmp_path / "psfs"]):
+            code, out, err = cli(capsys, *command, "--catalogue", db)
+            assert code == 5 and err == f"psfd: error: no catalogue at {db}\n", err
         code, out, err = cli(capsys, "run", plan_path, "--resume", *common)
         assert code == 2 and "no unfinished run" in err, err  # nothing was journalled
         code, out, err = cli(capsys, "run", plan_path, *common)
@@ -564,14 +616,20 @@ def test_a_stop_before_the_run_is_journalled_leaves_nothing(tmp_path, moment, si
     assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.toml"]
 
 
-def test_a_stop_while_the_catalogue_is_opened_journals_no_run(tmp_path):
-    """The frame store is held and the catalogue open, but the run not journalled yet: no run is left to
-    resume, so the next plain `psfd run` measures the plan."""
+def test_a_stop_while_a_new_catalogue_is_opened_leaves_nothing(tmp_path):
+    """The frame store is held and the catalogue made, but the run not journalled yet: "nothing was stored",
+    and yet the new catalogue (with its -wal and -shm) and frame store stayed, to be taken for a lab's
+    catalogue. Nothing is left, and the next plain `psfd run` measures the plan; an older catalogue a stop
+    finds is kept as it was."""
     plan_path = write_plan(tmp_path, ONE_STEP)
-    db = tmp_path / "cat.sqlite"
+    db = tmp_path / "lab" / "cat.sqlite"
     done = signalled_run(tmp_path, plan_path, db, "opening", signal.SIGTERM)
     assert done.returncode == 143, done.stderr
     assert done.stderr.splitlines()[-1] == "psfd: terminated (before the run started: nothing was stored)"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.toml"]
+    Catalogue(db).close()  # an empty catalogue of the lab's
+    done = signalled_run(tmp_path, plan_path, db, "opening", signal.SIGTERM)
+    assert done.returncode == 143, done.stderr
     assert states(db) == []
     again = _psfd("run", plan_path, "--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1")
     assert again.returncode == 0, again.stderr
@@ -621,3 +679,28 @@ def test_ctrl_c_ignored_by_the_parent_stays_ignored_before_the_run_is_journalled
     done = signalled_run(tmp_path, plan_path, db, "plan", signal.SIGINT, sigint=signal.SIG_IGN)
     assert done.returncode == 0 and "run 1 done" in done.stdout, done.stderr
     check_complete(db, frames_dir_for(db), parse_plan(ONE_STEP, str(plan_path)))
+
+
+
+def test_a_capture_into_another_store_keeps_the_journal_of_a_killed_runs_frames(tmp_path):
+    """A run killed after storing a frame (journalled, not committed) leaves it for its next sweep. A `psfd
+    capture --out DIR` into the same catalogue meanwhile swept its own store, found none of the journalled
+    frames there, and forgot them all: the resumed run then kept the killed run's frame in its store for ever,
+    a file no catalogue row holds. Each store's frames are forgotten only once swept from that store."""
+    plan_path = write_plan(tmp_path, TWO_STEPS)
+    plan = parse_plan(TWO_STEPS, str(plan_path))
+    db, other = tmp_path / "cat.sqlite", tmp_path / "other"
+    common = ("--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1")
+    assert killed_run(plan_path, db, "store", 1, False, tmp_path) == -signal.SIGKILL
+    orphan = stored_files(frames_dir_for(db))
+    assert len(orphan) == 1
+    capture = _psfd("capture", "--simulate", "--aperture", "8", "--channels", "g1", "--out", other, *common)
+    assert capture.returncode == 0, capture.stderr
+    resumed = _psfd("run", plan_path, "--resume", *common)
+    assert resumed.returncode == 0, resumed.stderr
+    with Catalogue(db, readonly=True) as cat:
+        assert cat.integrity_check() == [] and cat.pending_frames() == set()
+        hashes = cat.frame_hashes()
+        assert sorted(r["step"] for r in cat.query().rows if r["run_id"] == 1) == sorted(s.key for s in plan.steps())
+    assert stored_files(other) | stored_files(frames_dir_for(db)) == hashes  # no orphan in either store
+    assert not orphan & stored_files(frames_dir_for(db))

@@ -365,7 +365,7 @@ def status(args: argparse.Namespace) -> dict:
             if service is None:
                 raise
     for run in runs:  # a run its process no longer holds was killed: say so, it is resumable
-        run["state"] = shown_state(run["state"], frames)
+        run["state"] = shown_state(run["state"], frames, catalogue)
     return {"service": service, "catalogue": str(catalogue) if exists else None, "runs": runs}
 
 

@@ -114,7 +114,7 @@ def partial_runs(cat, rows: list[dict]) -> list[str]:
     for run_id in sorted({row["run_id"] for row in rows if row.get("run_id") is not None}):
         summary = cat.run_summary(run_id)
         if summary["done"] < summary["total"]:
-            state = shown_state(summary["state"], frames_dir_for(cat.path))
+            state = shown_state(summary["state"], frames_dir_for(cat.path), cat.path)
             notes.append(f"run {run_id} is not done ({state}, {summary['done']} of {summary['total']} "
                          "steps): the PSFs of its other steps are missing")
     return notes

@@ -24,8 +24,11 @@ parent's alone (`work.init_worker`): Ctrl-C or SIGTERM sent to the whole process
 or control group stops the run exactly as when sent to psfd only.
 
 A run's journal says ``running`` only while its process holds the frame-store
-lock (`store.store_busy`): a ``running`` run whose store is free was killed, and is
-resumable like a paused one (`interrupted`). Starting a plan that has an
+lock (`store.store_busy`) and the catalogue's (`store.catalogue_lock`: one writing
+run per catalogue, whatever its frame store, so that what a run reads before it
+writes, a step done or a frame journalled, is not changed under it): a ``running``
+run whose store and catalogue are free was killed, and is resumable like a paused
+one (`interrupted`). Starting a plan that has an
 unfinished run (`Catalogue.unfinished_run`) is refused unless the caller
 resumes it or asks for a new run, so that no position is measured twice by accident.
 A run is closed whenever it has no step left: a resumed run with nothing to do, and
@@ -59,11 +62,11 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Any, Callable
 
-from psfd.catalogue import UNFINISHED_STATES, Catalogue, FrameRecord, catalogue_exists, check_owner
+from psfd.catalogue import UNFINISHED_STATES, Catalogue, FrameRecord, catalogue_exists, check_owner, discard_unused
 from psfd.daemon import work
 from psfd.daemon.plan import Plan, Step, check_rail, plan_changes
-from psfd.daemon.store import (INCOMING, check_room, shown_state, storage_error, store_frame, store_lock,
-                               sweep_frames)
+from psfd.daemon.store import (INCOMING, catalogue_lock, catalogue_lock_path, check_catalogue_free, check_room,
+                               shown_state, storage_error, store_frame, store_lock, sweep_frames)
 from psfd.drivers import open_rig
 from psfd.drivers.base import Camera, CameraReady, CameraSetup, Rail, settle
 from psfd.errors import (BadInputError, CameraError, EstimationError, HardwareError, Interrupted, PsfdError, RailError,
@@ -319,6 +322,7 @@ class Runner:
         self._frame_bytes = 0  # the largest frame this run stored: the room the store needs for the next
         self.ready: CameraReady | None = None  # what `Camera.prepare` did for the current run
         self._estimators: Estimators | None = None  # the current run's workers
+        self._put: set[str] = set()  # frames this runner put into the store (others were there already)
 
     # -- public -------------------------------------------------------------------------------
 
@@ -348,7 +352,7 @@ class Runner:
         """
         try:
             check_rig(plan, camera, rail)  # refused before the run is opened and before any motion, not at the step
-            with store_lock(self.frames_dir):
+            with store_lock(self.frames_dir), catalogue_lock(self.catalogue.path):
                 run_id = self._open_run(plan, camera, rail, resume, new)
                 try:
                     result = self._execute(plan, run_id, camera, rail)
@@ -369,8 +373,9 @@ class Runner:
     # -- steps --------------------------------------------------------------------------------
 
     def _open_run(self, plan: Plan, camera: Camera, rail: Rail, resume: bool, new: bool) -> int:
-        sweep_frames(self.frames_dir, self.catalogue.frame_hashes(), self.catalogue.pending_frames())
-        self.catalogue.forget_pending()
+        pending = self.catalogue.pending_frames(self.frames_dir)  # another store's are swept by its own runs
+        sweep_frames(self.frames_dir, self.catalogue.frame_hashes(), pending)
+        self.catalogue.forget_pending(pending)
         # we hold the store lock, so a run journalled "running" here was killed: it is interrupted,
         # and done if it was killed between its last commit and its close (the one resumed here too:
         # it is reopened below and closed by _execute, so that its resume reports it done)
@@ -515,7 +520,7 @@ class Runner:
                 files = [p for p in camera.capture(incoming) if p.suffix.lower() in RAW_SUFFIXES]
                 if not files:
                     raise CameraError("the camera produced no RAW file: set imageformat to RAW")
-                path, sha = store_frame(files[0], self.frames_dir, self.catalogue.pend_frame)
+                path, sha = store_frame(files[0], self.frames_dir, self._journal)
             except (PsfdError, OSError):
                 check_room(self.frames_dir, max(self._frame_bytes, FRAME_BYTES_MIN))
                 raise
@@ -524,12 +529,20 @@ class Runner:
         finally:
             shutil.rmtree(incoming, ignore_errors=True)
 
+    def _journal(self, sha: str) -> None:
+        """`store_frame`'s journal: the frame is this catalogue's to remove until its step commits."""
+        self.catalogue.pend_frame(sha, self.frames_dir)
+        self._put.add(sha)
+
     def _discard(self, records: list) -> None:
-        """Remove the frames of a failed step (the retry shoots new ones) unless another step holds them."""
+        """Remove the frames of a failed step (the retry shoots new ones) that this runner put into the store
+        and no step holds: a file that was there already (the same bytes: a replayed recording, the simulated
+        rig) is another catalogue's frame in a shared store."""
         known = self.catalogue.frame_hashes()
         for record in records:
-            if record.sha256 not in known:
+            if record.sha256 in self._put and record.sha256 not in known:
                 Path(record.path).unlink(missing_ok=True)
+            self._put.discard(record.sha256)
         self.catalogue.forget_pending(record.sha256 for record in records)
 
     def _hand_over(self, run_id: int, focal: float | None, step: Step, records: list, inflight: list,
@@ -747,7 +760,7 @@ def start_check(catalogue: Catalogue, plan: Plan, resume: bool, new: bool,
         return unfinished
     if unfinished is not None and not new:
         summary = catalogue.run_summary(unfinished)
-        progress = _progress(summary, frames_dir)
+        progress = _progress(summary, frames_dir, catalogue.path)
         # a run another process is shooting: --resume and --new would both meet its frame store in use
         advice = ("in another psfd process: follow it with `psfd status`, or stop it (Ctrl-C or SIGTERM there "
                   "pauses it) and add --resume" if progress.startswith("running") else
@@ -757,10 +770,11 @@ def start_check(catalogue: Catalogue, plan: Plan, resume: bool, new: bool,
     return None
 
 
-def _progress(summary: dict, frames_dir: str | os.PathLike | None) -> str:
+def _progress(summary: dict, frames_dir: str | os.PathLike | None, catalogue_path: Path) -> str:
     """``interrupted (3/6 steps done)``: a run's state as a user reads it (`start_check`'s ``frames_dir``)."""
     state = summary["state"]
-    state = shown_state(state, frames_dir) if frames_dir is not None else state.replace("running", "interrupted")
+    state = (shown_state(state, frames_dir, catalogue_path) if frames_dir is not None
+             else state.replace("running", "interrupted"))
     return f"{state} ({summary['done']}/{summary['total']} steps done)"
 
 
@@ -783,7 +797,8 @@ def _changed_since(catalogue: Catalogue, plan: Plan, frames_dir: str | os.PathLi
         if run["state"] in UNFINISHED_STATES and _same_file(run["plan_path"], plan.path):
             changes = plan_changes(catalogue.run(run["id"])["plan_text"], plan.text)
             if changes:
-                return (f": run {run['id']} of it is {_progress(catalogue.run_summary(run['id']), frames_dir)}, "
+                progress = _progress(catalogue.run_summary(run["id"]), frames_dir, catalogue.path)
+                return (f": run {run['id']} of it is {progress}, "
                         f"but with other {', '.join(changes)}; put its values back to resume it, or run without "
                         "--resume to start this plan afresh")
     return ""
@@ -807,6 +822,7 @@ def preflight(plan: Plan, catalogue_path: str | os.PathLike, frames_dir: str | o
     catalogue_path, frames_dir = Path(catalogue_path), Path(frames_dir)
     _check_folder(catalogue_path.parent, "the catalogue's folder")
     _check_folder(frames_dir, "the frame store")
+    check_catalogue_free(catalogue_path)
     if catalogue_exists(catalogue_path):  # an empty file a killed run left is made a catalogue by this one
         with Catalogue(catalogue_path, readonly=True) as catalogue:
             check_owner(catalogue_path, "the catalogue")
@@ -833,7 +849,7 @@ def unfinished_runs(catalogue_path: str | os.PathLike, frames_dir: str | os.Path
     with Catalogue(catalogue_path, readonly=True) as catalogue:
         runs = [catalogue.run_summary(r["id"]) for r in catalogue.runs() if r["state"] in UNFINISHED_STATES]
     for run in runs:
-        run["state"] = shown_state(run["state"], frames_dir)
+        run["state"] = shown_state(run["state"], frames_dir, catalogue_path)
     return runs
 
 
@@ -851,15 +867,18 @@ def run_plan(
     """Run a plan on the rig its ``[rig]`` table names, into a catalogue and a frame store.
 
     The one way to run a plan: `preflight`, open the rig and `check_rig`, then take
-    the frame store (a path that cannot be one is refused before a catalogue is
-    created), open the catalogue (created when missing), `Runner.run` (``resume``,
+    the catalogue (`catalogue_lock`: no other process writes it) and the frame store
+    (a path that cannot be one is refused before a catalogue is created), open the
+    catalogue (created when missing), `Runner.run` (``resume``,
     ``new`` and ``oneshot`` as there), and with ``rows`` put the stored PSF rows
     (metadata, no arrays) into the result. ``runner_options`` go to `Runner`
     (``workers``, ``backlog``, ``control``, ``progress``, ``on_step``).
 
     A rig that cannot be opened, or refuses the plan, leaves no catalogue, catalogue
     folder or frame store behind: none is made before the rig has answered, and so
-    does a stop asked meanwhile with ``stop_before_journal`` (`Runner`). The rig is
+    does a stop asked meanwhile with ``stop_before_journal`` (`Runner`). A new catalogue
+    that the run leaves without a run journalled (stopped, a full disk, a camera gone
+    before the run started) is removed with what was made for it. The rig is
     released on every path.
     """
     preflight(plan, catalogue_path, frames_dir, resume, new)
@@ -867,14 +886,46 @@ def run_plan(
     try:
         check_rig(plan, camera, rail)  # Runner.run asks again for its other callers: two queries, no motion
         check_not_stopped(runner_options.get("control"), runner_options.get("stop_before_journal", False))
-        with store_lock(Path(frames_dir)), Catalogue(catalogue_path) as catalogue:
-            result = Runner(catalogue, frames_dir, **runner_options).run(plan, camera, rail, resume=resume,
-                                                                         new=new, oneshot=oneshot)
-            if rows:
-                result.rows = [catalogue.psf(i)[1] for i in result.psf_ids]
+        made = [] if catalogue_exists(catalogue_path) else _absent(Path(catalogue_path), Path(frames_dir))
+        with catalogue_lock(catalogue_path):
+            try:
+                with store_lock(Path(frames_dir)), Catalogue(catalogue_path) as catalogue:
+                    result = Runner(catalogue, frames_dir, **runner_options).run(plan, camera, rail, resume=resume,
+                                                                                 new=new, oneshot=oneshot)
+                    if rows:
+                        result.rows = [catalogue.psf(i)[1] for i in result.psf_ids]
+            except BaseException:
+                if made:  # a stop or a refusal before the run was journalled: the new catalogue holds nothing
+                    _discard_new(Path(catalogue_path), Path(frames_dir), made)
+                raise
     finally:
         release_rig(camera, rail)  # Runner.run released it already, unless the store or catalogue refused
     return result
+
+
+def _absent(catalogue_path: Path, frames_dir: Path) -> list[Path]:
+    """What a run makes for a new catalogue: the catalogue file, the frame store and the folders of either
+    that do not exist yet, the deepest first."""
+    paths = [catalogue_path]
+    for folder in (frames_dir, catalogue_path.parent):
+        for part in (folder, *folder.parents):
+            if part.exists():
+                break
+            paths.append(part)
+    return sorted(set(paths), key=lambda p: len(Path(os.path.abspath(p)).parts), reverse=True)
+
+
+def _discard_new(catalogue_path: Path, frames_dir: Path, made: list[Path]) -> None:
+    """Remove a new catalogue that holds no run, its lock, and the frame store and folders made for it
+    (`_absent`): a run stopped or refused before it journalled anything leaves nothing behind."""
+    if not discard_unused(catalogue_path):
+        return
+    catalogue_lock_path(catalogue_path).unlink(missing_ok=True)
+    if frames_dir in made:
+        (frames_dir / ".lock").unlink(missing_ok=True)
+    for folder in (path for path in made if path != catalogue_path):  # the deepest first
+        with contextlib.suppress(OSError):  # a folder that is not empty keeps what is in it
+            folder.rmdir()
 
 
 def _aperture_choice(camera: Camera, aperture: float) -> str:

@@ -8,6 +8,13 @@ behind), so a run journalled ``running`` whose store nobody holds was killed
 (`shown_state`: ``interrupted``). `sweep_frames` removes what a crash left:
 temporary folders and the frames its catalogue journalled and never committed.
 
+One writer at a time holds a catalogue too (`catalogue_lock`): a run decides
+from what the catalogue says (a step done is skipped, a run ``running`` whose
+store nobody holds was killed, the frames journalled and not committed are a
+crash's leftovers) and then writes; a second run or capture into the same
+catalogue with another frame store would decide from a state the first is
+changing (resume the run it is shooting, forget its journal of frames).
+
 Only the store's owner writes to it: another user's files and folders in it (a root
 ``psfd capture`` in the service's store) would be ones the service cannot use.
 A write the file system refuses for lack of room (disk full, quota, read-only)
@@ -28,10 +35,11 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from psfd.catalogue import check_owner
-from psfd.errors import STORAGE_ERRNOS, BadInputError, ServiceError, StorageError, path_reason
+from psfd.errors import (STORAGE_ERRNOS, BadInputError, CatalogueError, PsfdError, ServiceError, StorageError,
+                         path_reason)
 
-__all__ = ["INCOMING", "check_room", "frames_dir_for", "shown_state", "storage_error", "store_busy", "store_frame",
-           "store_lock", "sweep_frames"]
+__all__ = ["INCOMING", "catalogue_busy", "catalogue_lock", "catalogue_lock_path", "check_catalogue_free", "check_room",
+           "frames_dir_for", "shown_state", "storage_error", "store_busy", "store_frame", "store_lock", "sweep_frames"]
 
 FRAME_NAME = re.compile(r"^[0-9a-f]{64}\.[A-Za-z0-9]+$")
 INCOMING = ".incoming-"  # prefix of the temporary folders a capture downloads into
@@ -105,7 +113,7 @@ def storage_error(exc: OSError, what: str) -> StorageError | None:
     return StorageError(f"{what}: {exc.strerror}{where}")
 
 
-_held: dict[Path, int] = {}  # stores this process holds, and how many times (store_lock is re-entrant)
+_held: dict[Path, int] = {}  # lock files this process holds, and how many times (the locks are re-entrant)
 _held_lock = threading.Lock()
 
 
@@ -118,13 +126,68 @@ def store_lock(frames_dir: Path) -> Iterator[None]:
     behind. Re-entrant within a process: `run_plan` takes the store before it
     creates a catalogue, and the runner takes it again.
     """
-    key = Path(os.path.abspath(frames_dir))
+    def failed(exc: OSError) -> PsfdError:
+        what = f"cannot use {frames_dir} as the frame store"
+        return storage_error(exc, what) or BadInputError(f"{what}: {path_reason(frames_dir, exc)}")
+
+    def opening() -> None:
+        check_owner(frames_dir, "the frame store")
+        try:
+            frames_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise failed(exc) from None
+
+    with _exclusive(frames_dir / ".lock", opening, failed,
+                    lambda: ServiceError(f"the frame store {frames_dir} is in use by another run")):
+        yield
+
+
+@contextlib.contextmanager
+def catalogue_lock(catalogue_path: str | os.PathLike) -> Iterator[None]:
+    """Hold a catalogue for one writing run (`psfd run`, `capture`, a service's job) at a time.
+
+    An flock on `catalogue_lock_path`, so that a killed run never leaves it behind; it names the holder's
+    pid for the refusal. Re-entrant within a process, as `store_lock`: `run_plan` takes it before it creates
+    the catalogue, and the runner takes it again.
+
+    Raises
+    ------
+    ServiceError
+        Another process holds the catalogue.
+    """
+    lock = catalogue_lock_path(catalogue_path)
+
+    def failed(exc: OSError) -> PsfdError:
+        what = f"cannot lock the catalogue {catalogue_path}"
+        return storage_error(exc, what) or CatalogueError(f"{what}: {path_reason(lock.parent, exc)}")
+
+    def opening() -> None:  # the catalogue's folder, as `Catalogue` makes it for a new catalogue
+        try:
+            lock.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise failed(exc) from None
+
+    with _exclusive(lock, opening, failed,
+                    lambda: ServiceError(_in_use(catalogue_path)), pid=True):
+        yield
+
+
+@contextlib.contextmanager
+def _exclusive(lock: Path, opening: Callable[[], None], failed: Callable[[OSError], PsfdError],
+               busy: Callable[[], PsfdError], pid: bool = False) -> Iterator[None]:
+    """An exclusive, re-entrant flock on the file ``lock``; ``opening()`` runs before the first open,
+    ``failed(exc)`` is the error when the file cannot be opened, ``busy()`` when another process holds it,
+    ``pid``: write this process's pid into the file.
+
+    A lock file may be removed by its holder (a run that made a catalogue and journalled nothing,
+    `psfd.daemon.runner.run_plan`): one found replaced or gone once locked is opened again, so that two
+    processes never hold two files of one name.
+    """
+    key = Path(os.path.abspath(lock))
     with _held_lock:
-        if key in _held:
+        held = key in _held
+        if held:
             _held[key] += 1
-            held = True
-        else:
-            held = False
     if held:
         try:
             yield
@@ -132,19 +195,30 @@ def store_lock(frames_dir: Path) -> Iterator[None]:
             with _held_lock:
                 _held[key] -= 1
         return
-    check_owner(frames_dir, "the frame store")
-    try:
-        frames_dir.mkdir(parents=True, exist_ok=True)
-        fh = open(frames_dir / ".lock", "a")
-    except OSError as exc:
-        error = storage_error(exc, f"cannot use {frames_dir} as the frame store")
-        raise error or BadInputError(f"cannot use {frames_dir} as the frame store: "
-                                     f"{path_reason(frames_dir, exc)}") from None
-    with fh:
+    opening()
+    while True:
+        try:
+            fh = open(lock, "a+")
+        except OSError as exc:
+            raise failed(exc) from None
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise ServiceError(f"the frame store {frames_dir} is in use by another run") from None
+            fh.close()
+            raise busy() from None
+        try:
+            same = os.stat(lock).st_ino == os.fstat(fh.fileno()).st_ino
+        except OSError:
+            same = False
+        if same:
+            break
+        fh.close()  # removed by the process that held it: lock the file now there
+    with fh:
+        if pid:
+            with contextlib.suppress(OSError):  # for the refusal's message only: a full disk may refuse it
+                fh.truncate(0)
+                fh.write(f"{os.getpid()}\n")
+                fh.flush()
         with _held_lock:
             _held[key] = 1
         try:
@@ -157,11 +231,15 @@ def store_lock(frames_dir: Path) -> Iterator[None]:
 
 def store_busy(frames_dir: str | os.PathLike) -> bool:
     """True while some process holds the frame store's lock, i.e. runs a plan on it."""
-    lock = Path(frames_dir) / ".lock"
+    return _held_by_other(Path(frames_dir) / ".lock")
+
+
+def _held_by_other(lock: Path) -> bool:
+    """Whether some process holds an flock on ``lock`` (False when the file is missing or unreadable)."""
     try:
         fh = open(lock, "rb")
     except OSError:
-        return False  # no lock file (or unreadable): no run has ever held it
+        return False  # no lock file (or unreadable): nobody has ever held it
     with fh:
         try:
             fcntl.flock(fh, fcntl.LOCK_SH | fcntl.LOCK_NB)
@@ -171,9 +249,44 @@ def store_busy(frames_dir: str | os.PathLike) -> bool:
         return False
 
 
-def shown_state(state: str, frames_dir: str | os.PathLike) -> str:
-    """A run's state as a user should read it: ``running`` with nobody holding the store is ``interrupted``."""
-    return "interrupted" if state == "running" and not store_busy(frames_dir) else state
+def catalogue_lock_path(catalogue_path: str | os.PathLike) -> Path:
+    """The lock file of a catalogue: ``catalogue.sqlite-run.lock`` beside the file it names, through any
+    symbolic link (two paths of one catalogue share its lock)."""
+    real = Path(os.path.realpath(catalogue_path))
+    return real.with_name(real.name + "-run.lock")
+
+
+def catalogue_busy(catalogue_path: str | os.PathLike) -> bool:
+    """Whether another process writes the catalogue (`catalogue_lock`); this one may (the service checks a
+    submitted plan while it runs another)."""
+    lock = catalogue_lock_path(catalogue_path)
+    with _held_lock:
+        if Path(os.path.abspath(lock)) in _held:
+            return False
+    return _held_by_other(lock)
+
+
+def check_catalogue_free(catalogue_path: str | os.PathLike) -> None:
+    """Refuse (ServiceError) a catalogue another run writes (`catalogue_lock`), before anything is opened."""
+    if catalogue_busy(catalogue_path):
+        raise ServiceError(_in_use(catalogue_path))
+
+
+def _in_use(catalogue_path: str | os.PathLike) -> str:
+    try:  # the holder's pid, unless it has not written it yet (or could not: a full disk)
+        holder = f"psfd process {int(catalogue_lock_path(catalogue_path).read_text())}"
+    except (OSError, ValueError):
+        holder = "another psfd process"
+    return (f"the catalogue {catalogue_path} is in use by {holder} (one process writes a catalogue at a time): "
+            "wait for it to end, or stop it (Ctrl-C or SIGTERM pauses a run)")
+
+
+def shown_state(state: str, frames_dir: str | os.PathLike, catalogue_path: str | os.PathLike | None = None) -> str:
+    """A run's state as a user should read it: ``running`` with nobody holding its store nor its catalogue
+    (``catalogue_path``, when given) is ``interrupted``."""
+    if state != "running" or store_busy(frames_dir):
+        return state
+    return "running" if catalogue_path is not None and catalogue_busy(catalogue_path) else "interrupted"
 
 
 def sweep_frames(frames_dir: Path, known: set[str], pending: set[str]) -> list[Path]:
