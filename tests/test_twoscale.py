@@ -297,7 +297,7 @@ def test_grid_splits_the_common_region():
     pair = simulate.simulate_pair(psf=TRUE_PSF, s=S, lam=4.0, near_shape=(448, 448), seed=2)
     ests = twoscale.estimate_pair(pair["near"], pair["far"], s=S, grid=(2, 1))
     assert len(ests) == 2
-    (l0, t0, r0, b0), (l1, t1, r1, b1) = ests[0].window, ests[1].window
+    (_, t0, r0, b0), (l1, t1, _, b1) = ests[0].window, ests[1].window
     assert r0 == l1 and (t0, b0) == (t1, b1)
     assert ests[0].field[0] < 0.5 < ests[1].field[0]
     for est in ests:
