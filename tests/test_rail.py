@@ -252,6 +252,39 @@ def test_a_startup_line_that_moves_the_carriage_is_refused_at_open(make_fake, co
     assert rail.move(x=-5).x == -5.0
 
 
+def send_lines(fake: FakeGrbl, *lines: str) -> None:
+    """G-code a person sent from a terminal before psfd opened the port, each answered 'ok'."""
+    link = serial.Serial(fake.port, 115200, timeout=2.0)
+    for line in lines:
+        link.write(line.encode() + b"\n")
+        assert link.readline().strip() == b"ok", line
+    link.close()
+
+
+@pytest.mark.parametrize("lines, refused", [
+    (["G92 X-10"], r"a G92 offset is active \(X=10"),
+    (["G10 L2 P2 X-30", "G55"],
+     r"work coordinates G55 are active, but a reset.* selects G54 \(X=0 mm against X=-30 mm\)"),
+])
+def test_a_work_origin_that_a_reset_would_change_is_refused_at_open(make_fake, connect, lines, refused):
+    """GRBL clears G92 offsets and selects G54 (or its startup line's system) at every reset (gc_init), and
+    psfd resets after every stop: from then on a plan's positions would lie elsewhere on the rail than those
+    before it, under the same names in the catalogue. The G54-G59 offsets themselves are kept in EEPROM."""
+    fake = make_fake()
+    send_lines(fake, *lines)
+    with pytest.raises(RailError, match=refused):
+        connect(fake)
+    assert fake.machine_position()[0] == 0.0 and fake.resets() == []
+
+
+def test_a_work_origin_kept_across_resets_is_accepted(make_fake, connect):
+    """A G54 zero set with G10 L20 (EEPROM), or G55 selected by a startup line as well: the same after a reset."""
+    fake = make_fake()
+    send_lines(fake, "G10 L20 P1 X10", "G10 L2 P2 X-40", "G55", "$N0=G55")
+    rail = connect(fake)
+    assert rail.move(x=5).x == 5.0 and fake.machine_position()[0] == pytest.approx(-35.0)
+
+
 @pytest.mark.parametrize("mode, state, after", [("$C", "Check", "Idle"), ("$SLP", "Sleep", "Alarm")])
 def test_a_controller_left_in_check_mode_or_asleep_is_reset_at_once(make_fake, connect, mode, state, after):
     """Check mode ($C) and sleep ($SLP) ignore a feed hold (protocol.c: no hold in STATE_CHECK_MODE; SLEEP is

@@ -706,7 +706,7 @@ class GrblRail:
             log.info("rail %s: `$$` has no %s; using grbl's defaults", self.port, ", ".join(f"${n}" for n in missing))
         self._scale = MM_PER_INCH if self._settings_full[13] else 1.0
         info = self._command("$I", self.timeout)
-        self._check_startup_lines()
+        self._check_work_origin(self._check_startup_lines())
         self.version = next((ln[5:-1].split(":")[0] for ln in info if ln.startswith("[VER:")), "")
         self.options = next((ln[5:-1] for ln in info if ln.startswith("[OPT:")), "")
         if "[FIRMWARE:grblHAL]" in info:
@@ -718,8 +718,9 @@ class GrblRail:
         status = self._status_with_wco()
         self.travel = self._travel(len(status.machine))
 
-    def _check_startup_lines(self) -> None:
-        """Refuse a controller whose startup lines (``$N0``, ``$N1``) move the carriage or shift its coordinates.
+    def _check_startup_lines(self) -> list[str]:
+        """Refuse a controller whose startup lines (``$N0``, ``$N1``) move the carriage or shift its coordinates;
+        returns the lines.
 
         GRBL runs them after every reset that ends Idle (protocol.c, system_execute_startup) and after every
         completed ``$H`` (system.c), and psfd resets the controller after every stop: a line with an axis word
@@ -730,12 +731,50 @@ class GrblRail:
             lines = self._command("$N", self.timeout)
         except RailError as exc:  # a firmware without startup lines (FluidNC keeps its own in a file)
             log.debug("rail %s: no startup lines (%s)", self.port, exc)
-            return
+            return []
+        startup = []
         for number, text in (m.groups() for m in map(_STARTUP_LINE.match, lines) if m):
-            if _MOVES.search(re.sub(r"\(.*?\)|;.*", "", text.upper())):
+            code = re.sub(r"\(.*?\)|;.*", "", text.upper())
+            if _MOVES.search(code):
                 raise RailError(f"rail {self.port}: the controller's startup line $N{number}={text} runs after every "
                                 f"reset, which psfd sends after every stop, and would move the carriage or shift its "
                                 f"coordinates: clear it (send `$N{number}=` from a terminal)")
+            startup.append(code)
+        return startup
+
+    def _check_work_origin(self, startup: list[str]) -> None:
+        """Refuse work coordinates that the resets psfd sends after every stop would move.
+
+        A reset clears the G92 offsets and selects G54, then the startup lines run (grbl gc_init, protocol.c):
+        a G92 offset, or another coordinate system selected by hand, would put every position after the
+        first stop elsewhere on the rail than the same position before it, under the same name in the
+        catalogue. The offsets of G54-G59 themselves are kept in EEPROM (G10 L2 / L20) across resets.
+        """
+        try:
+            modes = " ".join(self._command("$G", self.timeout))
+            offsets = {m.group(1): [float(v) * self._scale for v in m.group(2).split(",")]
+                       for m in map(_OFFSET.match, self._command("$#", self.timeout)) if m}
+        except RailError as exc:  # a firmware that does not report them: nothing to compare
+            log.debug("rail %s: no work coordinate report (%s)", self.port, exc)
+            return
+        axes = [AXES.index(axis) for axis in self._configured]
+
+        def shown(values: list[float]) -> str:
+            return ", ".join(f"{AXES[i].upper()}={values[i]:g}" for i in axes if i < len(values))
+
+        g92 = offsets.get("G92", [])
+        if any(abs(g92[i]) > 1e-6 for i in axes if i < len(g92)):
+            raise RailError(f"rail {self.port}: a G92 offset is active ({shown(g92)} mm): GRBL clears it at every "
+                            "reset, which psfd sends after every stop, and the positions after one would lie "
+                            "elsewhere: clear it (send `G92.1`) and set the work zero with `G10 L20 P1` instead "
+                            "(kept across resets)")
+        active = next(iter(_SYSTEM.findall(modes)), "G54")
+        restored = ([code for line in startup for code in _SYSTEM.findall(line)] or ["G54"])[-1]
+        now, then = offsets.get(active, []), offsets.get(restored, [])
+        if any(abs(a - b) > 1e-6 for i in axes if i < min(len(now), len(then)) for a, b in [(now[i], then[i])]):
+            raise RailError(f"rail {self.port}: work coordinates {active} are active, but a reset, which psfd sends "
+                            f"after every stop, selects {restored} ({shown(then)} mm against {shown(now)} mm): send "
+                            f"`{restored}`, or make {active} the startup system (`$N0={active}`)")
 
     def _probe(self) -> GrblStatus:
         """A status report, asking with ``?`` (and ``$I`` for boards that wait for a line); reset only if deaf."""
@@ -1165,6 +1204,8 @@ _STARTUP_LINE = re.compile(r"^\$N(\d)=(.*)$")
 # in a startup line: an axis word (a move, G92 or G10 offsets), or G28 / G30, the moves to stored positions
 _MOVES = re.compile(r"[XYZABC]|G0*(28|30)(?!\.1)")
 _SETTING = re.compile(r"^\$(\d+)=([-+]?\d*\.?\d+)")
+_OFFSET = re.compile(r"^\[(G5[4-9]|G92):([-+0-9.,]+)\]$")  # a line of `$#`
+_SYSTEM = re.compile(r"G5[4-9](?![.0-9])")  # a coordinate system selection (G54-G59), in `$G` or a line
 
 
 def open_rail(config: dict) -> GrblRail:
