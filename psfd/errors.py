@@ -97,7 +97,7 @@ class ServiceError(PsfdError):
 
 
 class Interrupted(PsfdError):
-    """Stopped by Ctrl-C (exit 130) or SIGTERM (143); a run stopped so is paused and resumable."""
+    """Stopped by Ctrl-C (exit 130), SIGTERM (143) or a hang-up (129); a run stopped so is paused and resumable."""
 
     exit_code = 128 + signal.SIGINT
 

@@ -409,14 +409,14 @@ def test_a_plan_edited_after_a_kill_is_still_its_plan_and_another_aperture_is_no
 # -- 12. signals to the whole process group while an estimate is in a worker -----------------------------
 
 
-def held_run(tmp_path: Path, plan_path: Path, db: Path) -> subprocess.Popen:
+def held_run(tmp_path: Path, plan_path: Path, db: Path, **popen) -> subprocess.Popen:
     """`psfd run` in its own session (as a terminal or systemd starts it), its first estimate held in its
     worker until the test removes ``tmp_path/hold`` (tests/held_estimate.py)."""
     (tmp_path / "hold").touch()
     argv = [sys.executable, str(HERE / "held_estimate.py"), "run", str(plan_path), "--catalogue", str(db),
             "--socket", str(tmp_path / "none.sock"), "--workers", "1"]
     return subprocess.Popen(argv, env={**os.environ, "PSFD_HOLD": str(tmp_path)}, start_new_session=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
 
 
 def wait_for(proc: subprocess.Popen, ready, what: str):
@@ -466,6 +466,46 @@ def test_a_signal_to_the_whole_group_mid_estimate_pauses_the_run_cleanly(tmp_pat
     resumed = _psfd("run", plan_path, "--resume", "--catalogue", db, "--socket", tmp_path / "none.sock",
                     "--workers", "1")
     assert resumed.returncode == 0, resumed.stderr
+    check_complete(db, frames_dir_for(db), plan)
+
+
+def test_a_hang_up_mid_estimate_pauses_the_run_and_its_output_goes_nowhere(tmp_path):
+    """An ssh session that drops, or a terminal closed, sends SIGHUP to the terminal's process group, and
+    every write to the terminal fails after it: the run pauses as on SIGTERM (the estimate in flight
+    committed), exit 129, writing nothing more, and resumes to a complete catalogue. Before, the hang-up
+    ended psfd and its estimation worker at once (the guard stopped the rail; the run was left interrupted)."""
+    plan_path = write_plan(tmp_path, small_plan())
+    plan = parse_plan(plan_path.read_text(), str(plan_path))
+    db = tmp_path / "cat.sqlite"
+    proc = held_run(tmp_path, plan_path, db)
+    wait_for(proc, lambda: held_pid(tmp_path), "estimating")
+    os.killpg(proc.pid, signal.SIGHUP)
+    (tmp_path / "hold").unlink()
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signal.SIGHUP, err
+    assert "paused" not in err and "Traceback" not in err, err  # what came after the hang-up went to /dev/null
+    steps = step_states(db)
+    assert steps[plan.steps()[0].key] == "done", steps  # the estimate in flight was committed
+    assert "failed" not in steps.values() and "running" not in steps.values(), steps
+    assert states(db) == ["paused"]
+    resumed = _psfd("run", plan_path, "--resume", "--catalogue", db, "--socket", tmp_path / "none.sock",
+                    "--workers", "1")
+    assert resumed.returncode == 0, resumed.stderr
+    check_complete(db, frames_dir_for(db), plan)
+
+
+def test_a_run_started_with_nohup_goes_on_after_a_hang_up(tmp_path):
+    """`nohup psfd run plan.toml &` asks to go on without a terminal: a hang-up then changes nothing."""
+    plan_path = write_plan(tmp_path, small_plan())
+    plan = parse_plan(plan_path.read_text(), str(plan_path))
+    db = tmp_path / "cat.sqlite"
+    proc = held_run(tmp_path, plan_path, db, preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    wait_for(proc, lambda: held_pid(tmp_path), "estimating")
+    os.killpg(proc.pid, signal.SIGHUP)
+    (tmp_path / "hold").unlink()
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    assert states(db) == ["done"]
     check_complete(db, frames_dir_for(db), plan)
 
 

@@ -107,8 +107,8 @@ def unstarted(note: str):
 
 
 def run_here(plan, catalogue: Path, frames: Path, quiet: int = 0, again: str | None = None, **flags):
-    """`run_plan` in this process; the first Ctrl-C or SIGTERM pauses after the current frame. ``quiet``
-    (`psfd -q`): no progress lines.
+    """`run_plan` in this process; the first Ctrl-C, SIGTERM or hang-up (SIGHUP: the terminal or ssh session
+    is gone, and so is the output) pauses after the current frame. ``quiet`` (`psfd -q`): no progress lines.
 
     A Ctrl-C or SIGTERM before the run is journalled (the run's modules loading, the rig opening) ends the
     command with nothing journalled and nothing created once the rig answered, and says so
@@ -118,8 +118,10 @@ def run_here(plan, catalogue: Path, frames: Path, quiet: int = 0, again: str | N
     note = unstarted_note(bool(flags.get("resume")), again)
     stopped: list[int] = []
 
-    def stop(signum, frame):  # first Ctrl-C or SIGTERM: finish the current frame and pause
+    def stop(signum, frame):  # first Ctrl-C, SIGTERM or hang-up: finish the current frame and pause
         signal.signal(signum, previous[signum])  # the second one stops the command where it is
+        if signum == signal.SIGHUP:
+            _terminal_gone()
         print("\npsfd: stopping after the current frame (again to abort)", file=sys.stderr)
         stopped.append(signum)
         control.request("pause")
@@ -131,11 +133,13 @@ def run_here(plan, catalogue: Path, frames: Path, quiet: int = 0, again: str | N
         from psfd.daemon.runner import Control, StoppedBeforeStart, run_plan
 
         control = Control()
-        previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+        # a hang-up only where it would end the process: `nohup psfd run` asked to go on without a terminal
+        hang_up = (signal.SIGHUP,) if signal.getsignal(signal.SIGHUP) == signal.SIG_DFL else ()
+        previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM, *hang_up)}
     try:
         result = run_plan(plan, catalogue, frames, control=control, stop_before_journal=True, **flags)
     except StoppedBeforeStart:  # the first stop came before the run was journalled: end as main ends a stop
-        stop_exc = Terminated() if stopped[0] == signal.SIGTERM else KeyboardInterrupt()
+        stop_exc = KeyboardInterrupt() if stopped[0] == signal.SIGINT else Terminated()
         stop_exc.add_note(note)
         raise stop_exc from None
     finally:
@@ -145,6 +149,16 @@ def run_here(plan, catalogue: Path, frames: Path, quiet: int = 0, again: str | N
         result.reason = f"interrupted by {signal.Signals(stopped[0]).name}"
         result.error = Interrupted(result.reason, stopped[0])
     return result
+
+
+def _terminal_gone() -> None:
+    """Point standard output and error at /dev/null: after a hang-up (an ssh session dropped, a terminal
+    closed) every write to the terminal fails (EIO), and the run must still pause cleanly, not end in the
+    first progress line it prints. The run's own record, and `psfd status`, say how it ended."""
+    null = os.open(os.devnull, os.O_WRONLY)
+    for fd in (1, 2):
+        os.dup2(null, fd)
+    os.close(null)
 
 
 def plural(n: int, word: str) -> str:

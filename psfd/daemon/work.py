@@ -22,14 +22,15 @@ def init_worker(parent_pid: int) -> None:
 
     Ctrl-C reaches the terminal's whole process group and `systemctl stop` the whole control group: a
     worker that died of either would take the estimate in flight with it, while the parent, which
-    finishes the current frame and commits what is being estimated, needs it. So SIGINT is ignored and
-    SIGTERM is held for the watch thread, which ends the worker only when the parent sent it: the pool
-    terminates its workers so when one of them died. A parent killed with SIGKILL cannot shut its pool
-    down; without the watch the workers would wait on their queue forever.
+    finishes the current frame and commits what is being estimated, needs it. So SIGINT (and SIGHUP, a
+    terminal's hang-up) is ignored and SIGTERM is held for the watch thread, which ends the worker only when
+    the parent sent it: the pool terminates its workers so when one of them died. A parent killed with
+    SIGKILL cannot shut its pool down; without the watch the workers would wait on their queue forever.
     """
     for name in THREAD_VARIABLES:
         os.environ[name] = "1"
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)  # a hang-up reaches the terminal's group too: the parent pauses
     # blocked before any thread starts, so that every thread inherits it and only the watch takes it
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
 
