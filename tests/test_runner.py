@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import random
 import signal
@@ -77,6 +78,26 @@ class FailingCamera:
             raise CameraError("camera not found on usb:001,004 (unplugged?)")
         self.left -= 1
         return self.camera.capture(dest)
+
+
+def test_a_frame_that_makes_a_new_subfolder_syncs_the_store_folder_too(tmp_path, monkeypatch):
+    """A frame is fsynced, renamed into its sha256[:2] subfolder, and that subfolder synced; a new subfolder's
+    own entry lives in the store folder, which a power cut could otherwise lose with the committed frame."""
+    from psfd.daemon import store
+
+    synced = []
+    monkeypatch.setattr(store, "_fsync_dir", lambda folder: synced.append(Path(folder)))
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (tmp_path / "a.dng").write_bytes(b"first")
+    path, sha = store_frame(tmp_path / "a.dng", frames)
+    assert synced == [frames, frames / sha[:2]]
+    synced.clear()
+    same_folder = next(data for data in (b"second %d" % i for i in range(100_000))
+                       if hashlib.sha256(data).hexdigest()[:2] == sha[:2])
+    (tmp_path / "b.dng").write_bytes(same_folder)
+    store_frame(tmp_path / "b.dng", frames)
+    assert synced == [frames / sha[:2]]  # an existing subfolder: its own entry is already on disk
 
 
 def test_store_frame_is_content_addressed_and_sweep_removes_orphans(tmp_path):

@@ -54,8 +54,9 @@ def frames_dir_for(catalogue_path: str | os.PathLike) -> Path:
 def store_frame(src: Path, frames_dir: Path, journal: Callable[[str], None] | None = None) -> tuple[Path, str]:
     """Move a captured file into the store under its sha256; returns (path, sha256).
 
-    The data is fsynced before the rename and the folder after it, so the
-    name is only ever seen on a complete file. An identical file already
+    The data is fsynced before the rename and the folder after it (and the
+    store folder when the subfolder is new), so the name is only ever seen on
+    a complete file, and survives a power cut once the step commits. An identical file already
     stored is re-used. ``journal(sha256)`` is called before a new file is put
     into the store (not for one re-used, which is someone else's): the
     catalogue's `pend_frame`, which lets `sweep_frames` tell a crash's leftover
@@ -68,7 +69,9 @@ def store_frame(src: Path, frames_dir: Path, journal: Callable[[str], None] | No
         os.fsync(fh.fileno())
     sha = digest.hexdigest()
     folder = frames_dir / sha[:2]
-    folder.mkdir(parents=True, exist_ok=True)
+    if not folder.is_dir():
+        folder.mkdir(parents=True, exist_ok=True)
+        _fsync_dir(frames_dir)  # the new subfolder's entry: a power cut must not lose it with the frame in it
     dest = folder / f"{sha}{src.suffix.lower()}"
     if dest.exists():
         src.unlink()
