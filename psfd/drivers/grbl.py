@@ -771,7 +771,7 @@ class GrblRail:
         active = next(iter(_SYSTEM.findall(modes)), "G54")
         restored = ([code for line in startup for code in _SYSTEM.findall(line)] or ["G54"])[-1]
         now, then = offsets.get(active, []), offsets.get(restored, [])
-        if any(abs(a - b) > 1e-6 for i in axes if i < min(len(now), len(then)) for a, b in [(now[i], then[i])]):
+        if any(abs(now[i] - then[i]) > 1e-6 for i in axes if i < min(len(now), len(then))):
             raise RailError(f"rail {self.port}: work coordinates {active} are active, but a reset, which psfd sends "
                             f"after every stop, selects {restored} ({shown(then)} mm against {shown(now)} mm): send "
                             f"`{restored}`, or make {active} the startup system (`$N0={active}`)")
