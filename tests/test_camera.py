@@ -33,8 +33,10 @@ a hung call ending at its deadline, and reconnecting.
 Stand-ins (`tests/fake_gphoto.py`, real gphoto2 error codes in the order a body
 produces them) show what the virtual camera cannot: RAW chosen on Canon and
 Nikon widget trees (sRAW/mRAW refused), single-frame drive, exposure delay,
-autofocus reported by the lens, busy (-110) then ready, busy for good, a
-RAW+JPEG pair 1.5 s apart, a cable pulled mid-capture (reconnect, prepare
+autofocus reported by the lens, busy (-110) then ready, busy for good, busy
+answered to reading the configuration and to deleting, an autofocus that cannot
+lock (Canon: busy after the hunt; Nikon: -1), a full card (-3), a RAW+JPEG pair
+1.5 s apart, a cable pulled mid-capture (reconnect, prepare
 again, retry once), bulb, and a capture that never announces its file.
 """
 
