@@ -5,8 +5,18 @@ A `Body` answers the calls `GPhotoCamera` makes on a ``gphoto2.Camera``
 file_delete, exit) and fails them with real ``gphoto2.GPhoto2Error`` codes
 in the order libgphoto2 reports them:
 
-- a body still writing the previous frame answers ``trigger_capture`` with
-  GP_ERROR_CAMERA_BUSY (-110, "I/O in progress") until it is done;
+- a body still writing the previous frame answers PTP operations with
+  DeviceBusy 0x2019 (any operation: configuration, download and delete as well
+  as the next trigger), which the ptp2 driver's ``translate_ptp_result`` turns
+  into GP_ERROR_CAMERA_BUSY (-110, "I/O in progress"), until it is done
+  (scripted per method);
+- an autofocus that cannot lock refuses the release: a Canon EOS answers the
+  full press with DeviceBusy (-110) after hunting for a while (libgphoto2
+  issues #304, #655: "Canon EOS Full-Press failed (0x2019: PTP Device Busy)"
+  some 10 s after the half press), a Nikon with 0xA002 "Out of Focus", which
+  libgphoto2 reports as GP_ERROR (-1);
+- a full card with the card as capture target: GP_ERROR_NO_MEMORY (-3), as the
+  ptp2 driver reports a Canon release result 7 ("Perhaps no more memory on card?");
 - a RAW+JPEG exposure is announced as two GP_EVENT_FILE_ADDED, the JPEG
   after the RAW (Canon writes the RAW first; on a slow card the second comes
   seconds later);
@@ -161,10 +171,20 @@ class Body:
         File names already announced before the first trigger (a late file of an earlier exposure).
     unplug_after_trigger : bool
         The cable is pulled right after the next trigger.
+    af_locks : bool
+        False: the autofocus finds nothing to lock on. With autofocus in use (a ``focusmode``
+        that is not manual, or a driver ``autofocus`` switch at On) the release is refused
+        after ``af_hunt_s`` of hunting, as the vendor does (see the module docstring).
+    af_hunt_s : float
+        How long a trigger hunts before the refusal.
+    card_shots : int, optional
+        Frames the card has room for; with ``capturetarget`` on the card a trigger beyond
+        them fails with GP_ERROR_NO_MEMORY.
     """
 
     def __init__(self, config: Widget, files=(("IMG_0001.CR2", 0.05),), script=None, queued=(),
-                 unplug_after_trigger=False) -> None:
+                 unplug_after_trigger=False, af_locks=True, af_hunt_s=0.0,
+                 card_shots=None) -> None:
         self.config, self.files = config, list(files)
         self.script = {k: list(v) for k, v in (script or {}).items()}
         self.calls: list[str] = []
@@ -174,6 +194,8 @@ class Body:
         self.unplug_after_trigger = unplug_after_trigger
         self.shots = 0
         self.bulb_log: list[tuple[int, float]] = []
+        self.af_locks, self.af_hunt_s = af_locks, af_hunt_s
+        self.card_shots = card_shots
 
     FOLDER = "/store_00020001/DCIM/100CANON"
 
@@ -186,6 +208,17 @@ class Body:
             error = errors.pop(0)
             if error is not None:
                 raise error
+
+    def _value(self, name: str):
+        try:
+            return self.config.get_child_by_name(name).get_value()
+        except gp.GPhoto2Error:
+            return None
+
+    def _autofocus(self) -> bool:
+        """Whether a release focuses first: the lens or body mode, and Nikon's driver switch."""
+        mode = self._value("focusmode")
+        return (mode is not None and not str(mode).lower().startswith("manual")) or self._value("autofocus") == "On"
 
     def get_config(self):
         self._enter("get_config")
@@ -210,6 +243,13 @@ class Body:
 
     def trigger_capture(self) -> None:
         self._enter("trigger_capture")
+        if not self.af_locks and self._autofocus():
+            time.sleep(self.af_hunt_s)
+            nikon = self._value("manufacturer") == "Nikon Corporation"
+            raise gp.GPhoto2Error(gp.GP_ERROR if nikon else gp.GP_ERROR_CAMERA_BUSY)
+        on_card = self._value("capturetarget") == "Memory card"
+        if on_card and self.card_shots is not None and self.shots >= self.card_shots:
+            raise gp.GPhoto2Error(gp.GP_ERROR_NO_MEMORY)
         self._expose()
         if self.unplug_after_trigger:
             self.unplugged = True

@@ -33,8 +33,10 @@ a hung call ending at its deadline, and reconnecting.
 Stand-ins (`tests/fake_gphoto.py`, real gphoto2 error codes in the order a body
 produces them) show what the virtual camera cannot: RAW chosen on Canon and
 Nikon widget trees (sRAW/mRAW refused), single-frame drive, exposure delay,
-autofocus reported by the lens, busy (-110) then ready, busy for good, a
-RAW+JPEG pair 1.5 s apart, a cable pulled mid-capture (reconnect, prepare
+autofocus reported by the lens, busy (-110) then ready, busy for good, busy
+answered to reading the configuration and to deleting, an autofocus that cannot
+lock (Canon: busy after the hunt; Nikon: -1), a full card (-3), a RAW+JPEG pair
+1.5 s apart, a cable pulled mid-capture (reconnect, prepare
 again, retry once), bulb, and a capture that never announces its file.
 """
 
@@ -418,6 +420,53 @@ def test_a_camera_busy_for_good_is_a_clear_error(fake, bodies, tmp_path):
     with pytest.raises(CameraError, match=r"stayed busy for 0.6 s while triggering a capture .* \[gphoto2 -110\]"):
         camera.capture(tmp_path)
     assert body.shots == 0
+
+
+def test_a_body_still_writing_is_waited_for_by_every_call(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+
+    import gphoto2 as gp
+
+    # PTP DeviceBusy answers any operation while the body writes, not only the next trigger
+    busy = gp.GPhoto2Error(gp.GP_ERROR_CAMERA_BUSY)
+    body = bodies.Body(bodies.canon_eos(lens_af=False))
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body))
+    camera.prepare(CameraSetup(focus="manual", capture_target="card"))
+    body.script = {"get_config": [busy, None, None, busy], "file_delete": [busy, busy]}
+    assert [f.name for f in camera.capture(tmp_path)] == ["IMG_0001.CR2"]
+    assert body.store == {}  # deleted once the body answered: the card does not fill overnight
+    camera.set("aperture", "8")  # the runner's next step, while the body may still be writing
+    assert _value(body.config, "aperture") == "8"
+
+
+def test_an_autofocus_that_cannot_lock_is_named(fake, bodies, tmp_path):
+    from psfd.errors import CameraError
+
+    # Canon: the full press hunts, then answers DeviceBusy; each attempt takes longer than a plain call
+    body = bodies.Body(bodies.canon_eos(lens_af=True), af_locks=False, af_hunt_s=0.4)
+    bus = bodies.Bus("Canon EOS 5D Mark III", body)
+    camera = fake(bus, timeout=0.3, busy_s=0.6, reconnect_s=0.2)
+    with pytest.raises(CameraError, match=r"autofocus.*set the lens .* to M.*\[gphoto2 -110\]"):
+        camera.capture(tmp_path)
+    assert body.shots == 0 and bus.opened == ["usb:001,004"]  # refused, not taken for a lost camera
+    # Nikon: 0xA002 Out of Focus, reported by libgphoto2 as an unspecified error
+    body = bodies.Body(bodies.nikon_d5300(focus="AF-S"), af_locks=False)
+    camera = fake(bodies.Bus("Nikon DSC D5300", body))
+    with pytest.raises(CameraError, match=r"refused the release.*autofocus.*\[gphoto2 -1\]"):
+        camera.capture(tmp_path)
+    assert body.calls.count("trigger_capture") == 1  # an unspecified error is not retried
+
+
+def test_a_full_card_is_named(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+    from psfd.errors import CameraError
+
+    body = bodies.Body(bodies.canon_eos(lens_af=False), card_shots=1)
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), delete_after_download=False)
+    camera.prepare(CameraSetup(focus="manual", capture_target="card"))
+    camera.capture(tmp_path / "1")
+    with pytest.raises(CameraError, match=r"memory card is full.*\[gphoto2 -3\]"):
+        camera.capture(tmp_path / "2")
 
 
 def test_raw_and_jpeg_seconds_apart_are_one_exposure(fake, bodies, tmp_path):

@@ -73,7 +73,18 @@ _HINTS = {
     gp.GP_ERROR_TIMEOUT: "the camera did not answer in time",
     gp.GP_ERROR_CAMERA_BUSY: "the camera is busy (still writing a previous frame, or in a menu)",
     gp.GP_ERROR_NOT_SUPPORTED: "the camera does not support this operation",
+    # libgphoto2's ptp2 driver: a Canon release refused with "Perhaps no more memory on card?"
+    gp.GP_ERROR_NO_MEMORY: "out of memory (on a capture: the camera's memory card is full; free it, or capture "
+    "to RAM)",
+    gp.GP_ERROR_NO_SPACE: "not enough free space (on a capture: the camera's memory card is full; free it, or "
+    "capture to RAM)",
 }
+# What else a camera that refuses a release means. A Canon EOS whose autofocus cannot lock answers
+# the full press with PTP DeviceBusy (-110) after hunting (libgphoto2 issues #304, #655); a Nikon
+# answers "Out of Focus" (0xA002), which libgphoto2 reports as an unspecified error (-1).
+_AF_REFUSED = ("the autofocus could not lock, so the camera would not release: set the lens (or body) focus "
+               "switch to M; with focus = \"off\" or \"manual\" this means the lens or body is still on AF")
+_BUSY_MORE = {"triggering a capture": "; or " + _AF_REFUSED}
 # Failures after which the camera handle is useless: reconnect (a USB reset if the device
 # is still on the bus) and retry once. A claim by another process is not one of them.
 GONE_CODES = frozenset({gp.GP_ERROR_IO, gp.GP_ERROR_IO_READ, gp.GP_ERROR_IO_WRITE, gp.GP_ERROR_IO_USB_FIND,
@@ -236,7 +247,7 @@ class GPhotoCamera:
         else:
             raw = str(value)
         self._call(f"setting {name}", widget.set_value, raw)
-        self._busy(f"setting {name}", self._cam().set_config, config)
+        self._call(f"setting {name}", self._cam().set_config, config)
 
     def prepare(self, setup: CameraSetup) -> CameraReady:
         """Set the camera up for PSF work before the rail moves; see `CameraSetup`.
@@ -444,13 +455,17 @@ class GPhotoCamera:
             self._bulb(bulb_s)
         else:
             try:
-                self._busy("triggering a capture", self._cam().trigger_capture)
+                # a release may take the autofocus's hunt (some 10 s on a Canon) before it answers
+                self._call("triggering a capture", self._cam().trigger_capture, timeout=timeout)
             except CameraError as exc:
+                if getattr(exc, "code", None) == gp.GP_ERROR:
+                    raise CameraError(f"camera {self._model} refused the release and libgphoto2 gives no reason; "
+                                      f"most often {_AF_REFUSED} [gphoto2 {gp.GP_ERROR}]") from None
                 if getattr(exc, "code", None) != gp.GP_ERROR_NOT_SUPPORTED:
                     raise
                 # Cameras without trigger_capture: a blocking capture returns the first file;
                 # any further file of the same exposure still arrives as an event below.
-                path = self._busy("capturing", self._cam().capture, gp.GP_CAPTURE_IMAGE, timeout=timeout)
+                path = self._call("capturing", self._cam().capture, gp.GP_CAPTURE_IMAGE, timeout=timeout)
                 files.append((path.folder, path.name))
         expected = self.files_per_exposure
         last_new = time.monotonic()
@@ -487,7 +502,7 @@ class GPhotoCamera:
 
     def _download(self, folder: str, name: str, dest: Path) -> Path:
         """Copy one file from the camera into ``dest`` under a name not already used there."""
-        camera_file = self._busy(
+        camera_file = self._call(
             f"downloading {name}", self._cam().file_get, folder, name, gp.GP_FILE_TYPE_NORMAL
         )
         target = free_name(dest, name)
@@ -505,7 +520,11 @@ class GPhotoCamera:
         except CameraError as exc:
             if getattr(exc, "gone", False):
                 raise
-            # a read-only card, or a RAM capture the camera dropped itself: nothing is lost
+            # a read-only card, or a RAM capture the camera dropped itself: nothing is lost; but a
+            # file left on the card (a body that stayed busy) fills it over a night
+            on_card = self._setup is None or self._setup.capture_target == "card"
+            log.log(logging.WARNING if on_card else logging.DEBUG, "camera %s: %s stays on the camera (%s)",
+                    self._model, name, exc)
 
     # ------------------------------------------------------------------ plumbing
 
@@ -527,7 +546,7 @@ class GPhotoCamera:
         config = self._config()
         widget = config.get_child_by_name(name)
         self._call(f"setting {name}", widget.set_value, value)
-        self._busy(f"setting {name}", self._cam().set_config, config)
+        self._call(f"setting {name}", self._cam().set_config, config)
         if verify:
             now = _widget_value(self._config(), name)
             if now != str(value):
@@ -551,23 +570,31 @@ class GPhotoCamera:
             raise error
         return self._camera
 
-    def _busy(self, what: str, fn: Callable, *args: Any, timeout: float | None = None) -> Any:
-        """`_call`, retried with backoff while the camera answers busy (gphoto2 -110)."""
+    def _call(self, what: str, fn: Callable, *args: Any, timeout: float | None = None) -> Any:
+        """`_once`, retried with backoff while the camera answers busy (gphoto2 -110).
+
+        PTP's DeviceBusy (0x2019, which libgphoto2 reports as -110) may answer any
+        operation while the body writes a frame, not only the next release: reading
+        the configuration, downloading and deleting are retried as the trigger is.
+        """
         pause, started = 0.1, time.monotonic()
         while True:
             try:
-                return self._call(what, fn, *args, timeout=timeout)
+                return self._once(what, fn, *args, timeout=timeout)
             except CameraError as exc:
                 if getattr(exc, "code", None) != gp.GP_ERROR_CAMERA_BUSY:
                     raise
                 if time.monotonic() - started + pause > self.busy_s:
-                    raise CameraError(f"camera stayed busy for {self.busy_s:g} s while {what} (still writing a "
-                                      f"frame, or a menu is open) [gphoto2 {gp.GP_ERROR_CAMERA_BUSY}]") from None
+                    error = CameraError(f"camera stayed busy for {self.busy_s:g} s while {what} (still writing a "
+                                        f"frame, or a menu is open{_BUSY_MORE.get(what, '')}) "
+                                        f"[gphoto2 {gp.GP_ERROR_CAMERA_BUSY}]")
+                    error.code, error.gone = gp.GP_ERROR_CAMERA_BUSY, False  # type: ignore[attr-defined]
+                    raise error from None
                 log.info("camera busy while %s: retrying in %.1f s", what, pause)
                 time.sleep(pause)
                 pause = min(2.0 * pause, 2.0)
 
-    def _call(self, what: str, fn: Callable, *args: Any, timeout: float | None = None) -> Any:
+    def _once(self, what: str, fn: Callable, *args: Any, timeout: float | None = None) -> Any:
         """Run one libgphoto2 call with a deadline, turning failures into CameraError."""
         seconds = self.timeout if timeout is None else timeout
         try:
