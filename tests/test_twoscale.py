@@ -99,8 +99,10 @@ def test_saturated_pixels_are_left_out():
     near = dataclasses.replace(near, data=near_data, saturated=near_sat)
     far = dataclasses.replace(far, data=far_data, saturated=far_sat)
     [est] = twoscale.estimate_pair(near, far, s=S)
-    # the near patch spans about 50/4 + 4 far pixels with the kernel footprint, the far one 10 x 20
-    assert est.params["equations"] < plain.params["equations"] - 200 - 16**2
+    # the far patch drops 10 x 20 far pixels; the near one (50 + 2 SATURATED_RADIUS) / 4 far pixels across,
+    # (q - 1) / s more with the footprint q the holes are eroded by (`hole_footprint`: 7 here, 15 x 15 dropped)
+    q = est.params["hole_footprint"]
+    assert est.params["equations"] < plain.params["equations"] - 200 - int(50 / 4 + (q - 1) / S) ** 2
     assert _mtf_error(est.psf, TRUE_PSF) < MTF_TOL
 
 
@@ -214,20 +216,22 @@ def test_the_kernel_is_recentred_without_losing_its_high_frequencies(shift):
 
 def test_scattered_saturated_highlights_leave_fewer_equations_not_a_bias():
     """The near photo's brightest 0.2 % flagged as saturated, their values left as they are: only the holes in
-    the mask change, and so only the number of equations (3373 of 5184 here; 2374 with a radius of 6 near
+    the mask change, and so only the number of equations (4438 of 5184 here with the holes eroded by the
+    first kernel's 7 x 7 `hole_footprint`; 3373 by the whole 13 x 13 footprint, 2374 with a radius of 6 near
     pixels around each hole instead of 1). Before, the means removed from
     the two photos (IPOL 2013, sec. 4.2) were taken over sets the holes made different, and the offset left
     between them biased k: residual 2.7 times the sensor noise, PSF error 0.056 for the unmasked pair's 0.011
     (the real 8-bit wall pair, 0.8 % of its near photo saturated: MTF50 0.655/0.642, against 0.590/0.577 for
     the same photos unflagged in 16 bits). With the constant fitted, the residual is the noise and the error
-    grows as the equations fall, by about sqrt(5184 / 3373) = 1.24 (measured 0.013; 0.017 with 2374).
+    grows as the equations fall, by about sqrt(5184 / 3373) = 1.24 (measured 0.013; 0.017 with 2374; 0.0126
+    with 4438, 1.05 times the unmasked pair's).
     """
     pair = simulate.simulate_pair(psf=TRUE_PSF, s=S, lam=5.0, seed=1)
     near, far = pair["near"], pair["far"]
     [plain] = twoscale.estimate_pair(near, far, s=S)
     flagged = dataclasses.replace(near, saturated=near.data >= np.quantile(near.data, 0.998))
     [est] = twoscale.estimate_pair(flagged, far, s=S)
-    assert est.params["equations"] < 0.7 * plain.params["equations"]
+    assert est.params["equations"] < 0.9 * plain.params["equations"]
     assert est.residual < 1.1 * plain.residual
     error, plain_error = (float(np.linalg.norm(e.psf - TRUE_PSF)) for e in (est, plain))
     assert error < 2.0 * plain_error
@@ -240,8 +244,10 @@ def test_glints_clipped_in_the_near_photo_leave_out_only_their_surroundings():
 
     Measured over seeds 0-3: the glint-free photos keep 88 % of the window's far pixels as equations; a
     near-pixel radius 2 + ceil(2 lambda / s) around each clipped pixel and the fill by cv2.inpaint kept 23-30 %
-    (max MTF error 0.039-0.070), radius 1 and the clipped values 45-51 % (0.039-0.048), the glint-free error
-    being 0.036-0.038 (the tails and the near photo's aliasing). Allowed: MTF_TOL, and 40 % of the window.
+    (max MTF error 0.039-0.070), radius 1 and the clipped values 45-51 % (0.039-0.048) with the holes eroded
+    by the whole 13 x 13 footprint, 54-66 % (0.038-0.045; seed 0: 66 %, 0.040) by the first kernel's
+    `hole_footprint` (q = 9 or 11), the glint-free error being 0.036-0.038 (the tails and the near photo's
+    aliasing). Allowed: MTF_TOL, and 60 % of the window.
     """
     import render
 
@@ -252,7 +258,7 @@ def test_glints_clipped_in_the_near_photo_leave_out_only_their_surroundings():
     assert 0.003 < near.saturated.mean() < 0.01 and far.saturated.any()
     [est] = twoscale.estimate_pair(near, far, s=S)
     x0, y0, x1, y1 = est.window
-    assert est.params["equations"] > 0.4 * (x1 - x0) * (y1 - y0)
+    assert est.params["equations"] > 0.6 * (x1 - x0) * (y1 - y0)
     assert render.compare(est.psf, kernel, S).max_mtf_2d < MTF_TOL
 
 
