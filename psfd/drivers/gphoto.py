@@ -84,7 +84,6 @@ _HINTS = {
 # answers "Out of Focus" (0xA002), which libgphoto2 reports as an unspecified error (-1).
 _AF_REFUSED = ("the autofocus could not lock, so the camera would not release: set the lens (or body) focus "
                "switch to M; with focus = \"off\" or \"manual\" this means the lens or body is still on AF")
-_BUSY_MORE = {"triggering a capture": "; or " + _AF_REFUSED}
 # Failures after which the camera handle is useless: reconnect (a USB reset if the device
 # is still on the bus) and retry once. A claim by another process is not one of them.
 GONE_CODES = frozenset({gp.GP_ERROR_IO, gp.GP_ERROR_IO_READ, gp.GP_ERROR_IO_WRITE, gp.GP_ERROR_IO_USB_FIND,
@@ -456,7 +455,7 @@ class GPhotoCamera:
         else:
             try:
                 # a release may take the autofocus's hunt (some 10 s on a Canon) before it answers
-                self._call("triggering a capture", self._cam().trigger_capture, timeout=timeout)
+                self._call("triggering a capture", self._cam().trigger_capture, timeout=timeout, busy_also=_AF_REFUSED)
             except CameraError as exc:
                 if getattr(exc, "code", None) == gp.GP_ERROR:
                     raise CameraError(f"camera {self._model} refused the release and libgphoto2 gives no reason; "
@@ -570,8 +569,9 @@ class GPhotoCamera:
             raise error
         return self._camera
 
-    def _call(self, what: str, fn: Callable, *args: Any, timeout: float | None = None) -> Any:
-        """`_once`, retried with backoff while the camera answers busy (gphoto2 -110).
+    def _call(self, what: str, fn: Callable, *args: Any, timeout: float | None = None, busy_also: str = "") -> Any:
+        """`_once`, retried with backoff while the camera answers busy (gphoto2 -110); ``busy_also``: what
+        else staying busy means for this call, in the message.
 
         PTP's DeviceBusy (0x2019, which libgphoto2 reports as -110) may answer any
         operation while the body writes a frame, not only the next release: reading
@@ -586,7 +586,7 @@ class GPhotoCamera:
                     raise
                 if time.monotonic() - started + pause > self.busy_s:
                     error = CameraError(f"camera stayed busy for {self.busy_s:g} s while {what} (still writing a "
-                                        f"frame, or a menu is open{_BUSY_MORE.get(what, '')}) "
+                                        f"frame, or a menu is open{'; or ' + busy_also if busy_also else ''}) "
                                         f"[gphoto2 {gp.GP_ERROR_CAMERA_BUSY}]")
                     error.code, error.gone = gp.GP_ERROR_CAMERA_BUSY, False  # type: ignore[attr-defined]
                     raise error from None
