@@ -598,15 +598,14 @@ def _group_rows(rows: list[dict]) -> dict[tuple, list[dict]]:
     """Rows by (camera, lens, method, aperture). The camera names its body's serial and the lens its copy's: two
     bodies, or two copies of one lens, are two rows of the report, never tiles drawn over each other or MTF50
     interpolated between them."""
+    def named(row: dict, name: str, serial: str) -> str:
+        text = row.get(name) or ""
+        return f"{text} #{row[serial]}" if row.get(serial) else text
+
     groups: dict[tuple, list[dict]] = {}
     for row in rows:
-        camera = row.get("camera") or ""
-        if row.get("serial"):
-            camera = f"{camera} #{row['serial']}"
-        lens = row.get("lens") or ""
-        if row.get("lens_serial"):
-            lens = f"{lens} #{row['lens_serial']}"
-        key = (camera, lens, row["method"], row.get("aperture") or 0.0)
+        key = (named(row, "camera", "serial"), named(row, "lens", "lens_serial"), row["method"],
+               row.get("aperture") or 0.0)
         groups.setdefault(key, []).append(row)
     return dict(sorted(groups.items()))
 
