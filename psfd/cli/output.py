@@ -624,13 +624,12 @@ def format_rows(rows: list[dict]) -> str:
     """Aligned text table of catalogue PSF rows (MTF50 in cycles per channel pixel, FWHM in channel pixels;
     MTF50 in lp/mm too when the rows carry it, `units`). Their units line is `units_line`."""
     columns = list(ROW_COLUMNS)
-    if len({(r["camera"], r.get("serial")) for r in rows}) > len({r["camera"] for r in rows}):
-        # two bodies of one model (`--near` keeps the nearest PSF of each): the serial tells their rows apart
-        columns.insert(2, ("serial", lambda r: r.get("serial") or "-"))
-    if len({(r["lens"], r.get("lens_serial")) for r in rows}) > len({r["lens"] for r in rows}):
-        # two copies of one lens model, told apart by the serial their frames' EXIF records
-        at = [name for name, _ in columns].index("lens") + 1
-        columns.insert(at, ("lens #", lambda r: r.get("lens_serial") or "-"))
+    # two bodies of one model, or two copies of one lens model (`--near` keeps the nearest PSF of each): the
+    # serial (the lens's as its frames' EXIF records it) tells their rows apart
+    for name, serial, header in (("camera", "serial", "serial"), ("lens", "lens_serial", "lens #")):
+        if len({(r[name], r.get(serial)) for r in rows}) > len({r[name] for r in rows}):
+            at = [column for column, _ in columns].index(name) + 1
+            columns.insert(at, (header, lambda r, serial=serial: r.get(serial) or "-"))
     if _has_lp_mm(rows):
         columns.insert(-1, ("lp/mm x/y", lambda r: f"{fmt(r.get('mtf50_x_lp_mm'), '.1f')}/"
                                                   f"{fmt(r.get('mtf50_y_lp_mm'), '.1f')}"))
