@@ -20,6 +20,9 @@ in the order libgphoto2 reports them:
 - a RAW+JPEG exposure is announced as two GP_EVENT_FILE_ADDED, the JPEG
   after the RAW (Canon writes the RAW first; on a slow card the second comes
   seconds later);
+- a file the camera no longer holds: ``file_get`` and ``file_delete`` fail
+  with GP_ERROR_FILE_NOT_FOUND (-108), as the virtual camera of libgphoto2
+  2.5.34 answers;
 - a cable pulled during a capture: the pending event wait fails with
   GP_ERROR_IO (-7, the PTP layer's translation of the USB error), every later
   call on that handle fails the same way, the body is missing from
@@ -180,22 +183,25 @@ class Body:
     card_shots : int, optional
         Frames the card has room for; with ``capturetarget`` on the card a trigger beyond
         them fails with GP_ERROR_NO_MEMORY.
+    dropped : list of str
+        File names the body announces but no longer holds (a frame in RAM it let go).
     """
 
     def __init__(self, config: Widget, files=(("IMG_0001.CR2", 0.05),), script=None, queued=(),
                  unplug_after_trigger=False, af_locks=True, af_hunt_s=0.0,
-                 card_shots=None) -> None:
+                 card_shots=None, dropped=()) -> None:
         self.config, self.files = config, list(files)
         self.script = {k: list(v) for k, v in (script or {}).items()}
         self.calls: list[str] = []
         self.pending: list[tuple[float, str]] = [(0.0, name) for name in queued]
-        self.store: dict[str, bytes] = {name: b"stale" for name in queued}
+        self.store: dict[str, bytes] = {name: b"stale" for name in queued if name not in dropped}
         self.unplugged = False
         self.unplug_after_trigger = unplug_after_trigger
         self.shots = 0
         self.bulb_log: list[tuple[int, float]] = []
         self.af_locks, self.af_hunt_s = af_locks, af_hunt_s
         self.card_shots = card_shots
+        self.dropped = set(dropped)
 
     FOLDER = "/store_00020001/DCIM/100CANON"
 
@@ -259,7 +265,8 @@ class Body:
         now = time.monotonic()
         for name, delay in self.files:
             shot_name = name.replace("0001", f"{self.shots:04d}")
-            self.store[shot_name] = f"{shot_name} of shot {self.shots}".encode()
+            if shot_name not in self.dropped:
+                self.store[shot_name] = f"{shot_name} of shot {self.shots}".encode()
             self.pending.append((now + delay, shot_name))
 
     def wait_for_event(self, timeout_ms: int):
@@ -276,13 +283,16 @@ class Body:
 
     def file_get(self, folder: str, name: str, kind: int):
         self._enter("file_get")
+        if name not in self.store:
+            raise gp.GPhoto2Error(gp.GP_ERROR_FILE_NOT_FOUND)
         camera_file = gp.CameraFile()
         camera_file.set_data_and_size(self.store[name])
         return camera_file
 
     def file_delete(self, folder: str, name: str) -> None:
         self._enter("file_delete")
-        self.store.pop(name, None)
+        if self.store.pop(name, None) is None:
+            raise gp.GPhoto2Error(gp.GP_ERROR_FILE_NOT_FOUND)
 
     def exit(self) -> None:
         self._enter("exit")

@@ -37,7 +37,8 @@ autofocus reported by the lens, busy (-110) then ready, busy for good, busy
 answered to reading the configuration and to deleting, an autofocus that cannot
 lock (Canon: busy after the hunt; Nikon: -1), a full card (-3), a RAW+JPEG pair
 1.5 s apart, a cable pulled mid-capture (reconnect, prepare
-again, retry once), bulb, and a capture that never announces its file.
+again, retry once), bulb, a capture that never announces its file, and a file
+the camera no longer holds (-108).
 """
 
 from __future__ import annotations
@@ -437,6 +438,24 @@ def test_a_body_still_writing_is_waited_for_by_every_call(fake, bodies, tmp_path
     assert body.store == {}  # deleted once the body answered: the card does not fill overnight
     camera.set("aperture", "8")  # the runner's next step, while the body may still be writing
     assert _value(body.config, "aperture") == "8"
+
+
+def test_a_file_the_camera_no_longer_holds(fake, bodies, tmp_path, caplog):
+    from psfd.errors import CameraError
+
+    # a late file of an earlier exposure that the body let go: nothing is left on the camera, nothing to say
+    body = bodies.Body(bodies.canon_eos(), queued=["IMG_0000.JPG"], dropped=["IMG_0000.JPG", "IMG_0002.CR2"])
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), quiet_s=0.1)
+    with caplog.at_level("DEBUG", logger="psfd.drivers.gphoto"):
+        assert [f.name for f in camera.capture(tmp_path / "1")] == ["IMG_0001.CR2"]
+    assert camera.strays == [f"{body.FOLDER}/IMG_0000.JPG"]
+    assert not [r for r in caplog.records if "stays on the camera" in r.getMessage()]
+    # the file of this exposure is gone before its download: the frame fails, said in one line
+    with pytest.raises(CameraError, match=r"downloading IMG_0002.CR2 failed: the file is no longer on the camera.*"
+                                          r"\[gphoto2 -108\]$"):
+        camera.capture(tmp_path / "2")
+    assert list((tmp_path / "2").iterdir()) == []
+    assert [f.name for f in camera.capture(tmp_path / "3")] == ["IMG_0003.CR2"] and body.shots == 3
 
 
 def test_an_autofocus_that_cannot_lock_is_named(fake, bodies, tmp_path):

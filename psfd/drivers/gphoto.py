@@ -78,6 +78,9 @@ _HINTS = {
     "to RAM)",
     gp.GP_ERROR_NO_SPACE: "not enough free space (on a capture: the camera's memory card is full; free it, or "
     "capture to RAM)",
+    gp.GP_ERROR_FILE_NOT_FOUND: "the file is no longer on the camera (a frame in the camera's RAM that the body let "
+    "go, or one deleted on the body)",
+    gp.GP_ERROR_DIRECTORY_NOT_FOUND: "the folder is no longer on the camera (the card was changed or formatted)",
 }
 # What else a camera that refuses a release means. A Canon EOS whose autofocus cannot lock answers
 # the full press with PTP DeviceBusy (-110) after hunting (libgphoto2 issues #304, #655); a Nikon
@@ -519,6 +522,9 @@ class GPhotoCamera:
         except CameraError as exc:
             if getattr(exc, "gone", False):
                 raise
+            if getattr(exc, "code", None) in (gp.GP_ERROR_FILE_NOT_FOUND, gp.GP_ERROR_DIRECTORY_NOT_FOUND):
+                log.debug("camera %s: %s is already gone from the camera", self._model, name)
+                return
             # a read-only card, or a RAM capture the camera dropped itself: nothing is lost; but a
             # file left on the card (a body that stayed busy) fills it over a night
             on_card = self._setup is None or self._setup.capture_target == "card"
