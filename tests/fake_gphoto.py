@@ -10,6 +10,13 @@ in the order libgphoto2 reports them:
   as the next trigger), which the ptp2 driver's ``translate_ptp_result`` turns
   into GP_ERROR_CAMERA_BUSY (-110, "I/O in progress"), until it is done
   (scripted per method);
+- a Nikon answers every operation with DeviceBusy from the release until the
+  exposure (the shutter speed it is set to) has been taken and its file written,
+  then announces the file. libgphoto2's ptp2 Nikon path repeats a release the
+  body refuses as busy, then waits for the body (``nikon_wait_busy``) and
+  answers -110 when it is still busy after a limit, while the exposure goes on:
+  5 s in 2.5.23 (libgphoto2 issue #420), 20 s after the fix of #465, 1000 s
+  since 2021 ("D780 can do 900 second exposures"); here both waits end at it;
 - an autofocus that cannot lock refuses the release: a Canon EOS answers the
   full press with DeviceBusy (-110) after hunting for a while (libgphoto2
   issues #304, #655: "Canon EOS Full-Press failed (0x2019: PTP Device Busy)"
@@ -20,6 +27,9 @@ in the order libgphoto2 reports them:
 - a RAW+JPEG exposure is announced as two GP_EVENT_FILE_ADDED, the JPEG
   after the RAW (Canon writes the RAW first; on a slow card the second comes
   seconds later);
+- a file the camera no longer holds: ``file_get`` and ``file_delete`` fail
+  with GP_ERROR_FILE_NOT_FOUND (-108), as the virtual camera of libgphoto2
+  2.5.34 answers;
 - a cable pulled during a capture: the pending event wait fails with
   GP_ERROR_IO (-7, the PTP layer's translation of the USB error), every later
   call on that handle fails the same way, the body is missing from
@@ -36,10 +46,32 @@ EOS body and for a Nikon D5300), with the same ``get_child_by_name`` failure
 from __future__ import annotations
 
 import copy
+import math
+import re
+import threading
 import time
 from types import SimpleNamespace
 
 import gphoto2 as gp
+
+
+class Clock:
+    """A monotonic clock whose ``sleep`` moves it on at once: long exposures and waits take no time.
+
+    `install` puts it in place of the ``time`` module of `psfd.drivers.gphoto`; bodies given the
+    same clock keep their exposures and busy spells on it.
+    """
+
+    def __init__(self, start: float = 1000.0) -> None:
+        self.now = start
+        self._lock = threading.Lock()
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        with self._lock:
+            self.now += max(0.0, seconds)
 
 
 class Widget:
@@ -180,22 +212,37 @@ class Body:
     card_shots : int, optional
         Frames the card has room for; with ``capturetarget`` on the card a trigger beyond
         them fails with GP_ERROR_NO_MEMORY.
+    library_wait_s : float
+        A Nikon: how long libgphoto2 waits for the busy body around a release before it
+        answers -110 (see the module docstring).
+    hangs : bool
+        A Nikon that stays busy for good after its next release.
+    dropped : list of str
+        File names the body announces but no longer holds (a frame in RAM it let go).
+    clock : Clock, optional
+        The clock of the body's exposures and waits (default: the real one).
+
+    Each file of an exposure is announced its delay after the exposure ends (the shutter
+    speed it is set to; a bulb exposure has ended when the bulb is released).
     """
 
     def __init__(self, config: Widget, files=(("IMG_0001.CR2", 0.05),), script=None, queued=(),
                  unplug_after_trigger=False, af_locks=True, af_hunt_s=0.0,
-                 card_shots=None) -> None:
+                 card_shots=None, library_wait_s=1000.0, hangs=False, dropped=(), clock=None) -> None:
         self.config, self.files = config, list(files)
         self.script = {k: list(v) for k, v in (script or {}).items()}
         self.calls: list[str] = []
         self.pending: list[tuple[float, str]] = [(0.0, name) for name in queued]
-        self.store: dict[str, bytes] = {name: b"stale" for name in queued}
+        self.store: dict[str, bytes] = {name: b"stale" for name in queued if name not in dropped}
         self.unplugged = False
         self.unplug_after_trigger = unplug_after_trigger
         self.shots = 0
         self.bulb_log: list[tuple[int, float]] = []
         self.af_locks, self.af_hunt_s = af_locks, af_hunt_s
         self.card_shots = card_shots
+        self.library_wait_s, self.hangs, self.dropped = library_wait_s, hangs, set(dropped)
+        self.clock = clock or time
+        self.busy_until = -math.inf  # a Nikon answers DeviceBusy until then
 
     FOLDER = "/store_00020001/DCIM/100CANON"
 
@@ -208,6 +255,14 @@ class Body:
             error = errors.pop(0)
             if error is not None:
                 raise error
+        if method not in ("trigger_capture", "exit") and self._busy():
+            raise gp.GPhoto2Error(gp.GP_ERROR_CAMERA_BUSY)
+
+    def _busy(self) -> bool:
+        return self.clock.monotonic() < self.busy_until
+
+    def _nikon(self) -> bool:
+        return self._value("manufacturer") == "Nikon Corporation"
 
     def _value(self, name: str):
         try:
@@ -237,52 +292,69 @@ class Body:
                 raise gp.GPhoto2Error(gp.GP_ERROR_BAD_PARAMETERS)
             target.value = widget.value
             if target.name == "bulb":
-                self.bulb_log.append((int(widget.value), time.monotonic()))
+                self.bulb_log.append((int(widget.value), self.clock.monotonic()))
                 if int(widget.value) == 0:
-                    self._expose()
+                    self._expose(0.0)
 
     def trigger_capture(self) -> None:
         self._enter("trigger_capture")
+        nikon = self._nikon()
+        if nikon:  # libgphoto2 repeats the release while the body refuses it as busy
+            self._library_waits()
         if not self.af_locks and self._autofocus():
-            time.sleep(self.af_hunt_s)
-            nikon = self._value("manufacturer") == "Nikon Corporation"
+            self.clock.sleep(self.af_hunt_s)
             raise gp.GPhoto2Error(gp.GP_ERROR if nikon else gp.GP_ERROR_CAMERA_BUSY)
         on_card = self._value("capturetarget") == "Memory card"
         if on_card and self.card_shots is not None and self.shots >= self.card_shots:
             raise gp.GPhoto2Error(gp.GP_ERROR_NO_MEMORY)
-        self._expose()
+        self._expose(_seconds(self._value("shutterspeed")))
         if self.unplug_after_trigger:
             self.unplugged = True
+        if nikon:  # then waits for the body (nikon_wait_busy)
+            self._library_waits()
 
-    def _expose(self) -> None:
+    def _library_waits(self) -> None:
+        """libgphoto2 waiting for a busy Nikon: -110 when the body is still busy after its limit."""
+        if self._busy():
+            self.clock.sleep(min(self.busy_until - self.clock.monotonic(), self.library_wait_s))
+        if self._busy():
+            raise gp.GPhoto2Error(gp.GP_ERROR_CAMERA_BUSY)
+
+    def _expose(self, seconds: float) -> None:
         self.shots += 1
-        now = time.monotonic()
+        ends = self.clock.monotonic() + seconds
         for name, delay in self.files:
             shot_name = name.replace("0001", f"{self.shots:04d}")
-            self.store[shot_name] = f"{shot_name} of shot {self.shots}".encode()
-            self.pending.append((now + delay, shot_name))
+            if shot_name not in self.dropped:
+                self.store[shot_name] = f"{shot_name} of shot {self.shots}".encode()
+            self.pending.append((ends + delay, shot_name))
+        if self._nikon():  # busy until the last file is written
+            self.busy_until = math.inf if self.hangs else max(t for t, _ in self.pending)
 
     def wait_for_event(self, timeout_ms: int):
         self._enter("wait_for_event")
-        end = time.monotonic() + timeout_ms / 1000.0
+        end = self.clock.monotonic() + timeout_ms / 1000.0
         while True:
-            due = sorted(p for p in self.pending if p[0] <= time.monotonic())
+            due = sorted(p for p in self.pending if p[0] <= self.clock.monotonic())
             if due:
                 self.pending.remove(due[0])
                 return gp.GP_EVENT_FILE_ADDED, SimpleNamespace(folder=self.FOLDER, name=due[0][1])
-            if time.monotonic() >= end:
+            if self.clock.monotonic() >= end:
                 return gp.GP_EVENT_TIMEOUT, None
-            time.sleep(0.005)
+            self.clock.sleep(0.005)
 
     def file_get(self, folder: str, name: str, kind: int):
         self._enter("file_get")
+        if name not in self.store:
+            raise gp.GPhoto2Error(gp.GP_ERROR_FILE_NOT_FOUND)
         camera_file = gp.CameraFile()
         camera_file.set_data_and_size(self.store[name])
         return camera_file
 
     def file_delete(self, folder: str, name: str) -> None:
         self._enter("file_delete")
-        self.store.pop(name, None)
+        if self.store.pop(name, None) is None:
+            raise gp.GPhoto2Error(gp.GP_ERROR_FILE_NOT_FOUND)
 
     def exit(self) -> None:
         self._enter("exit")
@@ -318,10 +390,20 @@ class Bus:
         return False  # the device is no longer on the bus: nothing to reset
 
 
-def install(monkeypatch, bus: Bus) -> None:
-    """Make `psfd.drivers.gphoto` find and open bodies on ``bus`` instead of USB."""
+def _seconds(shutter) -> float:
+    """Exposure seconds of a shutter speed as the widgets write it (``30.0000s``, ``1/125``); bulb: 0."""
+    match = re.fullmatch(r"(\d+(?:\.\d+)?)(?:/(\d+))?s?", str(shutter or "").strip())
+    if match is None:
+        return 0.0
+    return float(match.group(1)) / float(match.group(2) or 1)
+
+
+def install(monkeypatch, bus: Bus, clock: Clock | None = None) -> None:
+    """Make `psfd.drivers.gphoto` find and open bodies on ``bus`` instead of USB (and keep time by ``clock``)."""
     from psfd.drivers import gphoto
 
     monkeypatch.setattr(gphoto, "_detect", bus.detect)
     monkeypatch.setattr(gphoto, "_open_camera", bus.open)
     monkeypatch.setattr(gphoto, "reset_usb_device", bus.reset)
+    if clock is not None:
+        monkeypatch.setattr(gphoto, "time", clock)

@@ -37,7 +37,9 @@ autofocus reported by the lens, busy (-110) then ready, busy for good, busy
 answered to reading the configuration and to deleting, an autofocus that cannot
 lock (Canon: busy after the hunt; Nikon: -1), a full card (-3), a RAW+JPEG pair
 1.5 s apart, a cable pulled mid-capture (reconnect, prepare
-again, retry once), bulb, and a capture that never announces its file.
+again, retry once), bulb, a capture that never announces its file, a file the
+camera no longer holds (-108), and on a fake clock a Nikon busy through a 30 s
+exposure (libgphoto2 giving up on it after 5, 20 or 1000 s) or hung after it.
 """
 
 from __future__ import annotations
@@ -316,11 +318,11 @@ def bodies():
 
 @pytest.fixture
 def fake(monkeypatch, bodies):
-    """Build a GPhotoCamera on scripted bodies: ``fake(bus, **camera_options)``."""
+    """Build a GPhotoCamera on scripted bodies: ``fake(bus, clock=None, **camera_options)``."""
     from psfd.drivers.gphoto import GPhotoCamera
 
-    def make(bus, **options):
-        bodies.install(monkeypatch, bus)
+    def make(bus, clock=None, **options):
+        bodies.install(monkeypatch, bus, clock)
         options.setdefault("timeout", 5.0)
         return GPhotoCamera(**options)
 
@@ -437,6 +439,66 @@ def test_a_body_still_writing_is_waited_for_by_every_call(fake, bodies, tmp_path
     assert body.store == {}  # deleted once the body answered: the card does not fill overnight
     camera.set("aperture", "8")  # the runner's next step, while the body may still be writing
     assert _value(body.config, "aperture") == "8"
+    # a release refused while the body writes, the event wait answered busy too: released again once the
+    # body answers and no file came of the refused release
+    body.script = {"trigger_capture": [busy], "wait_for_event": [None, busy, busy]}
+    assert [f.name for f in camera.capture(tmp_path / "again")] == ["IMG_0002.CR2"]
+    assert body.shots == 2 and body.calls.count("trigger_capture") == 3
+
+
+def _long_nikon(bodies, **body_options):
+    """A Nikon D5300 set to NEF and 30 s, writing 2 s, on a fake clock; returns the body and the clock."""
+    clock = bodies.Clock()
+    config = bodies.nikon_d5300(quality="NEF (Raw)", shutter="30.0000s")
+    return bodies.Body(config, files=(("DSC_0001.NEF", 2.0),), clock=clock, **body_options), clock
+
+
+# how long libgphoto2 waits for a busy Nikon after a release: 2.5.23, after the fix of #465, since 2021
+@pytest.mark.parametrize("library_wait_s", [5.0, 20.0, 1000.0])
+def test_a_long_nikon_exposure_is_one_frame(fake, bodies, tmp_path, library_wait_s):
+    from psfd.drivers.base import CameraSetup
+
+    # the body answers busy for the 30 s and the writing; libgphoto2 may give up on it before
+    body, clock = _long_nikon(bodies, library_wait_s=library_wait_s)
+    camera = fake(bodies.Bus("Nikon DSC D5300", body), clock=clock)
+    camera.prepare(CameraSetup(focus="manual"))
+    frames = [camera.capture(tmp_path / str(i)) for i in (1, 2)]
+    assert [[f.name for f in files] for files in frames] == [["DSC_0001.NEF"], ["DSC_0002.NEF"]]
+    assert frames[0][0].read_bytes() == b"DSC_0001.NEF of shot 1"
+    assert body.shots == 2 and camera.strays == [] and body.store == {}  # no second release, nothing left
+
+
+def test_a_nikon_that_stays_busy_after_the_release_is_reported_not_released_again(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+    from psfd.errors import CameraError
+
+    body, clock = _long_nikon(bodies, library_wait_s=20.0, hangs=True)
+    bus = bodies.Bus("Nikon DSC D5300", body)
+    camera = fake(bus, clock=clock)
+    camera.prepare(CameraSetup(focus="manual"))  # exposure delay On: up to 3 s
+    # waited as long as the exposure needs: 30 s writing + 30 s + its dark frame + the delay
+    with pytest.raises(CameraError, match=r"Nikon DSC D5300 stayed busy for 93 s after the release \(exposure, "
+                                          r"delay and writing included\).*hung.*\[gphoto2 -110\]"):
+        camera.capture(tmp_path)
+    assert body.shots == 1 and list(tmp_path.iterdir()) == [] and bus.opened == ["usb:001,004"]
+
+
+def test_a_file_the_camera_no_longer_holds(fake, bodies, tmp_path, caplog):
+    from psfd.errors import CameraError
+
+    # a late file of an earlier exposure that the body let go: nothing is left on the camera, nothing to say
+    body = bodies.Body(bodies.canon_eos(), queued=["IMG_0000.JPG"], dropped=["IMG_0000.JPG", "IMG_0002.CR2"])
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), quiet_s=0.1)
+    with caplog.at_level("DEBUG", logger="psfd.drivers.gphoto"):
+        assert [f.name for f in camera.capture(tmp_path / "1")] == ["IMG_0001.CR2"]
+    assert camera.strays == [f"{body.FOLDER}/IMG_0000.JPG"]
+    assert not [r for r in caplog.records if "stays on the camera" in r.getMessage()]
+    # the file of this exposure is gone before its download: the frame fails, said in one line
+    with pytest.raises(CameraError, match=r"downloading IMG_0002.CR2 failed: the file is no longer on the camera.*"
+                                          r"\[gphoto2 -108\]$"):
+        camera.capture(tmp_path / "2")
+    assert list((tmp_path / "2").iterdir()) == []
+    assert [f.name for f in camera.capture(tmp_path / "3")] == ["IMG_0003.CR2"] and body.shots == 3
 
 
 def test_an_autofocus_that_cannot_lock_is_named(fake, bodies, tmp_path):

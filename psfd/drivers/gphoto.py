@@ -10,9 +10,11 @@ them from the camera.
 a full-resolution RAW format (refused when there is none), the capture
 target, single-frame drive, exposure delay where the body offers it over USB,
 and autofocus off. `GPhotoCamera.capture` drains stale events before the
-trigger, retries a busy camera with backoff, waits as long as the exposure
-needs, collects every file of the exposure, and reconnects once (with a USB
-reset where the device is still there) when the camera was lost.
+trigger, retries a busy camera with backoff (a release answered busy only once
+the body answers again and no file came of it: the release may have been taken),
+waits as long as the exposure needs, collects every file of the exposure, and
+reconnects once (with a USB reset where the device is still there) when the
+camera was lost.
 
 Every libgphoto2 call runs in a worker thread with a deadline: python-gphoto2
 releases the GIL during libgphoto2 calls, so a camera unplugged in the middle of
@@ -78,6 +80,9 @@ _HINTS = {
     "to RAM)",
     gp.GP_ERROR_NO_SPACE: "not enough free space (on a capture: the camera's memory card is full; free it, or "
     "capture to RAM)",
+    gp.GP_ERROR_FILE_NOT_FOUND: "the file is no longer on the camera (a frame in the camera's RAM that the body let "
+    "go, or one deleted on the body)",
+    gp.GP_ERROR_DIRECTORY_NOT_FOUND: "the folder is no longer on the camera (the card was changed or formatted)",
 }
 # What else a camera that refuses a release means. A Canon EOS whose autofocus cannot lock answers
 # the full press with PTP DeviceBusy (-110) after hunting (libgphoto2 issues #304, #655); a Nikon
@@ -108,7 +113,8 @@ class GPhotoCamera:
         When the number of files per exposure is unknown (no `prepare`, or a format
         that does not tell), a capture is complete after this long without a new file.
     busy_s : float
-        How long a busy camera (gphoto2 -110) is retried, with backoff from 0.1 s to 2 s.
+        How long a busy camera (gphoto2 -110) is retried, with backoff from 0.1 s to 2 s. After a
+        release, a body busy exposing or writing is waited for until the capture's deadline instead.
     drain_s : float
         Longest time spent discarding stale events before a trigger.
     reconnect_s : float
@@ -448,24 +454,90 @@ class GPhotoCamera:
 
     def _trigger_and_collect(self, timeout: float, bulb_s: float | None) -> list[tuple[str, str]]:
         """Trigger one exposure and gather the (folder, name) of each file it adds."""
-        files: list[tuple[str, str]] = []
+        if bulb_s is None:
+            return self._collect(*self._release_once(timeout), timeout)
         start = time.monotonic()
-        if bulb_s is not None:
-            self._bulb(bulb_s)
-        else:
+        self._bulb(bulb_s)
+        return self._collect([], start, timeout)
+
+    def _release_once(self, timeout: float) -> tuple[list[tuple[str, str]], float]:
+        """Release the shutter for one exposure; returns the files already announced and when it was released.
+
+        libgphoto2 answers busy (-110) both for a release the body refused (still writing a frame, an
+        autofocus hunting) and for one it took: its Nikon path waits for the body while it exposes and
+        gives up with -110 after a limit (5 s in 2.5.23, 20 s after libgphoto2 issue #465) while the
+        exposure goes on. So a busy release is tried again only once the body answers again and has
+        announced no file (`_after_busy_release`): a second release would take a second exposure.
+        """
+        pause, refused_s = 0.1, 0.0
+        while True:
+            start = time.monotonic()
             try:
-                # a release may take the autofocus's hunt (some 10 s on a Canon) before it answers
-                self._call("triggering a capture", self._cam().trigger_capture, timeout=timeout, busy_also=_AF_REFUSED)
+                return self._release(timeout), start
             except CameraError as exc:
-                if getattr(exc, "code", None) == gp.GP_ERROR:
+                code = getattr(exc, "code", None)
+                if code == gp.GP_ERROR:
                     raise CameraError(f"camera {self._model} refused the release and libgphoto2 gives no reason; "
                                       f"most often {_AF_REFUSED} [gphoto2 {gp.GP_ERROR}]") from None
-                if getattr(exc, "code", None) != gp.GP_ERROR_NOT_SUPPORTED:
+                if code != gp.GP_ERROR_CAMERA_BUSY:
                     raise
-                # Cameras without trigger_capture: a blocking capture returns the first file;
-                # any further file of the same exposure still arrives as an event below.
-                path = self._call("capturing", self._cam().capture, gp.GP_CAPTURE_IMAGE, timeout=timeout)
-                files.append((path.folder, path.name))
+            files, busy_s = self._after_busy_release(pause, start, timeout)
+            if files:
+                return files, start
+            refused_s += time.monotonic() - start - busy_s
+            pause = min(2.0 * pause, 2.0)
+            if refused_s + pause > self.busy_s:
+                raise _stayed_busy(self.busy_s, "triggering a capture", _AF_REFUSED)
+            log.info("camera %s refused the release as busy: releasing again", self._model)
+
+    def _release(self, timeout: float) -> list[tuple[str, str]]:
+        """One release; returns the file a blocking capture names (cameras without trigger_capture)."""
+        try:
+            # a release may take the autofocus's hunt (some 10 s on a Canon) before it answers
+            self._once("triggering a capture", self._cam().trigger_capture, timeout=timeout)
+            return []
+        except CameraError as exc:
+            if getattr(exc, "code", None) != gp.GP_ERROR_NOT_SUPPORTED:
+                raise
+        # any further file of the same exposure still arrives as an event
+        path = self._once("capturing", self._cam().capture, gp.GP_CAPTURE_IMAGE, timeout=timeout)
+        return [(path.folder, path.name)]
+
+    def _after_busy_release(self, window: float, start: float, timeout: float) -> tuple[list[tuple[str, str]], float]:
+        """The file of a release answered busy, or none once the body answers and stays quiet for ``window``.
+
+        A body that answers the event wait busy too is exposing or writing (a Nikon is busy to every
+        request until the file is written): it is waited for up to the capture's deadline, which
+        follows the exposure time, then given ``quiet_s`` to announce the file. Returns the files and
+        the seconds the body answered busy.
+        """
+        entered, poll = time.monotonic(), 0.1
+        busy_s, quiet_since = 0.0, entered
+        while True:
+            try:
+                event, data = self._once("waiting for the capture", self._cam().wait_for_event, 100,
+                                         timeout=0.1 + self.timeout)
+            except CameraError as exc:
+                if getattr(exc, "code", None) != gp.GP_ERROR_CAMERA_BUSY:
+                    raise
+                if time.monotonic() - start > timeout:
+                    raise _busy_error(f"camera {self._model} stayed busy for {timeout:g} s after the release "
+                                      "(exposure, delay and writing included): it may be hung; switch it off "
+                                      "and on") from None
+                time.sleep(poll)
+                poll = min(2.0 * poll, 2.0)
+                quiet_since = time.monotonic()
+                busy_s, window = quiet_since - entered, max(window, self.quiet_s)
+                continue
+            if event == gp.GP_EVENT_FILE_ADDED:
+                return [(data.folder, data.name)], busy_s
+            if time.monotonic() - quiet_since >= window:
+                return [], busy_s
+            if event == gp.GP_EVENT_TIMEOUT:
+                time.sleep(0.02)  # some drivers answer a wait at once: do not spin
+
+    def _collect(self, files: list[tuple[str, str]], start: float, timeout: float) -> list[tuple[str, str]]:
+        """Gather the files of the exposure released at ``start`` (``files``: those already announced)."""
         expected = self.files_per_exposure
         last_new = time.monotonic()
         while True:
@@ -482,9 +554,10 @@ class GPhotoCamera:
                 raise CameraError(f"capture produced no file within {timeout:g} s (exposure, delay and "
                                   "writing included)")
             wait_ms = 200 if expected is not None else int(1000 * min(self.quiet_s, self.timeout))
-            event, data = self._call(
-                "waiting for the capture", self._cam().wait_for_event, wait_ms, timeout=wait_ms / 1000 + self.timeout
-            )
+            # a body still exposing or writing may answer busy until the capture's deadline
+            event, data = self._call("waiting for the capture", self._cam().wait_for_event, wait_ms,
+                                     timeout=wait_ms / 1000 + self.timeout,
+                                     busy_s=max(self.busy_s, start + timeout - now))
             if event == gp.GP_EVENT_FILE_ADDED and (data.folder, data.name) not in files:
                 files.append((data.folder, data.name))
                 last_new = time.monotonic()
@@ -519,6 +592,9 @@ class GPhotoCamera:
         except CameraError as exc:
             if getattr(exc, "gone", False):
                 raise
+            if getattr(exc, "code", None) in (gp.GP_ERROR_FILE_NOT_FOUND, gp.GP_ERROR_DIRECTORY_NOT_FOUND):
+                log.debug("camera %s: %s is already gone from the camera", self._model, name)
+                return
             # a read-only card, or a RAM capture the camera dropped itself: nothing is lost; but a
             # file left on the card (a body that stayed busy) fills it over a night
             on_card = self._setup is None or self._setup.capture_target == "card"
@@ -569,27 +645,25 @@ class GPhotoCamera:
             raise error
         return self._camera
 
-    def _call(self, what: str, fn: Callable, *args: Any, timeout: float | None = None, busy_also: str = "") -> Any:
-        """`_once`, retried with backoff while the camera answers busy (gphoto2 -110); ``busy_also``: what
-        else staying busy means for this call, in the message.
+    def _call(self, what: str, fn: Callable, *args: Any, timeout: float | None = None,
+              busy_s: float | None = None) -> Any:
+        """`_once`, retried with backoff while the camera answers busy (gphoto2 -110), for ``busy_s``
+        (default: the camera's ``busy_s``).
 
         PTP's DeviceBusy (0x2019, which libgphoto2 reports as -110) may answer any
         operation while the body writes a frame, not only the next release: reading
         the configuration, downloading and deleting are retried as the trigger is.
         """
         pause, started = 0.1, time.monotonic()
+        allowed = self.busy_s if busy_s is None else busy_s
         while True:
             try:
                 return self._once(what, fn, *args, timeout=timeout)
             except CameraError as exc:
                 if getattr(exc, "code", None) != gp.GP_ERROR_CAMERA_BUSY:
                     raise
-                if time.monotonic() - started + pause > self.busy_s:
-                    error = CameraError(f"camera stayed busy for {self.busy_s:g} s while {what} (still writing a "
-                                        f"frame, or a menu is open{'; or ' + busy_also if busy_also else ''}) "
-                                        f"[gphoto2 {gp.GP_ERROR_CAMERA_BUSY}]")
-                    error.code, error.gone = gp.GP_ERROR_CAMERA_BUSY, False  # type: ignore[attr-defined]
-                    raise error from None
+                if time.monotonic() - started + pause > allowed:
+                    raise _stayed_busy(allowed, what) from None
                 log.info("camera busy while %s: retrying in %.1f s", what, pause)
                 time.sleep(pause)
                 pause = min(2.0 * pause, 2.0)
@@ -646,6 +720,19 @@ def _open_camera(model: str, port: str) -> Any:
     camera.set_abilities(abilities[abilities.lookup_model(model)])
     camera.init()
     return camera
+
+
+def _busy_error(message: str) -> CameraError:
+    """A camera that answered busy (gphoto2 -110) for too long: a one-line error, not a lost camera."""
+    error = CameraError(f"{message} [gphoto2 {gp.GP_ERROR_CAMERA_BUSY}]")
+    error.code, error.gone = gp.GP_ERROR_CAMERA_BUSY, False  # type: ignore[attr-defined]
+    return error
+
+
+def _stayed_busy(seconds: float, what: str, also: str = "") -> CameraError:
+    """`_busy_error` of a call answered busy for ``seconds``; ``also``: what else that means for this call."""
+    return _busy_error(f"camera stayed busy for {seconds:g} s while {what} (still writing a frame, or a menu is "
+                       f"open{'; or ' + also if also else ''})")
 
 
 def camera_error(what: str, exc: gp.GPhoto2Error, port: str = "") -> CameraError:
