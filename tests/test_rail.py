@@ -201,6 +201,68 @@ def test_fake_dwell_homing_and_sleep_as_the_firmware(make_fake):
     link.close()
 
 
+def serial_link(fake: FakeGrbl):
+    """A raw serial link to the fake and ``say(bytes, wait)``: what came back within ``wait`` seconds, by line."""
+    link = serial.Serial(fake.port, 115200, timeout=0.3)
+
+    def say(data: bytes, wait: float = 0.15) -> list[str]:
+        link.write(data)
+        time.sleep(wait)
+        return [ln for ln in link.read(4096).decode().split("\r\n") if ln]
+    return link, say
+
+
+def test_fake_homing_answers_realtime_bytes_as_the_firmware(make_fake):
+    """limits.c runs no realtime check point during the cycle: a '?' is flagged, not answered, and served once
+    by mc_homing_cycle's protocol_execute_realtime() after the last cycle, still in the Home state and at the
+    homed position, before system.c sets Idle, runs the startup lines and answers 'ok' (gnea/grbl#1061). A
+    feed hold or cycle start flagged meanwhile finds no motion to hold or start there and is dropped: the
+    controller ends Idle, not in a hold."""
+    fake = make_fake({**HOMING, 25: 600}, start=(-20.0, -50.0, -50.0), time_scale=2.0)  # a 2 s search
+    fake.startup_lines[0] = "G21"
+    link, say = serial_link(fake)
+    link.write(b"$H\n")
+    assert fake.wait_for(lambda f: f.status() == "Home" and f.moving)
+    assert say(b"??!~", 0.3) == []  # the search goes on, in silence
+    assert fake.moving and fake.status() == "Home"
+    assert fake.wait_for(lambda f: f.written.endswith(b"ok\r\n"), timeout=10)
+    answer = say(b"", 0.1)
+    assert len(answer) == 3 and answer[0].startswith("<Home|MPos:-1.000,") and answer[1:] == [">G21:ok", "ok"]
+    assert say(b"?")[0].startswith("<Idle|MPos:-1.000,") and fake.status() == "Idle"
+    assert say(b"G0 X-5\n") == ["ok"] and fake.wait_for(lambda f: f.machine_position()[0] == -5.0)
+    link.close()
+
+
+def test_fake_homing_reset_and_failure_as_the_firmware(make_fake):
+    """A reset during the cycle: mc_reset() kills the steppers at once (ALARM:6); limits.c zeroes the machine
+    position of the cycle's axes at the start of every phase, so the controller then reads the distance of the
+    interrupted phase. A '?' flagged in the cycle is cleared by the abort. After the alarm's 500 ms delay
+    system.c still answers the '$H' ('ok'), then main() re-initialises: banner, lock message. A switch not found
+    within 1.5 x $130 is ALARM:9 with the same sequel."""
+    fake = make_fake({**HOMING, 25: 600}, start=(-40.0, -50.0, -50.0), time_scale=2.0)
+    link, say = serial_link(fake)
+    assert say(b"$X\nG0 X-5\n") == ["[MSG:Caution: Unlocked]", "ok", "ok"]
+    assert fake.wait_for(lambda f: f.status() == "Idle" and f.machine_position()[0] == -5.0)
+    link.write(b"$H\n")
+    assert fake.wait_for(lambda f: f.status() == "Home" and f.physical_position()[0] > -30.0)
+    assert say(b"?", 0.1) == []
+    lines = say(b"\x18", 0.6)
+    searched = fake.physical_position()[0] + 45.0  # what the search covered before the reset
+    assert lines == ["ALARM:6", "ok", "Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
+    assert not fake.moving and fake.alarms() == [6] and fake.resets() == ["Home"]
+    assert fake.machine_position()[0] == pytest.approx(searched, abs=0.01) and 10.0 < searched < 40.0
+    assert say(b"?")[0].startswith("<Alarm|")
+    link.close()
+
+    fake = make_fake({**HOMING, 130: 20}, span=(500.0, 500.0, 500.0), start=(-100.0, -50.0, -50.0))
+    link, say = serial_link(fake)
+    link.write(b"$H\n")
+    assert fake.wait_for(lambda f: f.alarms() == [9])
+    assert say(b"", 0.7) == ["ALARM:9", "ok", "Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
+    assert say(b"?")[0].startswith("<Alarm|MPos:30.000,")  # the whole search, 1.5 x $130, counted from 0
+    link.close()
+
+
 def test_fake_planner_and_serial_buffer_as_the_firmware(make_fake):
     """planner.c: 16 blocks, one kept free, the running block among them: 15 motion lines are acknowledged and
     the 16th waits in mc_line(), already read out of the 128-byte RX ring (protocol.c reads it character by
