@@ -69,8 +69,11 @@ def run(capsys, *argv: str) -> tuple[int, str, str]:
 def psfd_process(*argv: str) -> subprocess.Popen:
     """psfd as started from a terminal: Ctrl-C at its default, even where the tests run as a background job
     (a non-interactive shell starts those with SIGINT ignored, and Python then keeps it ignored)."""
+    def terminal_defaults() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)  # ignored under nohup, and kept so by the child
     return subprocess.Popen([sys.executable, "-m", "psfd", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                            text=True, preexec_fn=terminal_defaults)
 
 
 def settled(fake: FakeGrbl) -> bool:
@@ -113,10 +116,24 @@ def test_move_time_matches_the_firmware_profile(distance, rate, accel):
 
 
 def test_homing_deadline_follows_seek_rate_and_travel():
-    settings = {24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 120: 10.0, 121: 10.0, 122: 10.0, 130: 2000.0, 131: 200.0,
-                132: 200.0}
+    settings = {24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 110: 500.0, 111: 500.0, 112: 500.0, 120: 10.0, 121: 10.0,
+                122: 10.0, 130: 2000.0, 131: 200.0, 132: 200.0}
     # a 2 m rail at the default seek rate: the search alone may last 1.5 x 2000 mm / (500 mm/min) = 360 s
     assert homing_time(settings) > 360.0 > 240.0  # the first driver allowed a fixed 120 s
+
+
+def test_homing_deadline_bounds_a_cycle_whose_seek_rate_the_max_rate_caps(make_fake):
+    """The planner caps a homing motion at the axis' $110 like any other (planner.c): with $25 above it the
+    search runs at $110, and the deadline follows. The driver's closed form against the fake's simulated cycle
+    from the far end of the rail (the longest that succeeds), on the fake's own clock."""
+    fake = make_fake({**HOMING, 25: 6000, 110: 600, 130: 20}, start=(-22.0, -50.0, -50.0), time_scale=4.0)
+    link, say = serial_link(fake)
+    started = fake.now()
+    link.write(b"$H\n")
+    assert fake.wait_for(lambda f: f.written.endswith(b"ok\r\n"), timeout=10) and fake.crashes == 0
+    took = fake.now() - started  # simulated seconds, a few ms of polling included
+    assert took < homing_time(fake.settings, cycles=((0,),)) < 2 * took
+    link.close()
 
 
 # ---------------------------------------------------------------------------------------------- the fake itself
@@ -685,22 +702,28 @@ def test_sigkill_just_after_the_move_line_is_stopped_by_the_guard(make_fake, con
     assert connect(fake).position().x == fake.machine_position()[0]
 
 
-def test_sigkill_during_homing_is_stopped_by_the_guard(make_fake, connect):
-    """GRBL answers no '?' during a homing cycle and ignores feed holds in it: the guard, unanswered, sends
-    the feed hold anyway and then, once the longest deceleration is over, the reset that ends the cycle
-    (ALARM:6, as psfd's own Ctrl-C during `psfd rail home`)."""
+@pytest.mark.parametrize("signum, exit_code", [(signal.SIGINT, 130), (signal.SIGTERM, 143),
+                                               (signal.SIGHUP, -signal.SIGHUP), (signal.SIGKILL, -signal.SIGKILL)])
+def test_psfd_stopped_during_homing_stops_the_carriage(make_fake, signum, exit_code):
+    """GRBL answers no '?' during a homing cycle and drops the feed holds sent in it: only a reset stops it
+    (ALARM:6). Ctrl-C and SIGTERM: psfd resets at once and says so. A hang-up (its default action: the
+    process ends) or kill -9: the guard, unanswered, sends the feed hold anyway and then, once the longest
+    deceleration is over, the reset."""
     fake = make_fake({**HOMING, 25: 600}, start=(-150.0, -50.0, -50.0))  # a 10 mm/s search, 15 s to the switch
     proc = psfd_process("rail", "home", "--rail-port", fake.port)
     try:
         assert fake.wait_for(lambda f: f.status() == "Home" and f.moving, timeout=30)
         time.sleep(0.5)
-        proc.kill()
-        proc.wait()
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=30)
         assert fake.wait_for(lambda f: not f.peer_open, timeout=20)
     finally:
         proc.kill()
     assert settled(fake) and fake.alarms() == [6] and fake.resets() == ["Home"]
     assert fake.physical_position()[0] < -60.0  # far from the switch it was searching for
+    assert proc.returncode == exit_code
+    if exit_code > 0:
+        assert "homing stopped by a reset (Alarm): the position is lost" in err, err
 
 
 def test_guard_meeting_a_vanished_port_says_so_in_one_line(capsys):
@@ -754,17 +777,28 @@ def test_operator_feed_hold_is_reported_at_once(make_fake, connect):
     assert rail.position().x == fake.machine_position()[0]
 
 
-def test_reset_button_mid_move_is_reported_as_its_alarm(make_fake, connect):
+@pytest.mark.parametrize("homing", [1, 0])
+def test_reset_button_mid_move_is_reported_as_its_alarm(make_fake, connect, capsys, homing):
     """The controller's own reset (abort) button mid-move: ALARM:3, then the 500 ms delay that follows an alarm
     message, then the system abort (protocol.c), whose re-initialisation clears a '?' asked during the delay
-    (main.c clears sys_rt_exec_state). The alarm, not a lost status report, is what the operator is told."""
-    fake = make_fake(SLOW)
-    fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.press_reset)
+    (main.c clears sys_rt_exec_state). The alarm, not a lost status report, is what the operator is told, and
+    what to do: home, or without homing ($22=0, where `psfd rail home` is refused) unlock, or start again
+    from the + end at power-up (main.c zeroes the position at power-up only; a reset keeps the count)."""
+    fake = make_fake({**SLOW, 22: homing})
     rail = connect(fake)
-    with pytest.raises(RailAlarm, match=r"ALARM:3 \(reset while in motion\) at X=-2\d.*homing needed"):
+    if homing:
+        rail.unlock()
+    fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.press_reset)
+    advice = (r"homing needed: `psfd rail home`" if homing else
+              r"`psfd rail unlock` \(homing is disabled, \$22=0\).*the \+ end and power-cycle the controller")
+    with pytest.raises(RailAlarm, match=r"ALARM:3 \(reset while in motion\) at X=-2\d.*; " + advice) as alarm:
         rail.move(x=-150)
     assert settled(fake) and fake.alarms() == [3]
     assert rail.info().state == "Alarm"  # the state the alarm set survives the abort (main.c prior_state)
+    assert ("rail home" in str(alarm.value)) == bool(homing)
+    rail.close()
+    code, _, err = run(capsys, "rail", "move", "X=-10", "--rail-port", fake.port)  # the next command says it too
+    assert code == 4 and re.search(r"locked in ALARM at X=-2\d.*: " + advice, err) and ("rail home" in err) == bool(homing)
 
 
 @pytest.mark.parametrize("homing", [0, 1])
@@ -898,7 +932,9 @@ def test_travel_keeps_off_the_homing_switch_when_hard_limits_are_on(make_fake, c
 def test_homing_without_a_switch_fails_cleanly(make_fake, connect):
     fake = make_fake({22: 1, 130: 20}, span=(500.0, 500.0, 500.0), start=(-100.0, -50.0, -50.0))
     rail = connect(fake)
-    with pytest.raises(RailAlarm, match=r"ALARM:9 \(homing failed: limit switch not found"):
+    with pytest.raises(RailAlarm, match=r"ALARM:9 \(homing failed: limit switch not found.*\) after '\$H', the "
+                                         r"position is lost; the search covers 1\.5 x \$130 .*check the switch and its "
+                                         r"wiring, \$23 .*, then `psfd rail home` again"):
         rail.home()
     assert rail.info().state == "Alarm"  # the firmware reset itself; the driver is in step with it again
     with pytest.raises(RailError, match="homing cycle not enabled"):
