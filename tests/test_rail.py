@@ -707,13 +707,14 @@ def test_sigkill_just_after_the_move_line_is_stopped_by_the_guard(make_fake, con
 def test_psfd_stopped_during_homing_stops_the_carriage(make_fake, signum, exit_code):
     """GRBL answers no '?' during a homing cycle and drops the feed holds sent in it: only a reset stops it
     (ALARM:6). Ctrl-C and SIGTERM: psfd resets at once and says so. A hang-up (its default action: the
-    process ends) or kill -9: the guard, unanswered, sends the feed hold anyway and then, once the longest
-    deceleration is over, the reset."""
+    process ends) or kill -9: the guard, told by psfd that a homing cycle runs, resets at once too, rather
+    than asking, holding and waiting out the longest deceleration first, while the search goes on."""
     fake = make_fake({**HOMING, 25: 600}, start=(-150.0, -50.0, -50.0))  # a 10 mm/s search, 15 s to the switch
     proc = psfd_process("rail", "home", "--rail-port", fake.port)
     try:
         assert fake.wait_for(lambda f: f.status() == "Home" and f.moving, timeout=30)
         time.sleep(0.5)
+        before = len(fake.realtime)
         proc.send_signal(signum)
         _, err = proc.communicate(timeout=30)
         assert fake.wait_for(lambda f: not f.peer_open, timeout=20)
@@ -721,9 +722,36 @@ def test_psfd_stopped_during_homing_stops_the_carriage(make_fake, signum, exit_c
         proc.kill()
     assert settled(fake) and fake.alarms() == [6] and fake.resets() == ["Home"]
     assert fake.physical_position()[0] < -60.0  # far from the switch it was searching for
+    sent = [byte for _, byte in fake.realtime]
+    assert sent[before:before + 1] == [0x18] and FEED_HOLD not in sent
     assert proc.returncode == exit_code
     if exit_code > 0:
         assert "homing stopped by a reset (Alarm): the position is lost" in err, err
+
+
+def test_guard_of_a_process_killed_moving_after_homing_holds_first(make_fake, tmp_path):
+    """The note that a homing cycle runs ends with the cycle: killed in a move after `home`, the guard stops the
+    carriage as after any move (feed hold, Hold:0, reset: the position kept), not with the reset at once that
+    a homing cycle needs."""
+    fake = make_fake({**SLOW, 22: 1}, start=(-30.0, -50.0, -50.0))
+    script = tmp_path / "owner.py"
+    script.write_text("import sys\n"
+                      "from psfd.drivers.grbl import GrblRail\n"
+                      "rail = GrblRail(sys.argv[1])\n"
+                      "print(rail.home().x, flush=True)\n"
+                      "rail.move(x=-150)\n")
+    proc = subprocess.Popen([sys.executable, str(script), fake.port], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline() == "-1.0\n"
+        assert fake.wait_for(lambda f: f.machine_position()[0] < -20.0, timeout=30)
+        proc.kill()
+        proc.wait()
+        assert fake.wait_for(lambda f: not f.peer_open, timeout=15)
+    finally:
+        proc.kill()
+        proc.stdout.close()
+    assert settled(fake) and fake.resets() == ["Hold:0"] and fake.alarms() == []
+    assert FEED_HOLD in [byte for _, byte in fake.realtime]
 
 
 def test_guard_meeting_a_vanished_port_says_so_in_one_line(capsys):
@@ -798,7 +826,8 @@ def test_reset_button_mid_move_is_reported_as_its_alarm(make_fake, connect, caps
     assert ("rail home" in str(alarm.value)) == bool(homing)
     rail.close()
     code, _, err = run(capsys, "rail", "move", "X=-10", "--rail-port", fake.port)  # the next command says it too
-    assert code == 4 and re.search(r"locked in ALARM at X=-2\d.*: " + advice, err) and ("rail home" in err) == bool(homing)
+    assert code == 4 and re.search(r"locked in ALARM at X=-2\d.*: " + advice, err)
+    assert ("rail home" in err) == bool(homing)
 
 
 @pytest.mark.parametrize("homing", [0, 1])

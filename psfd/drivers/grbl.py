@@ -37,8 +37,8 @@ A process killed outright (SIGKILL, the OOM killer) runs nothing: before the fir
 carriage the driver starts a guard process (`psfd.drivers.grbl_guard`, standard library only, in its own
 session, SIGINT/SIGTERM/SIGHUP/SIGQUIT/SIGABRT ignored) holding the same port. It watches this process through
 a pidfd, never touches the port while it lives and is killed by `close`; when this process dies with the rail
-open, it sends ``?`` and, if the carriage moves, what `_halt` sends (``!``, ``?`` until ``Hold:0``, 0x18), then
-exits. A whole control group killed at once, or a power cut of the PC, takes the guard too: the next open
+open, it sends ``?`` and, if the carriage moves, what `_halt` sends (``!``, ``?`` until ``Hold:0``, 0x18), or
+0x18 alone when this process died in a homing cycle (`_tell_guard`), then exits. A whole control group killed at once, or a power cut of the PC, takes the guard too: the next open
 stops the carriage.
 The port is opened exclusively (flock, pyserial ``exclusive``) behind a UUCP-style lock file naming the
 holder's pid, and without a reset: DTR is left up and HUPCL cleared so that an Arduino's auto-reset
@@ -68,7 +68,7 @@ import serial
 from psfd.drivers.base import Position, RailInfo
 # GRBL's realtime bytes and its standing states, one definition for the driver and its guard (which imports nothing
 # of psfd)
-from psfd.drivers.grbl_guard import FEED_HOLD, SOFT_RESET, STANDING, STATUS
+from psfd.drivers.grbl_guard import FEED_HOLD, HOMING, HOMING_DONE, SOFT_RESET, STANDING, STATUS
 from psfd.errors import RailAlarm, RailError
 
 log = logging.getLogger(__name__)
@@ -518,6 +518,7 @@ class GrblRail:
         self._serial: serial.Serial | None = None
         self._guard: subprocess.Popen | None = None
         self._guard_owner = os.getpid()
+        self._guard_notes: int | None = None  # the write end of the pipe that tells the guard what we are doing
         self._lock = PortLock(port)
         self._lock.acquire()
         try:
@@ -559,6 +560,7 @@ class GrblRail:
         self._ensure_guard()
         seconds = self._homing_timeout or homing_time(self._settings_full) * DEADLINE_FACTOR + self.timeout + 1.0
         self._moving = True
+        self._tell_guard(HOMING)
         try:
             self._command("$H", seconds, what=f"'ok' to '$H' (the homing cycle; {seconds:.0f} s allowed from "
                                               f"$25, $24, $27 and $130)")
@@ -572,6 +574,8 @@ class GrblRail:
                                     f"homing needed") from None
                 exc.add_note(f"homing stopped by a reset ({stopped}): the position is lost")
             raise
+        finally:
+            self._tell_guard(HOMING_DONE)
         self._moving = False
         return self._position(self._status())
 
@@ -653,7 +657,9 @@ class GrblRail:
 
         Nothing in a process killed by SIGKILL runs, and the controller goes on with its move: a separate
         process holding the same port watches this one through a pidfd (a pipe would stay open in the forked
-        estimation workers) and, on its death, sends the feed hold and the reset `_halt` would have sent.
+        estimation workers) and, on its death, sends the feed hold and the reset `_halt` would have sent, or the
+        reset alone when a pipe from this process last said a homing cycle runs (`_tell_guard`): the cycle answers
+        no ``?`` and ignores the feed hold, which would only delay the reset by the worst-case deceleration.
         fork+exec (subprocess) is safe with the service's threads; its own session keeps a terminal's Ctrl-C
         away from it, and it ignores SIGTERM, so `systemctl stop` leaves the stop to this process. Started at
         the first motion rather than at the open: the carriage stands until then, and commands that only read
@@ -666,6 +672,7 @@ class GrblRail:
             log.warning("rail %s: the guard process (pid %d) ended (%s): starting another", self.port, guard.pid,
                         guard.returncode)
         self._guard = None
+        self._close_guard_notes()
         if self._serial is None or not sys.executable:
             return
         try:
@@ -674,17 +681,38 @@ class GrblRail:
             log.warning("rail %s: no guard process (%s): a process killed mid-move leaves the carriage running "
                         "until the next psfd command opens the port", self.port, _reason(exc))
             return
+        notes = None
         try:
             fd = self._serial.fileno()
+            notes, self._guard_notes = os.pipe()
             self._guard = subprocess.Popen(
                 [sys.executable, "-I", "-S", "-c", GUARD_CODE, GUARD_DIR, str(fd), str(owner), f"{self.timeout:g}",
-                 f"{self._stop_time():.3f}"],
-                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, pass_fds=(fd, owner), start_new_session=True)
+                 f"{self._stop_time():.3f}", str(notes)],
+                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, pass_fds=(fd, owner, notes),
+                start_new_session=True)
             self._guard_owner = os.getpid()
         except OSError as exc:
             log.warning("rail %s: cannot start the guard process (%s)", self.port, _reason(exc))
+            self._close_guard_notes()
         finally:
             os.close(owner)
+            if notes is not None:
+                os.close(notes)
+
+    def _tell_guard(self, doing: bytes) -> None:
+        """Tell the guard what this process does now (`grbl_guard.HOMING`, `grbl_guard.HOMING_DONE`); it reads the
+        pipe as it comes, so the pipe never fills."""
+        if self._guard_notes is None or self._guard_owner != os.getpid():
+            return
+        try:
+            os.write(self._guard_notes, doing)
+        except OSError:  # the guard has gone: `_ensure_guard` starts another before the next motion
+            pass
+
+    def _close_guard_notes(self) -> None:
+        notes, self._guard_notes = self._guard_notes, None
+        if notes is not None and self._guard_owner == os.getpid():
+            os.close(notes)
 
     def _stop_guard(self) -> None:
         """End the guard of a rail being closed, and reap it (not from a forked child: it is its parent's).
@@ -698,6 +726,7 @@ class GrblRail:
             return
         guard.kill()
         guard.wait()
+        self._close_guard_notes()
 
     # ------------------------------------------------------------------ connecting
 
