@@ -563,7 +563,7 @@ class GrblRail:
         self._tell_guard(HOMING)
         try:
             self._command("$H", seconds, what=f"'ok' to '$H' (the homing cycle; {seconds:.0f} s allowed from "
-                                              f"$25, $24, $27 and $130)")
+                                              f"$130, $25, $24, $27 and $110)")
         except BaseException as exc:
             if self._moving:
                 self._moving = False
