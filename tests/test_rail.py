@@ -783,6 +783,19 @@ def test_reopen_does_not_reset_a_moving_controller(make_fake, connect):
     assert settled(fake) and rail.position().x == fake.machine_position()[0]
 
 
+def test_reopen_stops_a_homing_cycle_left_running(make_fake, connect):
+    """A homing cycle whose process and guard were both killed: grbl answers neither '?' nor '$I' in it, so
+    the next open resets it, which ends the cycle (ALARM:6), and goes on from the Alarm it leaves."""
+    fake = make_fake({**HOMING, 25: 600}, start=(-150.0, -50.0, -50.0))
+    link, _ = serial_link(fake)
+    link.write(b"$H\n")
+    assert fake.wait_for(lambda f: f.status() == "Home" and f.moving)
+    link.close()
+    rail = connect(fake)
+    assert settled(fake) and fake.resets() == ["Home"] and fake.alarms() == [6]
+    assert rail.info().state == "Alarm" and fake.physical_position()[0] < -60.0
+
+
 def test_silence_mid_move_stops_the_carriage(make_fake, connect):
     fake = make_fake(SLOW)
     fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.go_silent)
