@@ -14,9 +14,9 @@ What it does as the firmware does:
   comments, case, 80 characters at most: error:11).
 - The main loop runs realtime flags at its check points: several ``?`` before a report give one report;
   no report in the critical-alarm loop, nor during the homing cycle (a '?' asked in it is answered once, as
-  ``Home``, when the cycle completes; a ``!`` or ``~`` asked in it is dropped); lines wait while a hold, a door or the
-  sleep (``$SLP``, answered first) suspends the main program, and while the 15-block planner is full. A cycle
-  start flagged together with a hold is dropped.
+  ``Home``, when the cycle completes; a ``!`` or ``~`` asked in it is dropped); lines wait while a hold, a
+  door or the sleep (``$SLP``, answered first) suspends the main program, and while the 15-block planner is
+  full. A cycle start flagged together with a hold is dropped.
 - ``ok`` comes when a motion line is planned, not run; ``G4 P<s>`` is answered once the planner has run empty
   and the dwell has passed (mc_dwell), and a reset during it still answers it before the banner.
 - Motion runs in (scaled) real time: one trapezoidal profile per planner block, rate and acceleration

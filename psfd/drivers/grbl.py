@@ -38,8 +38,8 @@ carriage the driver starts a guard process (`psfd.drivers.grbl_guard`, standard 
 session, SIGINT/SIGTERM/SIGHUP/SIGQUIT/SIGABRT ignored) holding the same port. It watches this process through
 a pidfd, never touches the port while it lives and is killed by `close`; when this process dies with the rail
 open, it sends ``?`` and, if the carriage moves, what `_halt` sends (``!``, ``?`` until ``Hold:0``, 0x18), or
-0x18 alone when this process died in a homing cycle (`_tell_guard`), then exits. A whole control group killed at once, or a power cut of the PC, takes the guard too: the next open
-stops the carriage.
+0x18 alone when this process died in a homing cycle (`_tell_guard`), then exits. A whole control group killed
+at once, or a power cut of the PC, takes the guard too: the next open stops the carriage.
 The port is opened exclusively (flock, pyserial ``exclusive``) behind a UUCP-style lock file naming the
 holder's pid, and without a reset: DTR is left up and HUPCL cleared so that an Arduino's auto-reset
 circuit sees no edge on the next open either (the README has the hardware fix).
