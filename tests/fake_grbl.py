@@ -13,9 +13,10 @@ What it does as the firmware does:
   running one included) has been read out of the ring. Lines are filtered as protocol.c does (spaces,
   comments, case, 80 characters at most: error:11).
 - The main loop runs realtime flags at its check points: several ``?`` before a report give one report;
-  no report during the homing cycle or in the critical-alarm loop; lines wait while a hold, a door or the
-  sleep (``$SLP``, answered first) suspends the main program, and while the 15-block planner is full. A cycle
-  start flagged together with a hold is dropped.
+  no report in the critical-alarm loop, nor during the homing cycle (a '?' asked in it is answered once, as
+  ``Home``, when the cycle completes; a ``!`` or ``~`` asked in it is dropped); lines wait while a hold, a
+  door or the sleep (``$SLP``, answered first) suspends the main program, and while the 15-block planner is
+  full. A cycle start flagged together with a hold is dropped.
 - ``ok`` comes when a motion line is planned, not run; ``G4 P<s>`` is answered once the planner has run empty
   and the dwell has passed (mc_dwell), and a reset during it still answers it before the banner.
 - Motion runs in (scaled) real time: one trapezoidal profile per planner block, rate and acceleration
@@ -30,9 +31,10 @@ What it does as the firmware does:
   the 500 ms delay that follows an ALARM message is cleared before that loop starts (protocol.c), so the
   host must reset after the message.
 - ``$H``: cycle 0 (Z) then cycle 1 (X, Y), each a search at ``$25`` over 1.5 x ``$13x``, a pull-off, a
-  locate at ``$24`` over 5 x ``$27`` and a final pull-off; homes to the + end unless ``$23`` says otherwise;
-  machine position then -``$27`` (all machine space negative), and the startup lines run before its ``ok``.
-  ALARM:8/9 on failure, then a self reset.
+  locate at ``$24`` over 5 x ``$27`` and a final pull-off, each phase counting the cycle's axes from machine
+  position 0; homes to the + end unless ``$23`` says otherwise; machine position then -``$27`` (all machine
+  space negative), and the startup lines run before its ``ok``. ALARM:8/9 on failure, ALARM:6 on a reset,
+  ALARM:7 on the door, then the ``ok`` of ``$H`` and a self reset.
 - Status reports in the 1.1 format: ``<State|MPos:..|Bf:..|FS:..|Pn:..|WCO:..|Ov:..>``, MPos or WPos and Bf
   per ``$10``, WCO in the first report after a reset and then every 10 (idle) or 30 (busy) reports, Ov on the
   next but one; ``$13=1`` reports inches (4 decimals) and in/min.
@@ -1055,15 +1057,13 @@ class FakeGrbl:
                 h["phase"] = None
         if h["phase"] is None:
             if not h["cycles"]:
-                self._homing = None
-                self.state = "Idle"
-                self._gc.position = self._reported_mpos()
-                self._run_startup_lines()  # system.c: after a completed $H, before its 'ok'
-                self._write_line("ok")
-                return
+                return self._homing_done()
             h["axes"], h["phase"] = h["cycles"].pop(0), -1
         h["phase"] += 1
         h["locked"] = set()
+        for i in h["axes"]:  # every phase counts from machine 0 on the cycle's axes (sys_position[idx] = 0)
+            self._offset[i] += self._mpos[i]
+            self._mpos[i] = 0.0
         if h["phase"] == 0:
             distance = HOMING_SEARCH_SCALAR * max(self.settings[130 + i] for i in h["axes"])
             rate = self.settings[25]
@@ -1072,6 +1072,19 @@ class FakeGrbl:
         else:
             distance, rate = self.settings[27], self.settings[25]
         self._homing_move(distance, rate, list(h["axes"]))
+
+    def _homing_done(self) -> None:
+        """mc_homing_cycle()'s realtime check point, still in the Home state: a '?' flagged during the cycle is
+        answered now, once; a feed hold or cycle start flagged during it has nothing to hold or start and is
+        dropped. Then system.c sets Idle, runs the startup lines and answers the '$H'."""
+        self._homing = None
+        if "status" in self._flags:
+            self._write_line(self._status_report())
+        self._flags -= {"status", "feed_hold", "cycle_start"}
+        self.state = "Idle"
+        self._gc.position = self._reported_mpos()
+        self._run_startup_lines()
+        self._write_line("ok")
 
     def _homing_move(self, distance: float, rate: float, axes: list[int]) -> None:
         h = self._homing

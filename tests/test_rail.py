@@ -69,8 +69,11 @@ def run(capsys, *argv: str) -> tuple[int, str, str]:
 def psfd_process(*argv: str) -> subprocess.Popen:
     """psfd as started from a terminal: Ctrl-C at its default, even where the tests run as a background job
     (a non-interactive shell starts those with SIGINT ignored, and Python then keeps it ignored)."""
+    def terminal_defaults() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)  # ignored under nohup, and kept so by the child
     return subprocess.Popen([sys.executable, "-m", "psfd", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                            text=True, preexec_fn=terminal_defaults)
 
 
 def settled(fake: FakeGrbl) -> bool:
@@ -113,10 +116,24 @@ def test_move_time_matches_the_firmware_profile(distance, rate, accel):
 
 
 def test_homing_deadline_follows_seek_rate_and_travel():
-    settings = {24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 120: 10.0, 121: 10.0, 122: 10.0, 130: 2000.0, 131: 200.0,
-                132: 200.0}
+    settings = {24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 110: 500.0, 111: 500.0, 112: 500.0, 120: 10.0, 121: 10.0,
+                122: 10.0, 130: 2000.0, 131: 200.0, 132: 200.0}
     # a 2 m rail at the default seek rate: the search alone may last 1.5 x 2000 mm / (500 mm/min) = 360 s
     assert homing_time(settings) > 360.0 > 240.0  # the first driver allowed a fixed 120 s
+
+
+def test_homing_deadline_bounds_a_cycle_whose_seek_rate_the_max_rate_caps(make_fake):
+    """The planner caps a homing motion at the axis' $110 like any other (planner.c): with $25 above it the
+    search runs at $110, and the deadline follows. The driver's closed form against the fake's simulated cycle
+    from the far end of the rail (the longest that succeeds), on the fake's own clock."""
+    fake = make_fake({**HOMING, 25: 6000, 110: 600, 130: 20}, start=(-22.0, -50.0, -50.0), time_scale=4.0)
+    link, say = serial_link(fake)
+    started = fake.now()
+    link.write(b"$H\n")
+    assert fake.wait_for(lambda f: f.written.endswith(b"ok\r\n"), timeout=10) and fake.crashes == 0
+    took = fake.now() - started  # simulated seconds, a few ms of polling included
+    assert took < homing_time(fake.settings, cycles=((0,),)) < 2 * took
+    link.close()
 
 
 # ---------------------------------------------------------------------------------------------- the fake itself
@@ -198,6 +215,68 @@ def test_fake_dwell_homing_and_sleep_as_the_firmware(make_fake):
     assert say(b"?")[0].startswith("<Sleep|")
     assert say(b"\x18") == ["Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
     assert say(b"?")[0].startswith("<Alarm|MPos:-1.000,") and fake.lines[-1] == "$SLP"  # the G0 was dropped
+    link.close()
+
+
+def serial_link(fake: FakeGrbl):
+    """A raw serial link to the fake and ``say(bytes, wait)``: what came back within ``wait`` seconds, by line."""
+    link = serial.Serial(fake.port, 115200, timeout=0.3)
+
+    def say(data: bytes, wait: float = 0.15) -> list[str]:
+        link.write(data)
+        time.sleep(wait)
+        return [ln for ln in link.read(4096).decode().split("\r\n") if ln]
+    return link, say
+
+
+def test_fake_homing_answers_realtime_bytes_as_the_firmware(make_fake):
+    """limits.c runs no realtime check point during the cycle: a '?' is flagged, not answered, and served once
+    by mc_homing_cycle's protocol_execute_realtime() after the last cycle, still in the Home state and at the
+    homed position, before system.c sets Idle, runs the startup lines and answers 'ok' (gnea/grbl#1061). A
+    feed hold or cycle start flagged meanwhile finds no motion to hold or start there and is dropped: the
+    controller ends Idle, not in a hold."""
+    fake = make_fake({**HOMING, 25: 600}, start=(-20.0, -50.0, -50.0), time_scale=2.0)  # a 2 s search
+    fake.startup_lines[0] = "G21"
+    link, say = serial_link(fake)
+    link.write(b"$H\n")
+    assert fake.wait_for(lambda f: f.status() == "Home" and f.moving)
+    assert say(b"??!~", 0.3) == []  # the search goes on, in silence
+    assert fake.moving and fake.status() == "Home"
+    assert fake.wait_for(lambda f: f.written.endswith(b"ok\r\n"), timeout=10)
+    answer = say(b"", 0.1)
+    assert len(answer) == 3 and answer[0].startswith("<Home|MPos:-1.000,") and answer[1:] == [">G21:ok", "ok"]
+    assert say(b"?")[0].startswith("<Idle|MPos:-1.000,") and fake.status() == "Idle"
+    assert say(b"G0 X-5\n") == ["ok"] and fake.wait_for(lambda f: f.machine_position()[0] == -5.0)
+    link.close()
+
+
+def test_fake_homing_reset_and_failure_as_the_firmware(make_fake):
+    """A reset during the cycle: mc_reset() kills the steppers at once (ALARM:6); limits.c zeroes the machine
+    position of the cycle's axes at the start of every phase, so the controller then reads the distance of the
+    interrupted phase. A '?' flagged in the cycle is cleared by the abort. After the alarm's 500 ms delay
+    system.c still answers the '$H' ('ok'), then main() re-initialises: banner, lock message. A switch not found
+    within 1.5 x $130 is ALARM:9 with the same sequel."""
+    fake = make_fake({**HOMING, 25: 600}, start=(-40.0, -50.0, -50.0), time_scale=2.0)
+    link, say = serial_link(fake)
+    assert say(b"$X\nG0 X-5\n") == ["[MSG:Caution: Unlocked]", "ok", "ok"]
+    assert fake.wait_for(lambda f: f.status() == "Idle" and f.machine_position()[0] == -5.0)
+    link.write(b"$H\n")
+    assert fake.wait_for(lambda f: f.status() == "Home" and f.physical_position()[0] > -30.0)
+    assert say(b"?", 0.1) == []
+    lines = say(b"\x18", 0.6)
+    searched = fake.physical_position()[0] + 45.0  # what the search covered before the reset
+    assert lines == ["ALARM:6", "ok", "Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
+    assert not fake.moving and fake.alarms() == [6] and fake.resets() == ["Home"]
+    assert fake.machine_position()[0] == pytest.approx(searched, abs=0.01) and 10.0 < searched < 40.0
+    assert say(b"?")[0].startswith("<Alarm|")
+    link.close()
+
+    fake = make_fake({**HOMING, 130: 20}, span=(500.0, 500.0, 500.0), start=(-100.0, -50.0, -50.0))
+    link, say = serial_link(fake)
+    link.write(b"$H\n")
+    assert fake.wait_for(lambda f: f.alarms() == [9])
+    assert say(b"", 0.7) == ["ALARM:9", "ok", "Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
+    assert say(b"?")[0].startswith("<Alarm|MPos:30.000,")  # the whole search, 1.5 x $130, counted from 0
     link.close()
 
 
@@ -623,22 +702,56 @@ def test_sigkill_just_after_the_move_line_is_stopped_by_the_guard(make_fake, con
     assert connect(fake).position().x == fake.machine_position()[0]
 
 
-def test_sigkill_during_homing_is_stopped_by_the_guard(make_fake, connect):
-    """GRBL answers no '?' during a homing cycle and ignores feed holds in it: the guard, unanswered, sends
-    the feed hold anyway and then, once the longest deceleration is over, the reset that ends the cycle
-    (ALARM:6, as psfd's own Ctrl-C during `psfd rail home`)."""
+@pytest.mark.parametrize("signum, exit_code", [(signal.SIGINT, 130), (signal.SIGTERM, 143),
+                                               (signal.SIGHUP, -signal.SIGHUP), (signal.SIGKILL, -signal.SIGKILL)])
+def test_psfd_stopped_during_homing_stops_the_carriage(make_fake, signum, exit_code):
+    """GRBL answers no '?' during a homing cycle and drops the feed holds sent in it: only a reset stops it
+    (ALARM:6). Ctrl-C and SIGTERM: psfd resets at once and says so. A hang-up (its default action: the
+    process ends) or kill -9: the guard, told by psfd that a homing cycle runs, resets at once too, rather
+    than asking, holding and waiting out the longest deceleration first, while the search goes on."""
     fake = make_fake({**HOMING, 25: 600}, start=(-150.0, -50.0, -50.0))  # a 10 mm/s search, 15 s to the switch
     proc = psfd_process("rail", "home", "--rail-port", fake.port)
     try:
         assert fake.wait_for(lambda f: f.status() == "Home" and f.moving, timeout=30)
         time.sleep(0.5)
-        proc.kill()
-        proc.wait()
+        before = len(fake.realtime)
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=30)
         assert fake.wait_for(lambda f: not f.peer_open, timeout=20)
     finally:
         proc.kill()
     assert settled(fake) and fake.alarms() == [6] and fake.resets() == ["Home"]
     assert fake.physical_position()[0] < -60.0  # far from the switch it was searching for
+    sent = [byte for _, byte in fake.realtime]
+    assert sent[before:before + 1] == [0x18] and FEED_HOLD not in sent
+    assert proc.returncode == exit_code
+    if exit_code > 0:
+        assert "homing stopped by a reset (Alarm): the position is lost" in err, err
+
+
+def test_guard_of_a_process_killed_moving_after_homing_holds_first(make_fake, tmp_path):
+    """The note that a homing cycle runs ends with the cycle: killed in a move after `home`, the guard stops the
+    carriage as after any move (feed hold, Hold:0, reset: the position kept), not with the reset at once that
+    a homing cycle needs."""
+    fake = make_fake({**SLOW, 22: 1}, start=(-30.0, -50.0, -50.0))
+    script = tmp_path / "owner.py"
+    script.write_text("import sys\n"
+                      "from psfd.drivers.grbl import GrblRail\n"
+                      "rail = GrblRail(sys.argv[1])\n"
+                      "print(rail.home().x, flush=True)\n"
+                      "rail.move(x=-150)\n")
+    proc = subprocess.Popen([sys.executable, str(script), fake.port], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline() == "-1.0\n"
+        assert fake.wait_for(lambda f: f.machine_position()[0] < -20.0, timeout=30)
+        proc.kill()
+        proc.wait()
+        assert fake.wait_for(lambda f: not f.peer_open, timeout=15)
+    finally:
+        proc.kill()
+        proc.stdout.close()
+    assert settled(fake) and fake.resets() == ["Hold:0"] and fake.alarms() == []
+    assert FEED_HOLD in [byte for _, byte in fake.realtime]
 
 
 def test_guard_meeting_a_vanished_port_says_so_in_one_line(capsys):
@@ -670,6 +783,19 @@ def test_reopen_does_not_reset_a_moving_controller(make_fake, connect):
     assert settled(fake) and rail.position().x == fake.machine_position()[0]
 
 
+def test_reopen_stops_a_homing_cycle_left_running(make_fake, connect):
+    """A homing cycle whose process and guard were both killed: grbl answers neither '?' nor '$I' in it, so
+    the next open resets it, which ends the cycle (ALARM:6), and goes on from the Alarm it leaves."""
+    fake = make_fake({**HOMING, 25: 600}, start=(-150.0, -50.0, -50.0))
+    link, _ = serial_link(fake)
+    link.write(b"$H\n")
+    assert fake.wait_for(lambda f: f.status() == "Home" and f.moving)
+    link.close()
+    rail = connect(fake)
+    assert settled(fake) and fake.resets() == ["Home"] and fake.alarms() == [6]
+    assert rail.info().state == "Alarm" and fake.physical_position()[0] < -60.0
+
+
 def test_silence_mid_move_stops_the_carriage(make_fake, connect):
     fake = make_fake(SLOW)
     fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.go_silent)
@@ -692,17 +818,29 @@ def test_operator_feed_hold_is_reported_at_once(make_fake, connect):
     assert rail.position().x == fake.machine_position()[0]
 
 
-def test_reset_button_mid_move_is_reported_as_its_alarm(make_fake, connect):
+@pytest.mark.parametrize("homing", [1, 0])
+def test_reset_button_mid_move_is_reported_as_its_alarm(make_fake, connect, capsys, homing):
     """The controller's own reset (abort) button mid-move: ALARM:3, then the 500 ms delay that follows an alarm
     message, then the system abort (protocol.c), whose re-initialisation clears a '?' asked during the delay
-    (main.c clears sys_rt_exec_state). The alarm, not a lost status report, is what the operator is told."""
-    fake = make_fake(SLOW)
-    fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.press_reset)
+    (main.c clears sys_rt_exec_state). The alarm, not a lost status report, is what the operator is told, and
+    what to do: home, or without homing ($22=0, where `psfd rail home` is refused) unlock, or start again
+    from the + end at power-up (main.c zeroes the position at power-up only; a reset keeps the count)."""
+    fake = make_fake({**SLOW, 22: homing})
     rail = connect(fake)
-    with pytest.raises(RailAlarm, match=r"ALARM:3 \(reset while in motion\) at X=-2\d.*homing needed"):
+    if homing:
+        rail.unlock()
+    fake.when(lambda f: f.machine_position()[0] < -20.0, FakeGrbl.press_reset)
+    advice = (r"homing needed: `psfd rail home`" if homing else
+              r"`psfd rail unlock` \(homing is disabled, \$22=0\).*the \+ end and power-cycle the controller")
+    with pytest.raises(RailAlarm, match=r"ALARM:3 \(reset while in motion\) at X=-2\d.*; " + advice) as alarm:
         rail.move(x=-150)
     assert settled(fake) and fake.alarms() == [3]
     assert rail.info().state == "Alarm"  # the state the alarm set survives the abort (main.c prior_state)
+    assert ("rail home" in str(alarm.value)) == bool(homing)
+    rail.close()
+    code, _, err = run(capsys, "rail", "move", "X=-10", "--rail-port", fake.port)  # the next command says it too
+    assert code == 4 and re.search(r"locked in ALARM at X=-2\d.*: " + advice, err)
+    assert ("rail home" in err) == bool(homing)
 
 
 @pytest.mark.parametrize("homing", [0, 1])
@@ -836,7 +974,9 @@ def test_travel_keeps_off_the_homing_switch_when_hard_limits_are_on(make_fake, c
 def test_homing_without_a_switch_fails_cleanly(make_fake, connect):
     fake = make_fake({22: 1, 130: 20}, span=(500.0, 500.0, 500.0), start=(-100.0, -50.0, -50.0))
     rail = connect(fake)
-    with pytest.raises(RailAlarm, match=r"ALARM:9 \(homing failed: limit switch not found"):
+    with pytest.raises(RailAlarm, match=r"ALARM:9 \(homing failed: limit switch not found.*\) after '\$H', the "
+                                         r"position is lost; the search covers 1\.5 x \$130 .*check the switch and its "
+                                         r"wiring, \$23 .*, then `psfd rail home` again"):
         rail.home()
     assert rail.info().state == "Alarm"  # the firmware reset itself; the driver is in step with it again
     with pytest.raises(RailError, match="homing cycle not enabled"):

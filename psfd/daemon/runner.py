@@ -667,7 +667,7 @@ def position_lost(rail: Rail, catalogue: Catalogue, run_id: int) -> str | None:
                         for axis, s in spans.items())
     back = " ".join(f"{axis.upper()}={last[axis]:g}" for axis in start)
     fix = ("home it (`psfd rail home`) and resume" if info.homing else
-           f"move the carriage by hand to the + end, reset the controller, `psfd rail move {back}` and resume")
+           f"move the carriage by hand to the + end, power-cycle the controller, `psfd rail move {back}` and resume")
     return (f"the rail reads {reads} mm, where its controller starts after power-up, but run {run_id} left it at "
             f"{left_at} mm: the controller restarted (USB cable or power) and its position is lost; {fix}")
 

@@ -13,9 +13,10 @@ commands.md and the firmware source it describes):
   ``[MSG:Reset to continue]`` after a 500 ms delay and then answers nothing but Ctrl-X (a reset sent during
   that delay is forgotten); homing failures (ALARM:6-9) and a reset in motion (ALARM:3, also from the controller's
   own reset button) are followed by the reset itself, its banner after the same delay.
-- With homing enabled (``$22=1``) the controller starts locked in Alarm; ``$H`` homes it (no status reports
-  are answered during the cycle), ``$X`` unlocks it without homing. Homing goes to the + end unless ``$23``
-  says otherwise and leaves the machine position at -``$27``: machine space is [-``$130``, 0].
+- With homing enabled (``$22=1``) the controller starts locked in Alarm; ``$H`` homes it (a ``?`` during the
+  cycle is answered only once it ends, as ``Home``; ``!`` and ``~`` are dropped: only a reset stops it, ALARM:6),
+  ``$X`` unlocks it without homing. Homing goes to the + end unless ``$23`` says otherwise and leaves the
+  machine position at -``$27``: machine space is [-``$130``, 0].
 - ``$$`` gives the settings, always in mm: ``$100..`` steps/mm, ``$110..`` max rate (mm/min), ``$120..``
   acceleration (mm/s^2), ``$130..`` max travel, ``$10`` (bit 0: MPos or WPos in reports), ``$13`` (reports in
   inches), ``$20/$21/$22`` soft limits, hard limits, homing, ``$24..$27`` homing feed, seek, debounce, pull-off.
@@ -36,9 +37,9 @@ A process killed outright (SIGKILL, the OOM killer) runs nothing: before the fir
 carriage the driver starts a guard process (`psfd.drivers.grbl_guard`, standard library only, in its own
 session, SIGINT/SIGTERM/SIGHUP/SIGQUIT/SIGABRT ignored) holding the same port. It watches this process through
 a pidfd, never touches the port while it lives and is killed by `close`; when this process dies with the rail
-open, it sends ``?`` and, if the carriage moves, what `_halt` sends (``!``, ``?`` until ``Hold:0``, 0x18), then
-exits. A whole control group killed at once, or a power cut of the PC, takes the guard too: the next open
-stops the carriage.
+open, it sends ``?`` and, if the carriage moves, what `_halt` sends (``!``, ``?`` until ``Hold:0``, 0x18), or
+0x18 alone when this process died in a homing cycle (`_tell_guard`), then exits. A whole control group killed
+at once, or a power cut of the PC, takes the guard too: the next open stops the carriage.
 The port is opened exclusively (flock, pyserial ``exclusive``) behind a UUCP-style lock file naming the
 holder's pid, and without a reset: DTR is left up and HUPCL cleared so that an Arduino's auto-reset
 circuit sees no edge on the next open either (the README has the hardware fix).
@@ -67,7 +68,7 @@ import serial
 from psfd.drivers.base import Position, RailInfo
 # GRBL's realtime bytes and its standing states, one definition for the driver and its guard (which imports nothing
 # of psfd)
-from psfd.drivers.grbl_guard import FEED_HOLD, SOFT_RESET, STANDING, STATUS
+from psfd.drivers.grbl_guard import FEED_HOLD, HOMING, HOMING_DONE, SOFT_RESET, STANDING, STATUS
 from psfd.errors import RailAlarm, RailError
 
 log = logging.getLogger(__name__)
@@ -145,6 +146,15 @@ ALARMS = {
     7: "homing failed: safety door opened during homing",
     8: "homing failed: could not clear the limit switch when pulling off",
     9: "homing failed: limit switch not found within the search distance",
+    10: "homing failed: the second switch of a dual-motor axis not found (self-squaring)",
+}
+# What a failed homing cycle asks of the user (the alarm table's own advice, and limits.c's search distances).
+HOMING_FAILED = {
+    7: "close the safety door",
+    8: "the pull-off did not release the switch: raise $27 or check the switch and its wiring",
+    9: "the search covers 1.5 x $130 (5 x $27 when locating): check the switch and its wiring, $23 (the end it "
+       "homes to) and $130",
+    10: "check the second switch of the dual-motor axis and its wiring",
 }
 # Codes above 9 are each firmware's own (grblHAL core alarms.h, FluidNC Protocol.cpp).
 ALARMS_BY_FIRMWARE = {
@@ -158,7 +168,7 @@ POSITION_KEPT = {2, 4, 5}
 CRITICAL = {1, 2}  # the firmware answers nothing but Ctrl-X after these
 # Raised with a reset (mc_reset): the system abort follows the alarm's 500 ms delay and clears a '?' asked during it
 # (protocol.c, main.c), so the banner is what tells the controller is back.
-RESETTING = {3, 6, 7, 8, 9}
+RESETTING = {3, 6, 7, 8, 9}  # and grbl's own ALARM:10 (`_homing_failed`)
 
 
 class PortGone(RailError):
@@ -281,11 +291,15 @@ def homing_time(settings: dict[int, float], cycles: tuple[tuple[int, ...], ...] 
     at ``$25``, a locate over 5 x ``$27`` at ``$24``, each from rest, and four debounce delays (``$26``).
 
     The firmware alarms (ALARM:9) when the search runs out, so this bounds a cycle that can still succeed.
+    The planner caps a homing motion like any other (planner.c): no axis of the cycle faster than its ``$11x``
+    nor accelerating harder than its ``$12x``, whatever ``$25`` and ``$24`` ask.
     """
-    seek, slow, pull = settings[25], settings[24], settings[27]
+    pull = settings[27]
     total = 0.0
     for axes in cycles:
         accel = min(settings[120 + i] for i in axes)
+        cap = min(settings[110 + i] for i in axes)
+        seek, slow = min(settings[25], cap), min(settings[24], cap)
         search = HOMING_SEARCH_SCALAR * max(settings[130 + i] for i in axes)
 
         def leg(distance: float, rate: float) -> float:
@@ -504,6 +518,7 @@ class GrblRail:
         self._serial: serial.Serial | None = None
         self._guard: subprocess.Popen | None = None
         self._guard_owner = os.getpid()
+        self._guard_notes: int | None = None  # the write end of the pipe that tells the guard what we are doing
         self._lock = PortLock(port)
         self._lock.acquire()
         try:
@@ -539,24 +554,28 @@ class GrblRail:
         """Run the homing cycle (``$H``); returns the position after it (GRBL: -``$27`` in machine coordinates)."""
         self.exchange = []
         if not self._homing_enabled:
-            raise RailError("homing cycle not enabled in the controller's settings ($22=0): move the carriage by "
-                            "hand to the + end and reset the controller, or enable homing switches")
+            raise RailError(f"homing cycle not enabled in the controller's settings ($22=0): "
+                            f"{self._known_position()}, or fit homing switches and set $22=1")
         self._make_ready("home", allow_alarm=True)
         self._ensure_guard()
         seconds = self._homing_timeout or homing_time(self._settings_full) * DEADLINE_FACTOR + self.timeout + 1.0
         self._moving = True
+        self._tell_guard(HOMING)
         try:
             self._command("$H", seconds, what=f"'ok' to '$H' (the homing cycle; {seconds:.0f} s allowed from "
-                                              f"$25, $24, $27 and $130)")
+                                              f"$130, $25, $24, $27 and $110)")
         except BaseException as exc:
             if self._moving:
                 self._moving = False
                 # A homing cycle ignores feed holds: only a reset stops it (ALARM:6, position lost).
                 stopped = self._reset_in_motion()
                 if isinstance(exc, RailError):
-                    raise type(exc)(f"{exc}; homing stopped by a reset ({stopped}): homing needed") from None
-                exc.add_note(f"homing stopped by a reset ({stopped})")
+                    raise type(exc)(f"{exc}; homing stopped by a reset ({stopped}): the position is lost, "
+                                    f"homing needed") from None
+                exc.add_note(f"homing stopped by a reset ({stopped}): the position is lost")
             raise
+        finally:
+            self._tell_guard(HOMING_DONE)
         self._moving = False
         return self._position(self._status())
 
@@ -638,7 +657,9 @@ class GrblRail:
 
         Nothing in a process killed by SIGKILL runs, and the controller goes on with its move: a separate
         process holding the same port watches this one through a pidfd (a pipe would stay open in the forked
-        estimation workers) and, on its death, sends the feed hold and the reset `_halt` would have sent.
+        estimation workers) and, on its death, sends the feed hold and the reset `_halt` would have sent, or the
+        reset alone when a pipe from this process last said a homing cycle runs (`_tell_guard`): the cycle answers
+        no ``?`` and ignores the feed hold, which would only delay the reset by the worst-case deceleration.
         fork+exec (subprocess) is safe with the service's threads; its own session keeps a terminal's Ctrl-C
         away from it, and it ignores SIGTERM, so `systemctl stop` leaves the stop to this process. Started at
         the first motion rather than at the open: the carriage stands until then, and commands that only read
@@ -651,6 +672,7 @@ class GrblRail:
             log.warning("rail %s: the guard process (pid %d) ended (%s): starting another", self.port, guard.pid,
                         guard.returncode)
         self._guard = None
+        self._close_guard_notes()
         if self._serial is None or not sys.executable:
             return
         try:
@@ -659,17 +681,38 @@ class GrblRail:
             log.warning("rail %s: no guard process (%s): a process killed mid-move leaves the carriage running "
                         "until the next psfd command opens the port", self.port, _reason(exc))
             return
+        notes = None
         try:
             fd = self._serial.fileno()
+            notes, self._guard_notes = os.pipe()
             self._guard = subprocess.Popen(
                 [sys.executable, "-I", "-S", "-c", GUARD_CODE, GUARD_DIR, str(fd), str(owner), f"{self.timeout:g}",
-                 f"{self._stop_time():.3f}"],
-                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, pass_fds=(fd, owner), start_new_session=True)
+                 f"{self._stop_time():.3f}", str(notes)],
+                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, pass_fds=(fd, owner, notes),
+                start_new_session=True)
             self._guard_owner = os.getpid()
         except OSError as exc:
             log.warning("rail %s: cannot start the guard process (%s)", self.port, _reason(exc))
+            self._close_guard_notes()
         finally:
             os.close(owner)
+            if notes is not None:
+                os.close(notes)
+
+    def _tell_guard(self, doing: bytes) -> None:
+        """Tell the guard what this process does now (`grbl_guard.HOMING`, `grbl_guard.HOMING_DONE`); it reads the
+        pipe as it comes, so the pipe never fills."""
+        if self._guard_notes is None or self._guard_owner != os.getpid():
+            return
+        try:
+            os.write(self._guard_notes, doing)
+        except OSError:  # the guard has gone: `_ensure_guard` starts another before the next motion
+            pass
+
+    def _close_guard_notes(self) -> None:
+        notes, self._guard_notes = self._guard_notes, None
+        if notes is not None and self._guard_owner == os.getpid():
+            os.close(notes)
 
     def _stop_guard(self) -> None:
         """End the guard of a rail being closed, and reap it (not from a forked child: it is its parent's).
@@ -683,6 +726,7 @@ class GrblRail:
             return
         guard.kill()
         guard.wait()
+        self._close_guard_notes()
 
     # ------------------------------------------------------------------ connecting
 
@@ -875,8 +919,7 @@ class GrblRail:
         """The controller's state, checked before any line that moves it is sent."""
         status = self._status()
         if status.state == "Alarm" and not allow_alarm:
-            raise RailAlarm(f"rail is locked in ALARM at {self._where(status)}: homing needed (`psfd rail home`), "
-                            f"or `psfd rail unlock` if the position is known to be right")
+            raise RailAlarm(f"rail is locked in ALARM at {self._where(status)}: {self._alarm_advice(None)}")
         if status.state == "Door":
             raise RailError(f"cannot {doing}: the safety door is open ({status.name}) at {self._where(status)}")
         if status.state in ("Hold", "Sleep", "Check"):
@@ -960,18 +1003,19 @@ class GrblRail:
                 if heard and status is not None:
                     return f"rail stopped at {self._where(status)}, then stopped answering"
                 return ("the controller stopped answering: feed hold and reset sent, position unknown "
-                        "(homing needed: `psfd rail home`)")
+                        f"({self._known_position()})")
             return f"rail stopped at {self._where(after)}"
 
     def _reset_in_motion(self) -> str:
-        """Reset now (homing ignores feed holds); returns the state afterwards."""
+        """Reset now (homing ignores feed holds); returns the state afterwards (the position a homing cycle
+        leaves is the count of its interrupted phase, limits.c: not shown)."""
         with _signals_deferred():
             try:
                 self._reset()
                 status = self._status()
             except RailError as exc:
                 return f"no answer after the reset: {exc}"
-            return f"{status.name} at {self._where(status)}"
+            return status.name
 
     def _stop_time(self) -> float:
         """Worst case to decelerate from the fastest rate at the lowest acceleration of the rail's axes."""
@@ -994,13 +1038,38 @@ class GrblRail:
             self._alarmed = False
         meaning = self._alarm_meaning(code) if code is not None else "locked"
         text = f"ALARM:{code} ({meaning})" if code is not None else "ALARM"
-        advice = "homing needed: `psfd rail home`"
-        if code in POSITION_KEPT:
-            advice += " (the position was kept: `psfd rail unlock` is enough)"
+        # a failed homing cycle leaves the count of its interrupted phase (limits.c): no position to show
+        where = ", the position is lost" if self._homing_failed(code) else f" at {self._where(status)}"
+        advice = self._alarm_advice(code)
         switches = "".join(c for c in status.pins if c in "XYZABC")
         if switches:
             advice += f"; limit switch {switches} still pressed: free the carriage first"
-        raise RailAlarm(f"rail {' '.join(filter(None, (text, during)))} at {self._where(status)}; {advice}")
+        raise RailAlarm(f"rail {' '.join(filter(None, (text, during)))}{where}; {advice}")
+
+    def _alarm_advice(self, code: int | None) -> str:
+        """What to do after alarm ``code`` (None: found locked in Alarm)."""
+        if self._homing_failed(code) and code in HOMING_FAILED:
+            return f"{HOMING_FAILED[code]}, then `psfd rail home` again"
+        if code in POSITION_KEPT:
+            return ("homing needed: `psfd rail home` (the position was kept: `psfd rail unlock` is enough)"
+                    if self._homing_enabled else "the position was kept: `psfd rail unlock` is enough")
+        if self._homing_enabled:
+            return "homing needed: `psfd rail home`" + (
+                ", or `psfd rail unlock` if the position is known to be right" if code is None else "")
+        # `psfd rail home` would only be refused: the position the controller counts, or the + end at power-up
+        return ("`psfd rail unlock` (homing is disabled, $22=0) goes on from the position the controller counted, "
+                f"which may be off by lost steps; to start from a known one, {self._known_position()}")
+
+    def _homing_failed(self, code: int | None) -> bool:
+        """ALARM:6-9, and 10 on grbl itself (grblHAL and FluidNC number their own alarms from 10 on)."""
+        return code is not None and (6 <= code <= 9 or (code == 10 and self._alarm_firmware() == ""))
+
+    def _known_position(self) -> str:
+        """How to get a known position back: home, or without homing the + end at power-up (main.c clears the
+        machine position at power-up only: a reset, its button or Ctrl-X, keeps the count)."""
+        if self._homing_enabled:
+            return "homing needed: `psfd rail home`"
+        return "move the carriage by hand to the + end and power-cycle the controller"
 
     def _recover(self, code: int | None) -> GrblStatus:
         if code in CRITICAL:
@@ -1008,7 +1077,7 @@ class GrblRail:
             # before it; only then does Ctrl-X bring it back.
             self._wait_for(lambda ln: "Reset to continue" in ln, self.timeout)
             self._reset()
-        elif code in RESETTING:
+        elif code in RESETTING or self._homing_failed(code):
             self._wait_for(lambda ln: bool(BANNER.match(ln)), self.timeout)
             self._drain(0.2, watch=False)
         else:
@@ -1016,9 +1085,12 @@ class GrblRail:
         return self._status()
 
     def _alarm_meaning(self, code: int) -> str:
+        return ALARMS_BY_FIRMWARE.get(self._alarm_firmware(), {}).get(code) or ALARMS.get(code, "unknown alarm")
+
+    def _alarm_firmware(self) -> str:
+        """"grblHAL", "FluidNC" (whose alarms above 9 are their own), or "" for grbl itself."""
         name = f"{self.banner} {self.firmware}"
-        firmware = "grblHAL" if "grblhal" in name.lower() else "FluidNC" if "FluidNC" in name else ""
-        return ALARMS_BY_FIRMWARE.get(firmware, {}).get(code) or ALARMS.get(code, "unknown alarm")
+        return "grblHAL" if "grblhal" in name.lower() else "FluidNC" if "FluidNC" in name else ""
 
     # ------------------------------------------------------------------ exchanges
 
@@ -1089,8 +1161,7 @@ class GrblRail:
             log.warning("rail %s: the controller was reset while standing; its position is unchanged", self.port)
             return
         self._moving = False
-        advice = ("homing needed: `psfd rail home`" if self._homing_enabled else
-                  "move the carriage by hand to the + end and reset the controller")
+        advice = self._known_position()
         was = f" (was at {self._where(before)})" if before is not None else ""
         raise RailError(f"the controller on {self.port} restarted{' during the move' if moving else ''} (its banner "
                         f"came unasked: a power blip, a brown-out): it reads {self._where(status)}, its power-up "

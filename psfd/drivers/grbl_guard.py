@@ -3,15 +3,17 @@
 `psfd.drivers.grbl.GrblRail` starts it before the first line that can move the carriage, in an interpreter
 without site-packages (``python -I -S``), importing this module from its folder (so its bytecode is cached)
 and nothing of psfd, so that it starts in a few tens of milliseconds (its imports: ~4 ms);
-``python -I -S grbl_guard.py PORT_FD OWNER_PIDFD TIMEOUT STOP`` does the same.
+``python -I -S grbl_guard.py PORT_FD OWNER_PIDFD TIMEOUT STOP [NOTES_FD]`` does the same.
 
 ``PORT_FD`` is the owner's serial port (the same open file description: the owner's flock stays on it while
 this process lives), ``OWNER_PIDFD`` a pidfd of the owner (``os.pidfd_open``), readable once the owner has
 exited, whoever else still holds its pipes or descriptors (the forked estimation workers do), ``TIMEOUT``
 the seconds one exchange may take and ``STOP`` the longest deceleration (from ``$110``/``$120``; 30 s when
-the owner has not read them yet). This process runs in its own session and ignores SIGINT, SIGTERM, SIGHUP,
-SIGQUIT and SIGABRT: a terminal's Ctrl-C, ``systemctl stop`` and the service watchdog are for the owner,
-which stops the carriage itself (or dies, and this process does it).
+the owner has not read them yet), ``NOTES_FD`` the read end of a pipe on which the owner writes `HOMING` before
+``$H`` and `HOMING_DONE` once the cycle has ended (read as it comes, so that it never fills). This process
+runs in its own session and ignores SIGINT, SIGTERM, SIGHUP, SIGQUIT and SIGABRT: a terminal's Ctrl-C,
+``systemctl stop`` and the service watchdog are for the owner, which stops the carriage itself (or dies, and
+this process does it).
 
 While the owner lives this process never reads or writes the port (the owner's replies are the owner's), so a
 clean close of the rail simply kills it (SIGKILL).
@@ -26,7 +28,12 @@ doc/markdown/commands.md and interface.md), and nothing more when the carriage s
   reset keeps the position, while a reset in motion or in ``Hold:1`` would throw ALARM:3 and lose it.
 - ``Hold:1``/``Hold:0``/``Door:0`` (the owner died in its own stop, or a move waits to be resumed): the same
   wait, then the reset, so that no cycle start resumes the move unattended.
-- Home: the homing cycle ignores feed holds; a reset stops it (ALARM:6), as the owner's interrupted ``$H`` does.
+- The owner died in a homing cycle (its last note `HOMING`): Ctrl-X at once, nothing else. GRBL answers no ``?``
+  during the cycle (a ``?`` asked in it is answered once it ends) and drops a feed hold sent in it: only a reset
+  stops it (ALARM:6), as the owner's interrupted ``$H`` does. A cycle that has just ended keeps its position
+  through the reset (Idle).
+- Home reported (a controller homing that the owner did not note, or a firmware that reports during the
+  cycle): the same reset.
 - No answer (GRBL answers no ``?`` during a homing cycle or after a critical alarm): the feed hold anyway,
   then the reset once the longest deceleration is over.
 """
@@ -45,6 +52,8 @@ STATUS = b"?"
 BANNERS = ("Grbl ", "GrblHAL ", "grblHAL ")
 STANDING = ("Idle", "Alarm", "Sleep", "Check")
 IDLE_WATCH = 0.15  # s an Idle controller is watched for a move line the owner sent as it died
+HOMING = b"H"  # the owner's notes: a homing cycle runs,
+HOMING_DONE = b"-"  # and has ended
 
 
 class Port:
@@ -111,8 +120,7 @@ def stop_carriage(port: "Port", stop: float, timeout: float) -> str | None:
     if state in STANDING or name in ("Door:1", "Door:2", "Door:3"):
         return None
     if state == "Home":
-        reset = port.reset(timeout)
-        return f"homing cycle ({_where(found)}) stopped by a reset" + ("" if reset else ": no banner after it")
+        return stop_homing(port, timeout)
     if state != "Hold" and name != "Door:0":
         port.write(FEED_HOLD)
     started = time.monotonic()
@@ -137,6 +145,15 @@ def stop_carriage(port: "Port", stop: float, timeout: float) -> str | None:
     return f"{before}: feed hold, reset once standing ({status[0] if status else 'silent'}); {where}"
 
 
+def stop_homing(port: "Port", timeout: float) -> str:
+    """The owner died in a homing cycle: reset (ALARM:6); the cycle would ignore a feed hold."""
+    termios.tcflush(port.fd, termios.TCIFLUSH)
+    if not port.reset(timeout):
+        return "homing cycle: reset sent, no banner after it"
+    after = port.status(timeout)
+    return f"homing cycle stopped by a reset: {after[0] if after else 'no answer after it'}"
+
+
 def _where(found: tuple[str, str] | None) -> str:
     for field in found[1].strip("<>").replace(",MPos", "|MPos").replace(",WPos", "|WPos").split("|") if found else ():
         if field.startswith(("MPos:", "WPos:")):
@@ -144,15 +161,13 @@ def _where(found: tuple[str, str] | None) -> str:
     return "an unknown position"
 
 
-def watch(port_fd: int, owner: int, timeout: float, stop: float) -> int:
+def watch(port_fd: int, owner: int, timeout: float, stop: float, notes: int | None = None) -> int:
     """Wait for the owner's exit, then stop the carriage if it moves."""
     pid = os.getppid()  # the owner started this process
-    poll = select.poll()
-    poll.register(owner, select.POLLIN)
-    while not poll.poll():
-        pass
+    homing = _wait_for(owner, notes) == HOMING
     try:
-        done = stop_carriage(Port(port_fd), stop, timeout)
+        port = Port(port_fd)
+        done = stop_homing(port, timeout) if homing else stop_carriage(port, stop, timeout)
     except (OSError, termios.error) as exc:  # the cable was pulled, or the port closed under us (tcflush: EIO)
         done = f"the port failed ({exc}): the carriage may still be moving"
     if done:
@@ -160,12 +175,44 @@ def watch(port_fd: int, owner: int, timeout: float, stop: float) -> int:
     return 0
 
 
+def _wait_for(owner: int, notes: int | None) -> bytes:
+    """Wait for the owner's exit, reading its notes meanwhile; its last note."""
+    poll = select.poll()
+    poll.register(owner, select.POLLIN)
+    if notes is not None:
+        os.set_blocking(notes, False)
+        poll.register(notes, select.POLLIN)
+    last = b""
+    while True:
+        ready = [fd for fd, _ in poll.poll()]
+        if notes is not None:  # what the owner wrote before it died is read too
+            last, still_open = _read_notes(notes, last)
+            if not still_open:
+                poll.unregister(notes)
+                notes = None
+        if owner in ready:
+            return last
+
+
+def _read_notes(notes: int, last: bytes) -> tuple[bytes, bool]:
+    """The last note among those waiting (or ``last``), and whether a writer still holds the pipe."""
+    while True:
+        try:
+            chunk = os.read(notes, 4096)
+        except BlockingIOError:
+            return last, True
+        if not chunk:
+            return last, False
+        last = chunk[-1:]
+
+
 def main(argv: list[str]) -> int:
     # A terminal's Ctrl-C, `systemctl stop` (SIGTERM to every process of the unit) and the service watchdog
     # (SIGABRT) are meant for the owner: it stops the carriage itself, or dies and leaves it to this process.
     for sig in (_signal.SIGINT, _signal.SIGTERM, _signal.SIGHUP, _signal.SIGQUIT, _signal.SIGABRT):
         _signal.signal(sig, _signal.SIG_IGN)
-    return watch(int(argv[1]), int(argv[2]), float(argv[3]), float(argv[4]))
+    notes = int(argv[5]) if len(argv) > 5 else None
+    return watch(int(argv[1]), int(argv[2]), float(argv[3]), float(argv[4]), notes)
 
 
 if __name__ == "__main__":
