@@ -330,10 +330,9 @@ def _check_rig(rig: dict) -> list[str]:
         problems.append("[rig] x_at_lens must be a number (the rail X, in mm, of a target at the lens)")
     if rig.get("x_away", 1) not in (1, -1) or isinstance(rig.get("x_away"), bool):
         problems.append("[rig] x_away must be 1 (the target goes away from the lens as X grows) or -1")
-    if "seed" in rig and not isinstance(rig["seed"], int):
-        problems.append("[rig] seed must be an integer")
-    if "scene" in rig and rig["scene"] not in ("bernoulli", "texture"):
-        problems.append(f"[rig] scene must be \"bernoulli\" or \"texture\", got {rig['scene']!r}")
+    from psfd.drivers.sim import option_problems  # the simulated rig's keys, as it checks them itself
+
+    problems += [f"[rig] {problem}" for problem in option_problems({k: rig[k] for k in SIM_KEYS if k in rig})]
     settings = rig.get("settings", {})
     if not isinstance(settings, dict) or not all(isinstance(v, (str, int, float)) for v in settings.values()):
         problems.append("[rig] settings must be a table of camera setting names to values")
@@ -452,11 +451,11 @@ def _check_limits(rig: dict, target: dict, capture: dict, kind: Any) -> list[str
         values["x"] = [target.get("near"), target.get("far")]
     problems = []
     for axis, pair in limits.items():
-        if not (isinstance(pair, list) and len(pair) == 2 and all(map(_is_number, pair))):
-            continue
+        if not (isinstance(pair, list) and len(pair) == 2 and all(map(_is_number, pair)) and pair[0] <= pair[1]):
+            continue  # _check_rig names a malformed pair
         outside = [v for v in values.get(axis) or [] if _is_number(v) and not pair[0] <= v <= pair[1]]
         if outside:
-            where = "rail_limits" if "rail_limits" in rig or "limits" in rig else "the simulated rail's limits"
+            where = next((key for key in ("rail_limits", "limits") if key in rig), "the simulated rail's limits")
             problems.append(f"{axis} = {', '.join(fmt(v) for v in outside)} outside {where}.{axis} "
                             f"[{fmt(pair[0])}, {fmt(pair[1])}]")
     return problems
@@ -513,11 +512,10 @@ def scale_distances(rig: dict, target: dict, scales: list[float]) -> list[float]
 def _check_optics(rig: dict, target: dict, capture: dict) -> list[str]:
     problems = [f"[target] {k} must be a positive size in mm, got {target[k]!r}"
                 for k in ("cell_mm",) if k in target and not (_is_number(target[k]) and target[k] > 0)]
-    problems += [f"[rig] {k} must be a positive number, got {rig[k]!r}"
-                 for k in ("focal_mm", "pitch_um") if k in rig and not (_is_number(rig[k]) and rig[k] > 0)]
     if "printed" in target and not isinstance(target["printed"], str):
         problems.append("[target] printed must be the path of the target PDF (psfd target)")
-    if "scale" in capture and not problems:
+    rig_bad = any(k in rig and not (_is_number(rig[k]) and rig[k] > 0) for k in ("focal_mm", "pitch_um"))
+    if "scale" in capture and not problems and not rig_bad:  # a bad focal_mm or pitch_um is _check_rig's
         try:
             optics(rig, target)
         except BadInputError as exc:
