@@ -116,7 +116,7 @@ def test_every_problem_is_reported():
     (PAIR.replace("simulate = true", 'camera_port = "usb:"'), "needs rail_port"),
     (PAIR.replace('scene = "texture"', ""), 'simulated pair needs scene = "texture"'),
     (GOOD.replace("x = [1200]", ""), "needs x"),
-    (GOOD.replace("y = [-40, 40]", "y = [1, 1]"), "lists a value twice"),
+    (GOOD.replace("y = [-40, 40]", "y = [1, 1]"), "[capture] y lists 1 twice"),
     # the simulated rig's default travel (200..3000 mm) applies when the plan gives no rail_limits
     ("[rig]\nsimulate = true\n[target]\nkind = 'bernoulli'\n[capture]\napertures = [8]\nx = [1200, 9999]\n",
      "x = 9999 outside the simulated rail's limits.x [200, 3000]"),
@@ -220,3 +220,14 @@ def test_simulated_rig_options_are_checked_before_the_run(tmp_path, capsys, opti
     err = capsys.readouterr().err
     assert code == 2 and needle in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "run").exists()
+
+
+def test_values_one_step_key_apart_are_listed_twice(tmp_path, capsys):
+    """Steps are journalled by their key (`Step.key`, 6 significant digits): two positions that print alike
+    are one step. plan check said ok, 2 steps, and only psfd run refused the plan (duplicate step keys)."""
+    plan = tmp_path / "plan.toml"
+    plan.write_text(SIM_STEP.format(option="").replace("x = [1300]", "x = [1300.001, 1300.004]"))
+    assert main(["plan", "check", str(plan)]) == 2
+    assert "[capture] x lists 1300.001 and 1300.004, one value (1300) to the 6 significant digits that key the steps" in (
+        capsys.readouterr().err)
+    assert check_text(GOOD.replace("[5.6, 8]", "[5.6, 5.6]")) == ["[capture] apertures lists 5.6 twice"]

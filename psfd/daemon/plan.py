@@ -306,9 +306,23 @@ def _number_list(table: dict, key: str, where: str, positive: bool = False) -> l
     if bad:
         kind = "positive numbers" if positive else "numbers"
         return [f"{where} {key} must hold {kind}, got {', '.join(repr(v) for v in bad)}"]
-    if len(set(value)) != len(value):
-        return [f"{where} {key} lists a value twice"]
-    return []
+    return _twice(value, f"{where} {key}")
+
+
+def _twice(values: list, where: str) -> list[str]:
+    """Values that make one step key (`fmt`: 6 significant digits): exact repeats, and values that print alike
+    (``x = [1300.001, 1300.004]`` is step ``x1300`` twice, which the run would refuse)."""
+    keys: dict[str, list] = {}
+    for v in values:
+        keys.setdefault(fmt(v), []).append(v)
+    problems = []
+    for text, same in keys.items():
+        if len(same) > 1 and len(set(same)) == 1:
+            problems.append(f"{where} lists {text} twice")
+        elif len(same) > 1:
+            problems.append(f"{where} lists {' and '.join(map(str, same))}, one value ({text}) to the 6 significant "
+                            "digits that key the steps")
+    return problems
 
 
 def _check_rig(rig: dict) -> list[str]:
