@@ -65,6 +65,9 @@ from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S
 # ([rig.camera], `psfd.drivers.base.CameraSetup`), applied after them and before any motion.
 RUNNER_KEYS = ("settings", "camera")
 RIG_KEYS = {"simulate", "recording", *RUNNER_KEYS, *SIM_KEYS, *REAL_KEYS}
+# The hardware keys of [rig] that are positive numbers (`psfd.drivers.open_rig` reads them without checking).
+HARDWARE_NUMBERS = {"timeout": "a positive number of seconds", "rail_timeout": "a positive number of seconds",
+                    "rail_feed": "a positive speed in mm/min"}
 TABLES = {
     "rig": RIG_KEYS,
     "target": {"kind", "near", "far", "cell_mm", "printed"},
@@ -340,6 +343,11 @@ def _check_rig(rig: dict) -> list[str]:
         problems.append(f"[rig] rail = {rail!r} does not go with simulate = true (the simulated rig's rail)")
     elif rail == "grbl" and "rail_port" not in rig and "recording" not in rig:
         problems.append("[rig] needs rail_port (or simulate = true, or recording = DIR)")
+    problems += [f"[rig] {key} must be {what}, got {rig[key]!r}" for key, what in HARDWARE_NUMBERS.items()
+                 if key in rig and not (_is_number(rig[key]) and rig[key] > 0)]
+    baudrate = rig.get("rail_baudrate", 115200)
+    if not (isinstance(baudrate, int) and not isinstance(baudrate, bool) and baudrate > 0):
+        problems.append(f"[rig] rail_baudrate must be a positive integer (bits per second), got {baudrate!r}")
     if "x_at_lens" in rig and not _is_number(rig["x_at_lens"]):
         problems.append("[rig] x_at_lens must be a number (the rail X, in mm, of a target at the lens)")
     if rig.get("x_away", 1) not in (1, -1) or isinstance(rig.get("x_away"), bool):
