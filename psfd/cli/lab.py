@@ -42,7 +42,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_capture)
 
     p = subparsers.add_parser("run", help=summary("run"))
-    p.add_argument("plan", metavar="PLAN")
+    p.add_argument("plan", metavar="PLAN", help="the plan file (TOML; `psfd plan init` writes one)")
     how = p.add_mutually_exclusive_group()
     how.add_argument("--resume", action="store_true", help="continue the unfinished run of this plan")
     how.add_argument("--new", action="store_true",
@@ -53,7 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = subparsers.add_parser("status", help=summary("status"))
     p.add_argument("--json", action="store_true", help="print the status as JSON")
-    _service_options(p)
+    options.add_service_options(p)
     p.set_defaults(func=run_status)
 
     p = subparsers.add_parser("plan", help=summary("plan"))
