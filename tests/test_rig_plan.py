@@ -131,3 +131,14 @@ def test_the_hardware_keys_of_the_rig_table_are_checked_by_plan_check(capsys, tm
     err = capsys.readouterr().err
     assert code == 2 and err.startswith(f"psfd: error: plan {plan}: [rig] ") and err.count("\n") == 1, err
     assert not (tmp_path / "c").exists()
+
+
+def test_plan_check_asks_the_simulated_rail_the_plan_describes(capsys, tmp_path):
+    """A simulated rig whose rail_limits name X only has no Y axis: psfd run refused y = [10] (exit 2) after
+    plan check had said ok, as plan check asked a default simulated rig for its apertures only."""
+    sim = 'simulate = true\nrail_limits = { x = [200, 3000] }'
+    code, out, err = check(capsys, tmp_path, plan_text(sim, "x = [1300]\ny = [10]"))
+    assert code == 2 and out == ""
+    assert "y = 10: the rail (psfd simulated rail) has no Y axis (axes: X)" in err
+    code, out, err = check(capsys, tmp_path, plan_text(sim, "x = [1300]"))
+    assert code == 0 and "ok, 1 step" in out and "rail psfd simulated rail: X [200, 3000]" in out, err

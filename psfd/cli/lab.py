@@ -457,35 +457,35 @@ def _ask_rail(plan) -> tuple[list[str], str | None]:
 
     Returns the problems and what was asked; a rail that cannot be asked now (unplugged, in use by a
     run) is noted on stderr and the plan is judged on its own limits, but a recording that cannot be read
-    (a mistyped folder) is a problem, as `psfd run` refuses it. The simulated rail is what
-    `check_text` already knows; the simulated camera's apertures are asked as `psfd run` asks them
+    (a mistyped folder) is a problem, as `psfd run` refuses it. The simulated rig is the one the plan
+    describes (its rail_limits name its axes); its camera's apertures are asked as `psfd run` asks them
     (`runner.aperture_problems`), so that a plan check passes only what the run accepts.
     """
     from psfd.daemon.plan import check_rail
-    from psfd.drivers import open_rail
+    from psfd.drivers import open_camera, open_rail
     from psfd.errors import PsfdError
 
+    problems: list[str] = []
     if plan.rig.get("simulate") is True:
         from psfd.daemon.runner import aperture_problems
-        from psfd.drivers.sim import SimRig
 
-        return aperture_problems(plan, SimRig().camera), None
+        problems = aperture_problems(plan, open_camera(plan.rig_config()))
     try:
         rail = open_rail(plan.rig_config())
     except PsfdError as exc:
         if plan.rig.get("recording") is not None:  # a folder on disk, not a device unplugged for now: run refuses it
             return [f"[rig] recording: {exc}"], None
         print(f"psfd: note: rail not asked for its travel ({exc})", file=sys.stderr)
-        return [], None
+        return problems, None
     try:
         info = rail.info()
     except PsfdError as exc:  # an older recording that never asked: each move is checked when it is replayed
         print(f"psfd: note: rail not asked for its travel ({exc})", file=sys.stderr)
-        return [], None
+        return problems, None
     finally:
         rail.close()
     travel = ", ".join(f"{axis.upper()} [{lo:g}, {hi:g}]" for axis, (lo, hi) in info.travel.items())
-    return check_rail(plan, info), f"rail {info.controller}: {travel}"
+    return problems + check_rail(plan, info), f"rail {info.controller}: {travel}"
 
 
 def run_serve(args: argparse.Namespace) -> int:
