@@ -443,3 +443,16 @@ def test_status_takes_no_runner_options(capsys):
     with pytest.raises(SystemExit):
         main(["status", "--workers", "2"])
     assert "unrecognized arguments: --workers" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, default", [
+    (["capture"], "--channels CHANNELS all (the default), or a comma list of r,g1,g2,b"),
+    (["query"], "--limit N at most this many PSFs (default: all)"),
+    (["export"], "--limit N at most this many PSFs (default: all)"),
+    (["record"], "--scene {bernoulli,texture} simulated scene (--simulate; default bernoulli)"),
+    (["record"], "--seed SEED simulated rig seed (--simulate; default 0)"),
+])
+def test_help_states_the_defaults_of_options_with_one(argv, default, capsys):
+    with pytest.raises(SystemExit):
+        main([*argv, "--help"])
+    assert default in " ".join(capsys.readouterr().out.split())

@@ -66,8 +66,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--aperture", action="append", metavar="F[,F...]",
                    help="apertures to capture at each position (repeat or comma-separate; default: as set)")
     p.add_argument("--home", action="store_true", help="home the rail first")
-    p.add_argument("--scene", choices=("bernoulli", "texture"), default=None, help="simulated scene (--simulate)")
-    p.add_argument("--seed", default=None, help="simulated rig seed (--simulate)")
+    p.add_argument("--scene", choices=("bernoulli", "texture"), default=None,
+                   help="simulated scene (--simulate; default bernoulli)")
+    p.add_argument("--seed", default=None, help="simulated rig seed (--simulate; default 0)")
     options.add_rig_options(p)
     p.set_defaults(func=record)
 

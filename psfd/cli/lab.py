@@ -35,7 +35,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "and far frames of a textured plane")
     p.add_argument("--near", help=f"{TWO_PHOTO}: near distance in mm (default with --simulate: 587.5)")
     p.add_argument("--far", help=f"{TWO_PHOTO}: far distance in mm (default with --simulate: 2200)")
-    p.add_argument("--channels", default="all", help=f"all, or a comma list of {','.join(CHANNELS)}")
+    p.add_argument("--channels", default="all", help=f"all (the default), or a comma list of {','.join(CHANNELS)}")
     p.add_argument("--out", metavar="DIR", help="store the RAW frames here (default: beside the catalogue)")
     options.add_rig_options(p)
     _service_options(p)
