@@ -117,6 +117,8 @@ def test_every_problem_is_reported():
     (PAIR.replace('scene = "texture"', ""), 'simulated pair needs scene = "texture"'),
     (GOOD.replace("x = [1200]", ""), "needs x"),
     (GOOD.replace("y = [-40, 40]", "y = [1, 1]"), "[capture] y lists 1 twice"),
+    # a boolean is no camera setting's value (TOML's true is not the "1" or "On" a camera offers)
+    (GOOD.replace("simulate = true", "simulate = true\nsettings = { iso = true }"), "[rig] settings must be a table"),
     # the simulated rig's default travel (200..3000 mm) applies when the plan gives no rail_limits
     ("[rig]\nsimulate = true\n[target]\nkind = 'bernoulli'\n[capture]\napertures = [8]\nx = [1200, 9999]\n",
      "x = 9999 outside the simulated rail's limits.x [200, 3000]"),

@@ -356,7 +356,8 @@ def _check_rig(rig: dict) -> list[str]:
 
     problems += [f"[rig] {problem}" for problem in option_problems({k: rig[k] for k in SIM_KEYS if k in rig})]
     settings = rig.get("settings", {})
-    if not isinstance(settings, dict) or not all(isinstance(v, (str, int, float)) for v in settings.values()):
+    if not isinstance(settings, dict) or not all(isinstance(v, (str, int, float)) and not isinstance(v, bool)
+                                                 for v in settings.values()):
         problems.append("[rig] settings must be a table of camera setting names to values")
     camera = rig.get("camera", {})
     if not isinstance(camera, dict):
