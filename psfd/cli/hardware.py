@@ -206,6 +206,8 @@ def _record_options(args: argparse.Namespace) -> Session:
     positions = [options.parse_axes([at], "--at") for at in args.at]
     apertures = options.parse_fnumbers(args.aperture)
     config = options.rig_config(args)
+    if not args.simulate and (args.scene or args.seed is not None):
+        raise BadInputError("--scene and --seed apply to the simulated rig: add --simulate")
     if args.simulate:
         config.update({"scene": args.scene} if args.scene else {})
         config.update({"seed": options.parse_int(args.seed, "--seed", minimum=0)} if args.seed is not None else {})
