@@ -1042,7 +1042,8 @@ class Catalogue:
         Parameters
         ----------
         camera, lens : str, optional
-            Case-insensitive substring of the camera model (or its exact serial) / the lens.
+            Case-insensitive substring of the camera model / the lens, or the exact serial of the body / of the
+            lens copy (in any case).
         aperture : float, optional
             f-number. When it was not measured, the nearest measured aperture (in stops)
             among the other filters is used and ``note`` says so.
@@ -1187,13 +1188,13 @@ def _filters(camera: str | None, lens: str | None, method: str | None, channel: 
     `Catalogue.why_empty` applies them."""
     filters = []
     if camera:
-        filters.append(("camera", f"camera {camera!r}", "(instr(lower(r.model), lower(?)) > 0 OR r.serial = ?)",
-                        [camera, camera]))
+        filters.append(("camera", f"camera {camera!r}",
+                        "(instr(lower(r.model), lower(?)) > 0 OR lower(r.serial) = lower(?))", [camera, camera]))
     if lens:
         # the name, or the exact serial of the lens copy that took one of the PSF's frames
         filters.append(("lens", f"lens {lens!r}", "(instr(lower(r.lens), lower(?)) > 0 OR EXISTS (SELECT 1 FROM "
                         "psf_frames pf JOIN frames f ON f.id = pf.frame_id WHERE pf.psf_id = p.id AND "
-                        "f.exif_lens_serial = ?))", [lens, lens]))
+                        "lower(f.exif_lens_serial) = lower(?)))", [lens, lens]))
     if method:
         method = method_name(method)
         filters.append(("method", f"method {method}", "p.method = ?", [method]))

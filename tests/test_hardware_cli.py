@@ -149,3 +149,12 @@ def test_the_simulated_rig_remembers_between_commands(capsys, private_data_home)
     (private_data_home / "psfd" / "sim-rig.json").write_text('{"settings": {"aperture": "1.0"}, "position": 5}')
     code, out, _ = run(capsys, "camera", "info", "--simulate")
     assert code == 0 and "aperture       5.6 " in out
+
+
+def test_record_refuses_simulated_rig_options_without_the_simulated_rig(capsys, tmp_path):
+    """--scene and --seed shape the simulated rig only: on real hardware they were dropped without a word."""
+    out = tmp_path / "rec"
+    code, _, err = run(capsys, "record", "--out", str(out), "--at", "X=-100", "--seed", "3",
+                       "--rail-port", str(tmp_path / "ttyUSB9"))
+    assert code == 2 and err == "psfd: error: --scene and --seed apply to the simulated rig: add --simulate\n"
+    assert not out.exists()

@@ -421,3 +421,38 @@ def test_status_json_has_one_shape(tmp_path, capsys):
     assert status["service"] is None and status["catalogue"] == str(db)
     assert set(status["runs"][0]) == {"id", "state", "plan_path", "started", "finished", "pending", "running",
                                       "done", "failed", "total", "psfs", "frames"}
+
+
+def test_every_command_help_says_what_the_command_does(capsys):
+    """`psfd CMD --help` of a command that has no description of its own opens with its line in the listing
+    (run, status, serve, demo, plan check, rail home... printed their usage and options only)."""
+    from psfd.cli import _commands, build_parser
+
+    for command in _commands(build_parser()):
+        with pytest.raises(SystemExit):
+            main([*command.prog.split()[1:], "--help"])
+        usage, _, rest = capsys.readouterr().out.partition("\n\n")
+        assert not rest.startswith(("positional arguments:", "options:")), f"{command.prog}: no description"
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    assert "PLAN the plan file (TOML; `psfd plan init` writes one)" in " ".join(capsys.readouterr().out.split())
+
+
+def test_status_takes_no_runner_options(capsys):
+    """--workers and --backlog size a run's estimation; psfd status listed them and ignored them."""
+    with pytest.raises(SystemExit):
+        main(["status", "--workers", "2"])
+    assert "unrecognized arguments: --workers" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, default", [
+    (["capture"], "--channels CHANNELS all (the default), or a comma list of r,g1,g2,b"),
+    (["query"], "--limit N at most this many PSFs (default: all)"),
+    (["export"], "--limit N at most this many PSFs (default: all)"),
+    (["record"], "--scene {bernoulli,texture} simulated scene (--simulate; default bernoulli)"),
+    (["record"], "--seed SEED simulated rig seed (--simulate; default 0)"),
+])
+def test_help_states_the_defaults_of_options_with_one(argv, default, capsys):
+    with pytest.raises(SystemExit):
+        main([*argv, "--help"])
+    assert default in " ".join(capsys.readouterr().out.split())

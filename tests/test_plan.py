@@ -116,7 +116,9 @@ def test_every_problem_is_reported():
     (PAIR.replace("simulate = true", 'camera_port = "usb:"'), "needs rail_port"),
     (PAIR.replace('scene = "texture"', ""), 'simulated pair needs scene = "texture"'),
     (GOOD.replace("x = [1200]", ""), "needs x"),
-    (GOOD.replace("y = [-40, 40]", "y = [1, 1]"), "lists a value twice"),
+    (GOOD.replace("y = [-40, 40]", "y = [1, 1]"), "[capture] y lists 1 twice"),
+    # a boolean is no camera setting's value (TOML's true is not the "1" or "On" a camera offers)
+    (GOOD.replace("simulate = true", "simulate = true\nsettings = { iso = true }"), "[rig] settings must be a table"),
     # the simulated rig's default travel (200..3000 mm) applies when the plan gives no rail_limits
     ("[rig]\nsimulate = true\n[target]\nkind = 'bernoulli'\n[capture]\napertures = [8]\nx = [1200, 9999]\n",
      "x = 9999 outside the simulated rail's limits.x [200, 3000]"),
@@ -181,3 +183,53 @@ def test_plan_content_ignores_the_wording_and_changes_name_the_keys():
     changed = GOOD.replace("[5.6, 8]", "[5.6, 11]").replace("grid = [2, 1]\n", "")
     assert plan_content(changed) != plan_content(GOOD)
     assert plan_changes(GOOD, changed) == ["[capture] apertures", "[estimator] grid"]
+
+
+SIM_STEP = """
+[rig]
+simulate = true
+{option}
+[target]
+kind = "bernoulli"
+[capture]
+apertures = [5.6]
+x = [1300]
+"""
+
+
+@pytest.mark.parametrize("option, needle", [
+    ("seed = -1", "seed must be a non-negative integer, got -1"),
+    ("s = 0", "s must be a positive integer up to 8, got 0"),
+    ("support = 4", "support must be an odd integer from 3 to 65, got 4"),
+    ('corner_aberration = "x"', "corner_aberration must be a number of waves, 0 or more, got 'x'"),
+    ("exposure = 5", "exposure must be a fraction of the raw range, above 0 and at most 1, got 5"),
+    ('sensor = "big"', "sensor must be [rows, columns], two positive even integers, got 'big'"),
+    ("sensor = [481, 640]", "sensor must be [rows, columns], two positive even integers, got [481, 640]"),
+    ("texture_mm = -3", "texture_mm must be a positive number, got -3"),
+    ("limits = { x = [3000, 200] }", "limits.x must be [low, high] with low <= high, got [3000, 200]"),
+])
+def test_simulated_rig_options_are_checked_before_the_run(tmp_path, capsys, option, needle):
+    """A simulated rig's own [rig] keys are refused by plan check and by run with exit 2 and one line, before
+    a catalogue is made: before, plan check passed them and the run made its catalogue, then ended in a
+    traceback (exit 1) at the first frame, leaving a paused run behind."""
+    plan = tmp_path / "plan.toml"
+    plan.write_text(SIM_STEP.format(option=option))
+    assert main(["plan", "check", str(plan)]) == 2
+    err = capsys.readouterr().err
+    assert f"{plan}: [rig] {needle}" in err, err
+    db = tmp_path / "run" / "cat.sqlite"
+    code = main(["run", str(plan), "--local", "--catalogue", str(db), "--socket", str(tmp_path / "none.sock")])
+    err = capsys.readouterr().err
+    assert code == 2 and needle in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "run").exists()
+
+
+def test_values_one_step_key_apart_are_listed_twice(tmp_path, capsys):
+    """Steps are journalled by their key (`Step.key`, 6 significant digits): two positions that print alike
+    are one step. plan check said ok, 2 steps, and only psfd run refused the plan (duplicate step keys)."""
+    plan = tmp_path / "plan.toml"
+    plan.write_text(SIM_STEP.format(option="").replace("x = [1300]", "x = [1300.001, 1300.004]"))
+    assert main(["plan", "check", str(plan)]) == 2
+    err = capsys.readouterr().err
+    assert "[capture] x lists 1300.001 and 1300.004, one value (1300) to the 6 significant digits" in err
+    assert check_text(GOOD.replace("[5.6, 8]", "[5.6, 5.6]")) == ["[capture] apertures lists 5.6 twice"]

@@ -606,3 +606,21 @@ def test_metadata_out_never_replaces_the_catalogue(catalogue, tmp_path):
         assert refused.stdout == ""
     assert {name: (tmp_path / name).read_bytes() for name in CATALOGUE_FILES} == before
     assert _psfd("query", "--catalogue", catalogue, "--limit", "1").returncode == 0
+
+
+def test_serial_numbers_are_matched_in_any_case_as_names_are(capsys, catalogue):
+    """The README: the filters ignore case; --camera and --lens take the exact serial of the body or the lens
+    copy. A serial with letters (SIM-0, a Nikon's or a lens's) typed in another case matched nothing."""
+    with Catalogue(catalogue) as cat:
+        rig = cat.add_rig(CameraInfo("Nikon Z 6", "ZB-1234", "NIKKOR Z 50mm f/1.8 S", 50.0))
+        run = cat.start_run("z6.toml", "z6 plan", rig, [("A", {})])
+        shot = FrameRecord("/raw/z.nef", f"{7:064x}", {"aperture": "5.6"}, {}, "t",
+                           exif={"lens": "NIKKOR Z 50mm f/1.8 S", "lens_serial": "LX-77"})
+        cat.commit_step(run, "A", [shot], [(PSF(gaussian(1.0), 4, "bernoulli", "b", [shot.path], (0.5, 0.5),
+                                                (0, 0, 64, 64)), {"aperture": 5.6})])
+    for option, serial in (("--camera", "ZB-1234"), ("--camera", "zb-1234"), ("--lens", "LX-77"), ("--lens", "lx-77")):
+        code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, option, serial, "--csv")
+        rows = out.splitlines()[1:]
+        assert code == 0 and len(rows) == 1 and ",Nikon Z 6,ZB-1234," in rows[0], (option, serial, err)
+    code, _, err = run_cli(capsys, "query", "--catalogue", catalogue, "--camera", "zb-123")
+    assert code == 1 and "no PSF of camera 'zb-123'" in err  # a serial is matched whole, not in part

@@ -111,3 +111,34 @@ def test_scale_problems_are_listed():
     problems = check_text(plan_text('rail_port = "/dev/ttyUSB0"\nfocal_mm = 50\npitch_um = 4', "scale = [0.2]",
                                     f'printed = "/nonexistent.pdf"'))
     assert any("cannot read the printed target" in p for p in problems), problems
+
+
+def test_the_hardware_keys_of_the_rig_table_are_checked_by_plan_check(capsys, tmp_path):
+    """Timeouts, feed and baud rate of a real rig: plan check ended in a traceback for a baud rate that is not
+    a number or a negative rail timeout (pyserial's ValueError), passed a feed of -5 mm/min and a camera timeout
+    of "abc", which psfd run then met as a traceback."""
+    rig = (f'rail_port = "{tmp_path / "ttyUSB9"}"\nrail_baudrate = "fast"\nrail_timeout = -1\nrail_feed = -5\n'
+           'timeout = "abc"')
+    code, out, err = check(capsys, tmp_path, plan_text(rig))
+    assert code == 2 and out == "", err
+    assert "[rig] rail_baudrate must be a positive integer (bits per second), got 'fast'" in err
+    assert "[rig] rail_timeout must be a positive number of seconds, got -1" in err
+    assert "[rig] rail_feed must be a positive speed in mm/min, got -5" in err
+    assert "[rig] timeout must be a positive number of seconds, got 'abc'" in err
+    assert "Traceback" not in err and err.count("\n") == 5
+    plan = tmp_path / "plan.toml"
+    code = main(["run", str(plan), "--local", "--catalogue", str(tmp_path / "c" / "cat.sqlite")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith(f"psfd: error: plan {plan}: [rig] ") and err.count("\n") == 1, err
+    assert not (tmp_path / "c").exists()
+
+
+def test_plan_check_asks_the_simulated_rail_the_plan_describes(capsys, tmp_path):
+    """A simulated rig whose rail_limits name X only has no Y axis: psfd run refused y = [10] (exit 2) after
+    plan check had said ok, as plan check asked a default simulated rig for its apertures only."""
+    sim = 'simulate = true\nrail_limits = { x = [200, 3000] }'
+    code, out, err = check(capsys, tmp_path, plan_text(sim, "x = [1300]\ny = [10]"))
+    assert code == 2 and out == ""
+    assert "y = 10: the rail (psfd simulated rail) has no Y axis (axes: X)" in err
+    code, out, err = check(capsys, tmp_path, plan_text(sim, "x = [1300]"))
+    assert code == 0 and "ok, 1 step" in out and "rail psfd simulated rail: X [200, 3000]" in out, err

@@ -99,7 +99,18 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         return parser
     for command in _commands(parser):  # -v and -q after the command too: `psfd run plan.toml -v`
         logs.add_options(command, suppress=True)
+    _describe(parser)
     return parser
+
+
+def _describe(parser: argparse.ArgumentParser) -> None:
+    """A command without a description of its own says in its --help what its line in the listing says."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for listed in action._choices_actions:
+                sub = action.choices[listed.dest]
+                sub.description = sub.description or listed.help
+                _describe(sub)
 
 
 def _commands(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:

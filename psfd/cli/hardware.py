@@ -66,8 +66,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--aperture", action="append", metavar="F[,F...]",
                    help="apertures to capture at each position (repeat or comma-separate; default: as set)")
     p.add_argument("--home", action="store_true", help="home the rail first")
-    p.add_argument("--scene", choices=("bernoulli", "texture"), default=None, help="simulated scene (--simulate)")
-    p.add_argument("--seed", default=None, help="simulated rig seed (--simulate)")
+    p.add_argument("--scene", choices=("bernoulli", "texture"), default=None,
+                   help="simulated scene (--simulate; default bernoulli)")
+    p.add_argument("--seed", default=None, help="simulated rig seed (--simulate; default 0)")
     options.add_rig_options(p)
     p.set_defaults(func=record)
 
@@ -205,6 +206,8 @@ def _record_options(args: argparse.Namespace) -> Session:
     positions = [options.parse_axes([at], "--at") for at in args.at]
     apertures = options.parse_fnumbers(args.aperture)
     config = options.rig_config(args)
+    if not args.simulate and (args.scene or args.seed is not None):
+        raise BadInputError("--scene and --seed apply to the simulated rig: add --simulate")
     if args.simulate:
         config.update({"scene": args.scene} if args.scene else {})
         config.update({"seed": options.parse_int(args.seed, "--seed", minimum=0)} if args.seed is not None else {})

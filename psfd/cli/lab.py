@@ -35,14 +35,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "and far frames of a textured plane")
     p.add_argument("--near", help=f"{TWO_PHOTO}: near distance in mm (default with --simulate: 587.5)")
     p.add_argument("--far", help=f"{TWO_PHOTO}: far distance in mm (default with --simulate: 2200)")
-    p.add_argument("--channels", default="all", help=f"all, or a comma list of {','.join(CHANNELS)}")
+    p.add_argument("--channels", default="all", help=f"all (the default), or a comma list of {','.join(CHANNELS)}")
     p.add_argument("--out", metavar="DIR", help="store the RAW frames here (default: beside the catalogue)")
     options.add_rig_options(p)
     _service_options(p)
     p.set_defaults(func=run_capture)
 
     p = subparsers.add_parser("run", help=summary("run"))
-    p.add_argument("plan", metavar="PLAN")
+    p.add_argument("plan", metavar="PLAN", help="the plan file (TOML; `psfd plan init` writes one)")
     how = p.add_mutually_exclusive_group()
     how.add_argument("--resume", action="store_true", help="continue the unfinished run of this plan")
     how.add_argument("--new", action="store_true",
@@ -53,7 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = subparsers.add_parser("status", help=summary("status"))
     p.add_argument("--json", action="store_true", help="print the status as JSON")
-    _service_options(p)
+    options.add_service_options(p)
     p.set_defaults(func=run_status)
 
     p = subparsers.add_parser("plan", help=summary("plan"))
@@ -457,35 +457,35 @@ def _ask_rail(plan) -> tuple[list[str], str | None]:
 
     Returns the problems and what was asked; a rail that cannot be asked now (unplugged, in use by a
     run) is noted on stderr and the plan is judged on its own limits, but a recording that cannot be read
-    (a mistyped folder) is a problem, as `psfd run` refuses it. The simulated rail is what
-    `check_text` already knows; the simulated camera's apertures are asked as `psfd run` asks them
+    (a mistyped folder) is a problem, as `psfd run` refuses it. The simulated rig is the one the plan
+    describes (its rail_limits name its axes); its camera's apertures are asked as `psfd run` asks them
     (`runner.aperture_problems`), so that a plan check passes only what the run accepts.
     """
     from psfd.daemon.plan import check_rail
-    from psfd.drivers import open_rail
+    from psfd.drivers import open_camera, open_rail
     from psfd.errors import PsfdError
 
+    problems: list[str] = []
     if plan.rig.get("simulate") is True:
         from psfd.daemon.runner import aperture_problems
-        from psfd.drivers.sim import SimRig
 
-        return aperture_problems(plan, SimRig().camera), None
+        problems = aperture_problems(plan, open_camera(plan.rig_config()))
     try:
         rail = open_rail(plan.rig_config())
     except PsfdError as exc:
         if plan.rig.get("recording") is not None:  # a folder on disk, not a device unplugged for now: run refuses it
             return [f"[rig] recording: {exc}"], None
         print(f"psfd: note: rail not asked for its travel ({exc})", file=sys.stderr)
-        return [], None
+        return problems, None
     try:
         info = rail.info()
     except PsfdError as exc:  # an older recording that never asked: each move is checked when it is replayed
         print(f"psfd: note: rail not asked for its travel ({exc})", file=sys.stderr)
-        return [], None
+        return problems, None
     finally:
         rail.close()
     travel = ", ".join(f"{axis.upper()} [{lo:g}, {hi:g}]" for axis, (lo, hi) in info.travel.items())
-    return check_rail(plan, info), f"rail {info.controller}: {travel}"
+    return problems + check_rail(plan, info), f"rail {info.controller}: {travel}"
 
 
 def run_serve(args: argparse.Namespace) -> int:

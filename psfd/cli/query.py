@@ -33,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     filters.add_argument("--method", help=", ".join(METHODS[:-1]) + " or " + METHODS[-1])
     near = argparse.ArgumentParser(add_help=False)
     near.add_argument("--near", metavar="X,Y", help="normalised field location: the nearest PSF per aperture")
-    near.add_argument("--limit", metavar="N", help="at most this many PSFs")
+    near.add_argument("--limit", metavar="N", help="at most this many PSFs (default: all)")
 
     about = summary("query")
     query = subparsers.add_parser("query", parents=[filters, near], help=about, description=about)

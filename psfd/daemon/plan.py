@@ -65,6 +65,9 @@ from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S
 # ([rig.camera], `psfd.drivers.base.CameraSetup`), applied after them and before any motion.
 RUNNER_KEYS = ("settings", "camera")
 RIG_KEYS = {"simulate", "recording", *RUNNER_KEYS, *SIM_KEYS, *REAL_KEYS}
+# The hardware keys of [rig] that are positive numbers (`psfd.drivers.open_rig` reads them without checking).
+HARDWARE_NUMBERS = {"timeout": "a positive number of seconds", "rail_timeout": "a positive number of seconds",
+                    "rail_feed": "a positive speed in mm/min"}
 TABLES = {
     "rig": RIG_KEYS,
     "target": {"kind", "near", "far", "cell_mm", "printed"},
@@ -306,9 +309,23 @@ def _number_list(table: dict, key: str, where: str, positive: bool = False) -> l
     if bad:
         kind = "positive numbers" if positive else "numbers"
         return [f"{where} {key} must hold {kind}, got {', '.join(repr(v) for v in bad)}"]
-    if len(set(value)) != len(value):
-        return [f"{where} {key} lists a value twice"]
-    return []
+    return _twice(value, f"{where} {key}")
+
+
+def _twice(values: list, where: str) -> list[str]:
+    """Values that make one step key (`fmt`: 6 significant digits): exact repeats, and values that print alike
+    (``x = [1300.001, 1300.004]`` is step ``x1300`` twice, which the run would refuse)."""
+    keys: dict[str, list] = {}
+    for v in values:
+        keys.setdefault(fmt(v), []).append(v)
+    problems = []
+    for text, same in keys.items():
+        if len(same) > 1 and len(set(same)) == 1:
+            problems.append(f"{where} lists {text} twice")
+        elif len(same) > 1:
+            problems.append(f"{where} lists {' and '.join(map(str, same))}, one value ({text}) to the 6 significant "
+                            "digits that key the steps")
+    return problems
 
 
 def _check_rig(rig: dict) -> list[str]:
@@ -326,16 +343,21 @@ def _check_rig(rig: dict) -> list[str]:
         problems.append(f"[rig] rail = {rail!r} does not go with simulate = true (the simulated rig's rail)")
     elif rail == "grbl" and "rail_port" not in rig and "recording" not in rig:
         problems.append("[rig] needs rail_port (or simulate = true, or recording = DIR)")
+    problems += [f"[rig] {key} must be {what}, got {rig[key]!r}" for key, what in HARDWARE_NUMBERS.items()
+                 if key in rig and not (_is_number(rig[key]) and rig[key] > 0)]
+    baudrate = rig.get("rail_baudrate", 115200)
+    if not (isinstance(baudrate, int) and not isinstance(baudrate, bool) and baudrate > 0):
+        problems.append(f"[rig] rail_baudrate must be a positive integer (bits per second), got {baudrate!r}")
     if "x_at_lens" in rig and not _is_number(rig["x_at_lens"]):
         problems.append("[rig] x_at_lens must be a number (the rail X, in mm, of a target at the lens)")
     if rig.get("x_away", 1) not in (1, -1) or isinstance(rig.get("x_away"), bool):
         problems.append("[rig] x_away must be 1 (the target goes away from the lens as X grows) or -1")
-    if "seed" in rig and not isinstance(rig["seed"], int):
-        problems.append("[rig] seed must be an integer")
-    if "scene" in rig and rig["scene"] not in ("bernoulli", "texture"):
-        problems.append(f"[rig] scene must be \"bernoulli\" or \"texture\", got {rig['scene']!r}")
+    from psfd.drivers.sim import option_problems  # the simulated rig's keys, as it checks them itself
+
+    problems += [f"[rig] {problem}" for problem in option_problems({k: rig[k] for k in SIM_KEYS if k in rig})]
     settings = rig.get("settings", {})
-    if not isinstance(settings, dict) or not all(isinstance(v, (str, int, float)) for v in settings.values()):
+    if not isinstance(settings, dict) or not all(isinstance(v, (str, int, float)) and not isinstance(v, bool)
+                                                 for v in settings.values()):
         problems.append("[rig] settings must be a table of camera setting names to values")
     camera = rig.get("camera", {})
     if not isinstance(camera, dict):
@@ -452,11 +474,11 @@ def _check_limits(rig: dict, target: dict, capture: dict, kind: Any) -> list[str
         values["x"] = [target.get("near"), target.get("far")]
     problems = []
     for axis, pair in limits.items():
-        if not (isinstance(pair, list) and len(pair) == 2 and all(map(_is_number, pair))):
-            continue
+        if not (isinstance(pair, list) and len(pair) == 2 and all(map(_is_number, pair)) and pair[0] <= pair[1]):
+            continue  # _check_rig names a malformed pair
         outside = [v for v in values.get(axis) or [] if _is_number(v) and not pair[0] <= v <= pair[1]]
         if outside:
-            where = "rail_limits" if "rail_limits" in rig or "limits" in rig else "the simulated rail's limits"
+            where = next((key for key in ("rail_limits", "limits") if key in rig), "the simulated rail's limits")
             problems.append(f"{axis} = {', '.join(fmt(v) for v in outside)} outside {where}.{axis} "
                             f"[{fmt(pair[0])}, {fmt(pair[1])}]")
     return problems
@@ -513,11 +535,10 @@ def scale_distances(rig: dict, target: dict, scales: list[float]) -> list[float]
 def _check_optics(rig: dict, target: dict, capture: dict) -> list[str]:
     problems = [f"[target] {k} must be a positive size in mm, got {target[k]!r}"
                 for k in ("cell_mm",) if k in target and not (_is_number(target[k]) and target[k] > 0)]
-    problems += [f"[rig] {k} must be a positive number, got {rig[k]!r}"
-                 for k in ("focal_mm", "pitch_um") if k in rig and not (_is_number(rig[k]) and rig[k] > 0)]
     if "printed" in target and not isinstance(target["printed"], str):
         problems.append("[target] printed must be the path of the target PDF (psfd target)")
-    if "scale" in capture and not problems:
+    rig_bad = any(k in rig and not (_is_number(rig[k]) and rig[k] > 0) for k in ("focal_mm", "pitch_um"))
+    if "scale" in capture and not problems and not rig_bad:  # a bad focal_mm or pitch_um is _check_rig's
         try:
             optics(rig, target)
         except BadInputError as exc:

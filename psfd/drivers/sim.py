@@ -44,10 +44,10 @@ from scipy import fft
 
 from psfd.drivers.base import CameraInfo, CameraReady, CameraSetup, Position, RailInfo, target_distance
 from psfd.drivers.recording import free_name
-from psfd.errors import CameraError, PsfdError, RailError
+from psfd.errors import BadInputError, CameraError, PsfdError, RailError
 from psfd.estimator import simulate
 from psfd.exif import exposure_seconds
-from psfd.vocabulary import data_dir
+from psfd.vocabulary import MAX_PIXELS, check_s, check_support, data_dir
 
 APERTURES = ("2.8", "4", "5.6", "8", "11", "16", "22")
 SHUTTERSPEEDS = ("1/30", "1/60", "1/125", "1/250", "1/500")
@@ -66,6 +66,52 @@ DEFAULT_SETTINGS = {"aperture": "5.6", "shutterspeed": "1/125", "iso": "100", "i
 WAVELENGTH_UM = {"r": 0.61, "g1": 0.53, "g2": 0.53, "b": 0.46}
 SCENES = ("bernoulli", "texture")
 TEXTURE_RASTER = 2048  # raster pixels per side of the textured plane
+
+
+def _number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and bool(np.isfinite(value))
+
+
+def option_problems(options: dict) -> list[str]:
+    """Every problem of the simulated rig's options (`SimRig`'s parameters, a plan's [rig] keys), one
+    sentence each, checked before anything is rendered: a bad value would otherwise fail only at the
+    first frame, deep in the renderer (a negative seed, s = 0, an even support, an odd sensor side).
+    """
+    problems = []
+    if "scene" in options and options["scene"] not in SCENES:
+        problems.append(f"scene must be {' or '.join(map(repr, SCENES))}, got {options['scene']!r}")
+    seed = options.get("seed", 0)
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        problems.append(f"seed must be a non-negative integer, got {seed!r}")
+    sensor = options.get("sensor", (480, 640))
+    if not (isinstance(sensor, (list, tuple)) and len(sensor) == 2
+            and all(isinstance(n, int) and not isinstance(n, bool) and n > 0 and n % 2 == 0 for n in sensor)):
+        problems.append(f"sensor must be [rows, columns], two positive even integers, got {sensor!r}")
+    elif sensor[0] * sensor[1] > MAX_PIXELS:  # the size psfd reads at most (`psfd.vocabulary.check_image_size`)
+        problems.append(f"sensor must have at most {MAX_PIXELS:,} photosites, got {sensor[0]} x {sensor[1]}")
+    problems += [f"{key} must be a positive number, got {options[key]!r}"
+                 for key in ("pitch_um", "focal_mm", "cell_mm", "texture_mm")
+                 if key in options and not (_number(options[key]) and options[key] > 0)]
+    for check, key in ((check_s, "s"), (check_support, "support")):
+        try:
+            check(options.get(key, 17 if key == "support" else 4), key)
+        except BadInputError as exc:
+            problems.append(str(exc))
+    aberration = options.get("corner_aberration", 0.0)
+    if not (_number(aberration) and aberration >= 0):
+        problems.append(f"corner_aberration must be a number of waves, 0 or more, got {aberration!r}")
+    exposure = options.get("exposure", 0.75)
+    if not (_number(exposure) and 0 < exposure <= 1):
+        problems.append(f"exposure must be a fraction of the raw range, above 0 and at most 1, got {exposure!r}")
+    return problems + _limit_problems(options.get("limits", {"x": (0.0, 0.0)}))
+
+
+def _limit_problems(limits: object) -> list[str]:
+    if not isinstance(limits, dict) or "x" not in {str(k).lower() for k in limits}:
+        return [f"limits must be a table of axes with an X axis, e.g. {{ x = [200, 3000] }}, got {limits!r}"]
+    return [f"limits.{axis} must be [low, high] with low <= high, got {pair!r}" for axis, pair in limits.items()
+            if not (isinstance(pair, (list, tuple)) and len(pair) == 2 and all(map(_number, pair))
+                    and pair[0] <= pair[1])]
 
 
 @dataclass
@@ -120,12 +166,11 @@ class SimRig:
     last_truth: dict | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
-        if self.scene not in SCENES:
-            raise ValueError(f"unknown scene {self.scene!r} (use {' or '.join(SCENES)})")
+        problems = option_problems({f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.init})
+        if problems:
+            raise ValueError(problems[0])
         self.sensor = (int(self.sensor[0]), int(self.sensor[1]))
         self.limits = {k.lower(): (float(lo), float(hi)) for k, (lo, hi) in self.limits.items()}
-        if "x" not in self.limits or any(lo > hi for lo, hi in self.limits.values()):
-            raise ValueError(f"limits need an X axis and min <= max, got {self.limits}")
         self.settings = dict(DEFAULT_SETTINGS)
         x = min(max(self.distance_for_scale(0.25), self.limits["x"][0]), self.limits["x"][1])
         self.pos = Position(x=x, y=0.0 if "y" in self.limits else None, z=0.0 if "z" in self.limits else None)
