@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from matplotlib.collections import PathCollection, TriMesh
 from matplotlib.colors import LogNorm
+from PIL import Image
 
 from psfd import figures
 from psfd.estimator import mtf
@@ -94,11 +95,14 @@ def test_psf_figure_linear_log_and_mtf_with_noise_band():
 
 def test_psf_figures_drawn_in_turn_match_each_figure_drawn_whole(tmp_path):
     """`PSFFigures` draws an estimate's own artists over the axes its layout shares: every pixel as the whole
-    figure (`save_psf`), whatever the estimates before it left on the canvas."""
+    figure (`save_psf`), whatever the estimates before it left on the canvas. Each kernel changes what the
+    one before showed: the colour bars' range, the noise band and white line (none without a floor), the
+    MTF50 marks (none where the MTF stays above 0.5 up to s/2), the legend and the title."""
     sharpened = 1.6 * gaussian(0.5, 0.5) - 0.6 * gaussian(1.2, 1.2)  # MTF above 1: a taller MTF axis
     kernels = [estimate(gaussian(0.6, 0.9)), estimate(gaussian(1.1, 0.5), noise_floor=None),
-               estimate(gaussian(0.3, 0.3), noise_floor=2e-2), estimate(sharpened / sharpened.sum()),
-               estimate(gaussian(0.6, 0.9))]
+               estimate(gaussian(0.05, 0.05)), estimate(gaussian(0.3, 0.3), noise_floor=2e-2),
+               estimate(sharpened / sharpened.sum()), estimate(gaussian(0.6, 0.9))]
+    assert not math.isfinite(kernels[2].metrics()["mtf50_x"])  # MTF 0.82 at s/2: no MTF50 to mark
     drawer = figures.PSFFigures()
     for n, est in enumerate(kernels):
         drawer.save(est, tmp_path / f"turn{n}.png", pitch_um=4.0)
@@ -106,6 +110,33 @@ def test_psf_figures_drawn_in_turn_match_each_figure_drawn_whole(tmp_path):
         turn, whole = (cv2.imread(str(tmp_path / f"{k}{n}.png")) for k in ("turn", "whole"))
         assert turn.shape == whole.shape and np.array_equal(turn, whole), n
     assert len(drawer._layouts) == 2  # the Gaussians shared one: all but the first were drawn over it
+    turn, whole = (Image.open(tmp_path / f"{k}0.png") for k in ("turn", "whole"))
+    assert turn.info["Creator"] == whole.info["Creator"] == "psfd"
+    assert turn.info["dpi"] == pytest.approx(whole.info["dpi"], abs=0.01)
+
+
+def test_log_colour_bar_label_sits_where_matplotlib_places_it_for_every_kernel():
+    """The log colour bar's label is at one place for every kernel (`PSFFigures` draws it once per layout): the
+    label pad right of the tick labels, as matplotlib places it by them, from a near-delta's peak to a wide one's."""
+    for psf in (gaussian(0.05, 0.05), gaussian(0.6, 0.9), gaussian(2.0, 2.0, support=33)):
+        fig = figures.psf_figure(estimate(psf))
+        fig.canvas.draw()
+        renderer = fig.canvas.get_renderer()
+        bar = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"][1]
+        right = max(t.get_window_extent(renderer).x1 for t in bar.get_yticklabels() if t.get_text())
+        gap = bar.yaxis.label.get_window_extent(renderer).x0 - right
+        assert gap == pytest.approx(bar.yaxis.labelpad * fig.dpi / 72, abs=0.5), psf.max()
+
+
+def test_png_writer_is_read_back_by_an_independent_decoder(tmp_path):
+    """`write_png`'s file as libpng (OpenCV) and Pillow decode it: the same pixels, the dpi and the creator."""
+    rgb = np.random.default_rng(1).integers(0, 256, size=(37, 53, 3), dtype=np.uint8)
+    rgb[10:20] = 255  # a flat band, as a figure's background
+    figures.write_png(rgb, tmp_path / "f.png")
+    assert np.array_equal(cv2.imread(str(tmp_path / "f.png"))[..., ::-1], rgb)
+    image = Image.open(tmp_path / "f.png")
+    assert image.mode == "RGB" and np.array_equal(np.asarray(image), rgb)
+    assert image.info["Creator"] == "psfd" and image.info["dpi"] == pytest.approx((figures.DPI, figures.DPI), abs=0.01)
 
 
 def test_comparison_figure_does_not_clip_and_its_legend_matches_the_lines():
