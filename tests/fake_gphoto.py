@@ -24,6 +24,12 @@ in the order libgphoto2 reports them:
   libgphoto2 reports as GP_ERROR (-1);
 - a full card with the card as capture target: GP_ERROR_NO_MEMORY (-3), as the
   ptp2 driver reports a Canon release result 7 ("Perhaps no more memory on card?");
+- a body reporting property changes (PTP DevicePropChanged: exposure metering, battery,
+  live view) faster than they are read: libgphoto2 hands each over as a GP_EVENT_UNKNOWN, one
+  per ``wait_for_event``, in the order the body reported them (its event queue is first in,
+  first out), reading the changed value over USB; a file announced behind them comes only once
+  they are read, and GP_EVENT_TIMEOUT only when nothing is queued and nothing new came for the
+  whole wait;
 - a RAW+JPEG exposure is announced as two GP_EVENT_FILE_ADDED, the JPEG
   after the RAW (Canon writes the RAW first; on a slow card the second comes
   seconds later);
@@ -199,8 +205,9 @@ class Body:
     script : dict
         Per method, the errors to raise on successive calls (None: answer normally),
         e.g. ``{"trigger_capture": [busy, busy]}``.
-    queued : list of str
-        File names already announced before the first trigger (a late file of an earlier exposure).
+    queued : list of str or (str, float)
+        Files announced before the first trigger (a late file of an earlier exposure), at the
+        session's start or the given seconds after it.
     unplug_after_trigger : bool
         The cable is pulled right after the next trigger.
     af_locks : bool
@@ -221,6 +228,9 @@ class Body:
         File names the body announces but no longer holds (a frame in RAM it let go).
     clock : Clock, optional
         The clock of the body's exposures and waits (default: the real one).
+    flood_s : float
+        For this long from the session's start the body reports a property change every
+        ``flood_every_s``; libgphoto2 spends ``event_read_s`` reading each one it hands over.
 
     Each file of an exposure is announced its delay after the exposure ends (the shutter
     speed it is set to; a bulb exposure has ended when the bulb is released).
@@ -228,12 +238,18 @@ class Body:
 
     def __init__(self, config: Widget, files=(("IMG_0001.CR2", 0.05),), script=None, queued=(),
                  unplug_after_trigger=False, af_locks=True, af_hunt_s=0.0,
-                 card_shots=None, library_wait_s=1000.0, hangs=False, dropped=(), clock=None) -> None:
+                 card_shots=None, library_wait_s=1000.0, hangs=False, dropped=(), clock=None,
+                 flood_s=0.0, flood_every_s=0.005, event_read_s=0.01) -> None:
         self.config, self.files = config, list(files)
         self.script = {k: list(v) for k, v in (script or {}).items()}
         self.calls: list[str] = []
-        self.pending: list[tuple[float, str]] = [(0.0, name) for name in queued]
-        self.store: dict[str, bytes] = {name: b"stale" for name in queued if name not in dropped}
+        self.clock = clock or time
+        started = self.clock.monotonic()
+        queued = [(q, 0.0) if isinstance(q, str) else q for q in queued]
+        self.pending: list[tuple[float, str]] = [(started + at, name) for name, at in queued]
+        self.store: dict[str, bytes] = {name: b"stale" for name, _ in queued if name not in dropped}
+        self.next_change, self.flood_until = started, started + flood_s
+        self.flood_every_s, self.event_read_s = flood_every_s, event_read_s
         self.unplugged = False
         self.unplug_after_trigger = unplug_after_trigger
         self.shots = 0
@@ -241,7 +257,6 @@ class Body:
         self.af_locks, self.af_hunt_s = af_locks, af_hunt_s
         self.card_shots = card_shots
         self.library_wait_s, self.hangs, self.dropped = library_wait_s, hangs, set(dropped)
-        self.clock = clock or time
         self.busy_until = -math.inf  # a Nikon answers DeviceBusy until then
 
     FOLDER = "/store_00020001/DCIM/100CANON"
@@ -336,6 +351,11 @@ class Body:
         end = self.clock.monotonic() + timeout_ms / 1000.0
         while True:
             due = sorted(p for p in self.pending if p[0] <= self.clock.monotonic())
+            change = self.next_change if self.next_change < self.flood_until else math.inf
+            if change <= min([self.clock.monotonic()] + [t for t, _ in due]):  # reported before any due file
+                self.next_change += self.flood_every_s
+                self.clock.sleep(self.event_read_s)
+                return gp.GP_EVENT_UNKNOWN, "PTP Property d1d7 changed"
             if due:
                 self.pending.remove(due[0])
                 return gp.GP_EVENT_FILE_ADDED, SimpleNamespace(folder=self.FOLDER, name=due[0][1])

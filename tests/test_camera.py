@@ -36,8 +36,8 @@ Nikon widget trees (sRAW/mRAW refused), single-frame drive, exposure delay,
 autofocus reported by the lens, busy (-110) then ready, busy for good, busy
 answered to reading the configuration and to deleting, an autofocus that cannot
 lock (Canon: busy after the hunt; Nikon: -1), a full card (-3), a RAW+JPEG pair
-1.5 s apart, a cable pulled mid-capture (reconnect, prepare
-again, retry once), bulb, a capture that never announces its file, a file the
+1.5 s apart, a stale file queued behind a flood of property changes, a cable
+pulled mid-capture (reconnect, prepare again, retry once), bulb, a capture that never announces its file, a file the
 camera no longer holds (-108), and on a fake clock a Nikon busy through a 30 s
 exposure (libgphoto2 giving up on it after 5, 20 or 1000 s) or hung after it.
 """
@@ -552,6 +552,27 @@ def test_a_file_queued_before_the_trigger_is_not_counted(fake, bodies, tmp_path)
     camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), quiet_s=0.2)
     assert [f.name for f in camera.capture(tmp_path)] == ["IMG_0001.CR2"]
     assert camera.strays == [f"{body.FOLDER}/IMG_0000.JPG"] and "IMG_0000.JPG" not in body.store
+
+
+def test_a_file_queued_behind_a_flood_of_property_changes_is_not_this_exposure(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+    from psfd.errors import CameraError
+
+    # a frame the body wrote after an earlier capture gave up, reported 0.3 s into a second of property
+    # changes that come every 5 ms and take 10 ms each to read: it is handed over some 0.6 s on
+    clock = bodies.Clock()
+    body = bodies.Body(bodies.canon_eos(lens_af=False), queued=[("IMG_0000.CR2", 0.3)], flood_s=1.0, clock=clock)
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), clock=clock)
+    camera.prepare(CameraSetup(focus="manual"))
+    files = camera.capture(tmp_path / "1")
+    assert [f.read_bytes() for f in files] == [b"IMG_0001.CR2 of shot 1"]
+    assert camera.strays == [f"{body.FOLDER}/IMG_0000.CR2"] and body.store == {}
+    # a body that never stops reporting changes (live view on): not released, said in one line
+    body = bodies.Body(bodies.canon_eos(lens_af=False), flood_s=3600.0, clock=clock)
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), clock=clock)
+    with pytest.raises(CameraError, match=r"kept reporting events for 10 s before the release"):
+        camera.capture(tmp_path / "2")
+    assert body.shots == 0
 
 
 def test_a_cable_pulled_mid_capture_reconnects_and_retries_once(fake, bodies, tmp_path):

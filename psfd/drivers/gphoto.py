@@ -116,7 +116,8 @@ class GPhotoCamera:
         How long a busy camera (gphoto2 -110) is retried, with backoff from 0.1 s to 2 s. After a
         release, a body busy exposing or writing is waited for until the capture's deadline instead.
     drain_s : float
-        Longest time spent discarding stale events before a trigger.
+        Longest time spent discarding stale events before a trigger; a camera that still reports
+        events then is not released (a file of an earlier exposure may be among them).
     reconnect_s : float
         How long a lost camera is waited for (re-enumeration after a USB reset or a replug).
     delete_after_download : bool
@@ -130,7 +131,7 @@ class GPhotoCamera:
         capture_timeout: float = 30.0,
         quiet_s: float = 1.0,
         busy_s: float = 10.0,
-        drain_s: float = 0.5,
+        drain_s: float = 10.0,
         reconnect_s: float = 20.0,
         delete_after_download: bool = True,
     ) -> None:
@@ -437,9 +438,16 @@ class GPhotoCamera:
         return self.capture_timeout + 2.0 * seconds + self._delay_s, bulb_s
 
     def _drain(self) -> None:
-        """Discard events queued before the trigger; a file among them belongs to no capture of ours."""
+        """Discard events queued before the trigger, up to the camera's first GP_EVENT_TIMEOUT.
+
+        A file among them belongs to no capture of ours. libgphoto2 hands events over in the order
+        the body reported them and answers GP_EVENT_TIMEOUT only once nothing is queued and nothing
+        came for the whole wait, so no file announced before the timeout can come after the release.
+        A body may report property changes faster than they are read, a stale file queued behind
+        them: a drain stopped by a clock would let that file through as the next exposure's.
+        """
         deadline = time.monotonic() + self.drain_s
-        while time.monotonic() < deadline:
+        while True:
             event, data = self._call("draining camera events", self._cam().wait_for_event, 10,
                                      timeout=self.timeout)
             if event == gp.GP_EVENT_TIMEOUT:
@@ -451,6 +459,10 @@ class GPhotoCamera:
                             self._model, stray)
                 if self.delete_after_download:
                     self._delete(data.folder, data.name)
+            if time.monotonic() > deadline:
+                raise CameraError(f"camera {self._model} kept reporting events for {self.drain_s:g} s before the "
+                                  "release (live view on, or a menu open?): not released, since a file of an "
+                                  "earlier exposure may be queued behind them")
 
     def _trigger_and_collect(self, timeout: float, bulb_s: float | None) -> list[tuple[str, str]]:
         """Trigger one exposure and gather the (folder, name) of each file it adds."""
