@@ -24,6 +24,12 @@ in the order libgphoto2 reports them:
   libgphoto2 reports as GP_ERROR (-1);
 - a full card with the card as capture target: GP_ERROR_NO_MEMORY (-3), as the
   ptp2 driver reports a Canon release result 7 ("Perhaps no more memory on card?");
+- a body reporting property changes (PTP DevicePropChanged: exposure metering, battery,
+  live view) faster than they are read: libgphoto2 hands each over as a GP_EVENT_UNKNOWN, one
+  per ``wait_for_event``, in the order the body reported them (its event queue is first in,
+  first out), reading the changed value over USB; a file announced behind them comes only once
+  they are read, and GP_EVENT_TIMEOUT only when nothing is queued and nothing new came for the
+  whole wait;
 - a RAW+JPEG exposure is announced as two GP_EVENT_FILE_ADDED, the JPEG
   after the RAW (Canon writes the RAW first; on a slow card the second comes
   seconds later);
@@ -35,7 +41,10 @@ in the order libgphoto2 reports them:
   call on that handle fails the same way, the body is missing from
   autodetection until it re-enumerates, then comes back at a new address
   with a fresh USB session (driver-side settings such as the capture target
-  back at their defaults).
+  back at their defaults, events not yet handed over lost); the files on its
+  card are still there, listed by ``folder_list_folders`` and
+  ``folder_list_files`` as python-gphoto2 returns them (a ``CameraList`` of
+  names), and the body numbers its files on from where it was.
 
 Widget trees are modelled on libgphoto2's ptp2 driver (widget names, types,
 choices and read-only flags as ``gphoto2 --list-config`` shows them for a Canon
@@ -72,6 +81,20 @@ class Clock:
     def sleep(self, seconds: float) -> None:
         with self._lock:
             self.now += max(0.0, seconds)
+
+    def run(self, fn, args: tuple, seconds: float):
+        """`GPhotoCamera._run` on this clock: a call still inside libgphoto2 after ``seconds`` is abandoned
+        (TimeoutError) while the body goes on with what it was doing."""
+        started = self.now
+        try:
+            value = fn(*args)
+        except Exception:
+            if self.now - started > seconds:
+                raise TimeoutError from None
+            raise
+        if self.now - started > seconds:
+            raise TimeoutError
+        return value
 
 
 class Widget:
@@ -199,8 +222,9 @@ class Body:
     script : dict
         Per method, the errors to raise on successive calls (None: answer normally),
         e.g. ``{"trigger_capture": [busy, busy]}``.
-    queued : list of str
-        File names already announced before the first trigger (a late file of an earlier exposure).
+    queued : list of str or (str, float)
+        Files announced before the first trigger (a late file of an earlier exposure), at the
+        session's start or the given seconds after it.
     unplug_after_trigger : bool
         The cable is pulled right after the next trigger.
     af_locks : bool
@@ -221,6 +245,17 @@ class Body:
         File names the body announces but no longer holds (a frame in RAM it let go).
     clock : Clock, optional
         The clock of the body's exposures and waits (default: the real one).
+    store : dict, optional
+        The files the body holds, by name. Files on the card outlive the USB session: give the
+        sessions of one body the same dict (and the later one the ``shots`` taken before it).
+    shots : int
+        Exposures the body numbered before this session.
+    auto_exposure_s : float
+        How long the body exposes when its shutter speed is no time (``auto``: the body's exposure
+        program chooses).
+    flood_s : float
+        For this long from the session's start the body reports a property change every
+        ``flood_every_s``; libgphoto2 spends ``event_read_s`` reading each one it hands over.
 
     Each file of an exposure is announced its delay after the exposure ends (the shutter
     speed it is set to; a bulb exposure has ended when the bulb is released).
@@ -228,20 +263,26 @@ class Body:
 
     def __init__(self, config: Widget, files=(("IMG_0001.CR2", 0.05),), script=None, queued=(),
                  unplug_after_trigger=False, af_locks=True, af_hunt_s=0.0,
-                 card_shots=None, library_wait_s=1000.0, hangs=False, dropped=(), clock=None) -> None:
+                 card_shots=None, library_wait_s=1000.0, hangs=False, dropped=(), clock=None,
+                 flood_s=0.0, flood_every_s=0.005, event_read_s=0.01, store=None, shots=0, auto_exposure_s=0.0) -> None:
         self.config, self.files = config, list(files)
         self.script = {k: list(v) for k, v in (script or {}).items()}
         self.calls: list[str] = []
-        self.pending: list[tuple[float, str]] = [(0.0, name) for name in queued]
-        self.store: dict[str, bytes] = {name: b"stale" for name in queued if name not in dropped}
+        self.clock = clock or time
+        started = self.clock.monotonic()
+        queued = [(q, 0.0) if isinstance(q, str) else q for q in queued]
+        self.pending: list[tuple[float, str]] = [(started + at, name) for name, at in queued]
+        self.store: dict[str, bytes] = {} if store is None else store
+        self.store.update({name: b"stale" for name, _ in queued if name not in dropped})
+        self.next_change, self.flood_until = started, started + flood_s
+        self.flood_every_s, self.event_read_s = flood_every_s, event_read_s
         self.unplugged = False
         self.unplug_after_trigger = unplug_after_trigger
-        self.shots = 0
+        self.shots, self.auto_exposure_s = shots, auto_exposure_s
         self.bulb_log: list[tuple[int, float]] = []
         self.af_locks, self.af_hunt_s = af_locks, af_hunt_s
         self.card_shots = card_shots
         self.library_wait_s, self.hangs, self.dropped = library_wait_s, hangs, set(dropped)
-        self.clock = clock or time
         self.busy_until = -math.inf  # a Nikon answers DeviceBusy until then
 
     FOLDER = "/store_00020001/DCIM/100CANON"
@@ -307,7 +348,7 @@ class Body:
         on_card = self._value("capturetarget") == "Memory card"
         if on_card and self.card_shots is not None and self.shots >= self.card_shots:
             raise gp.GPhoto2Error(gp.GP_ERROR_NO_MEMORY)
-        self._expose(_seconds(self._value("shutterspeed")))
+        self._expose(_seconds(self._value("shutterspeed")) or self.auto_exposure_s)
         if self.unplug_after_trigger:
             self.unplugged = True
         if nikon:  # then waits for the body (nikon_wait_busy)
@@ -336,6 +377,11 @@ class Body:
         end = self.clock.monotonic() + timeout_ms / 1000.0
         while True:
             due = sorted(p for p in self.pending if p[0] <= self.clock.monotonic())
+            change = self.next_change if self.next_change < self.flood_until else math.inf
+            if change <= min([self.clock.monotonic()] + [t for t, _ in due]):  # reported before any due file
+                self.next_change += self.flood_every_s
+                self.clock.sleep(self.event_read_s)
+                return gp.GP_EVENT_UNKNOWN, "PTP Property d1d7 changed"
             if due:
                 self.pending.remove(due[0])
                 return gp.GP_EVENT_FILE_ADDED, SimpleNamespace(folder=self.FOLDER, name=due[0][1])
@@ -356,8 +402,32 @@ class Body:
         if self.store.pop(name, None) is None:
             raise gp.GPhoto2Error(gp.GP_ERROR_FILE_NOT_FOUND)
 
+    def folder_list_folders(self, folder: str) -> "CameraList":
+        self._enter("folder_list_folders")
+        below = self.FOLDER[len(folder.rstrip("/")):]
+        if not self.FOLDER.startswith(folder) or not below.startswith("/") and below:
+            raise gp.GPhoto2Error(gp.GP_ERROR_DIRECTORY_NOT_FOUND)
+        return CameraList(below.split("/")[1:2])
+
+    def folder_list_files(self, folder: str) -> "CameraList":
+        self._enter("folder_list_files")
+        return CameraList(sorted(self.store) if folder == self.FOLDER else [])
+
     def exit(self) -> None:
         self._enter("exit")
+
+
+class CameraList:
+    """The part of ``gphoto2.CameraList`` a listing uses: names by index."""
+
+    def __init__(self, names) -> None:
+        self.names = list(names)
+
+    def count(self) -> int:
+        return len(self.names)
+
+    def get_name(self, i: int) -> str:
+        return self.names[i]
 
 
 class Bus:
@@ -399,7 +469,8 @@ def _seconds(shutter) -> float:
 
 
 def install(monkeypatch, bus: Bus, clock: Clock | None = None) -> None:
-    """Make `psfd.drivers.gphoto` find and open bodies on ``bus`` instead of USB (and keep time by ``clock``)."""
+    """Make `psfd.drivers.gphoto` find and open bodies on ``bus`` instead of USB (and keep time, call
+    deadlines included, by ``clock``)."""
     from psfd.drivers import gphoto
 
     monkeypatch.setattr(gphoto, "_detect", bus.detect)
@@ -407,3 +478,4 @@ def install(monkeypatch, bus: Bus, clock: Clock | None = None) -> None:
     monkeypatch.setattr(gphoto, "reset_usb_device", bus.reset)
     if clock is not None:
         monkeypatch.setattr(gphoto, "time", clock)
+        monkeypatch.setattr(gphoto.GPhotoCamera, "_run", staticmethod(clock.run))

@@ -36,8 +36,10 @@ Nikon widget trees (sRAW/mRAW refused), single-frame drive, exposure delay,
 autofocus reported by the lens, busy (-110) then ready, busy for good, busy
 answered to reading the configuration and to deleting, an autofocus that cannot
 lock (Canon: busy after the hunt; Nikon: -1), a full card (-3), a RAW+JPEG pair
-1.5 s apart, a cable pulled mid-capture (reconnect, prepare
-again, retry once), bulb, a capture that never announces its file, a file the
+1.5 s apart, a stale file queued behind a flood of property changes, a cable
+pulled mid-capture (reconnect, prepare again, retry once; the file the lost exposure
+left on the card collected, or deleted when it may not be all of it), a release of unknown
+exposure time that outlasts its call's deadline (reported, not reset or released again), bulb, a capture that never announces its file, a file the
 camera no longer holds (-108), and on a fake clock a Nikon busy through a 30 s
 exposure (libgphoto2 giving up on it after 5, 20 or 1000 s) or hung after it.
 """
@@ -483,6 +485,25 @@ def test_a_nikon_that_stays_busy_after_the_release_is_reported_not_released_agai
     assert body.shots == 1 and list(tmp_path.iterdir()) == [] and bus.opened == ["usb:001,004"]
 
 
+def test_a_release_of_unknown_exposure_time_is_not_cut_short_and_taken_again(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+    from psfd.errors import CameraError
+
+    # shutter speed auto: the body's program exposes 40 s, libgphoto2 waits for it inside the release
+    # (up to 1000 s), longer than the capture's deadline for an unknown exposure (30 s + 3 s of delay)
+    clock = bodies.Clock()
+    config = bodies.nikon_d5300(quality="NEF (Raw)", shutter="auto")
+    body = bodies.Body(config, files=(("DSC_0001.NEF", 2.0),), clock=clock, auto_exposure_s=40.0)
+    again = bodies.Body(config, files=(("DSC_0001.NEF", 2.0),), clock=clock, auto_exposure_s=40.0)
+    bus = bodies.Bus("Nikon DSC D5300", body, again)
+    camera = fake(bus, clock=clock)
+    camera.prepare(CameraSetup(focus="manual"))
+    with pytest.raises(CameraError, match=r"triggering a capture within 33 s .*exposure time is unknown.*not "
+                                          r"reset or released again$"):
+        camera.capture(tmp_path)
+    assert body.shots + again.shots == 1 and bus.resets == [] and bus.opened == ["usb:001,004"]
+
+
 def test_a_file_the_camera_no_longer_holds(fake, bodies, tmp_path, caplog):
     from psfd.errors import CameraError
 
@@ -554,6 +575,27 @@ def test_a_file_queued_before_the_trigger_is_not_counted(fake, bodies, tmp_path)
     assert camera.strays == [f"{body.FOLDER}/IMG_0000.JPG"] and "IMG_0000.JPG" not in body.store
 
 
+def test_a_file_queued_behind_a_flood_of_property_changes_is_not_this_exposure(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+    from psfd.errors import CameraError
+
+    # a frame the body wrote after an earlier capture gave up, reported 0.3 s into a second of property
+    # changes that come every 5 ms and take 10 ms each to read: it is handed over some 0.6 s on
+    clock = bodies.Clock()
+    body = bodies.Body(bodies.canon_eos(lens_af=False), queued=[("IMG_0000.CR2", 0.3)], flood_s=1.0, clock=clock)
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), clock=clock)
+    camera.prepare(CameraSetup(focus="manual"))
+    files = camera.capture(tmp_path / "1")
+    assert [f.read_bytes() for f in files] == [b"IMG_0001.CR2 of shot 1"]
+    assert camera.strays == [f"{body.FOLDER}/IMG_0000.CR2"] and body.store == {}
+    # a body that never stops reporting changes (live view on): not released, said in one line
+    body = bodies.Body(bodies.canon_eos(lens_af=False), flood_s=3600.0, clock=clock)
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), clock=clock)
+    with pytest.raises(CameraError, match=r"kept reporting events for 10 s before the release"):
+        camera.capture(tmp_path / "2")
+    assert body.shots == 0
+
+
 def test_a_cable_pulled_mid_capture_reconnects_and_retries_once(fake, bodies, tmp_path):
     from psfd.drivers.base import CameraSetup
 
@@ -571,6 +613,28 @@ def test_a_cable_pulled_mid_capture_reconnects_and_retries_once(fake, bodies, tm
     assert bus.opened == ["usb:001,004", "usb:001,005"] and bus.resets == ["usb:001,004"]
     assert camera.port == "usb:001,005"
     assert _value(config, "capturetarget") == "Internal RAM"  # prepared again after the new session
+
+
+def test_a_file_the_lost_exposure_left_on_the_card_is_collected_or_deleted(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+
+    # the body wrote the exposure to its card, then the cable went before the file was announced
+    config, card = bodies.canon_eos(lens_af=False), {}
+    first = bodies.Body(config, unplug_after_trigger=True, store=card)
+    again = bodies.Body(config, store=card, shots=1)
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", first, again), quiet_s=0.1)
+    camera.prepare(CameraSetup(focus="manual", capture_target="card"))  # RAW: one file per exposure
+    files = camera.capture(tmp_path / "1")
+    assert [f.read_bytes() for f in files] == [b"IMG_0001.CR2 of shot 1"]
+    assert again.shots == 1 and card == {}  # not shot again; nothing left on the card
+    # files per exposure unknown: whether the file is the whole exposure is not known; deleted, shot again
+    config, card = bodies.canon_eos(lens_af=False), {}
+    first = bodies.Body(config, unplug_after_trigger=True, store=card)
+    again = bodies.Body(config, store=card, shots=1)
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", first, again), quiet_s=0.1)
+    files = camera.capture(tmp_path / "2")
+    assert [f.read_bytes() for f in files] == [b"IMG_0002.CR2 of shot 2"]
+    assert camera.strays == [f"{first.FOLDER}/IMG_0001.CR2"] and card == {}
 
 
 def test_a_second_loss_fails_the_capture(fake, bodies, tmp_path):

@@ -10,11 +10,12 @@ them from the camera.
 a full-resolution RAW format (refused when there is none), the capture
 target, single-frame drive, exposure delay where the body offers it over USB,
 and autofocus off. `GPhotoCamera.capture` drains stale events before the
-trigger, retries a busy camera with backoff (a release answered busy only once
-the body answers again and no file came of it: the release may have been taken),
-waits as long as the exposure needs, collects every file of the exposure, and
-reconnects once (with a USB reset where the device is still there) when the
-camera was lost.
+trigger (until the camera reports none), retries a busy camera with backoff (a
+release answered busy only once the body answers again and no file came of it: the
+release may have been taken), waits as long as the exposure needs, collects every
+file of the exposure, and reconnects once (with a USB reset where the device is
+still there) when the camera was lost: the file a lost exposure left on the card is
+collected or deleted, and an exposure of unknown length is never cut short by a reset.
 
 Every libgphoto2 call runs in a worker thread with a deadline: python-gphoto2
 releases the GIL during libgphoto2 calls, so a camera unplugged in the middle of
@@ -116,7 +117,8 @@ class GPhotoCamera:
         How long a busy camera (gphoto2 -110) is retried, with backoff from 0.1 s to 2 s. After a
         release, a body busy exposing or writing is waited for until the capture's deadline instead.
     drain_s : float
-        Longest time spent discarding stale events before a trigger.
+        Longest time spent discarding stale events before a trigger; a camera that still reports
+        events then is not released (a file of an earlier exposure may be among them).
     reconnect_s : float
         How long a lost camera is waited for (re-enumeration after a USB reset or a replug).
     delete_after_download : bool
@@ -130,7 +132,7 @@ class GPhotoCamera:
         capture_timeout: float = 30.0,
         quiet_s: float = 1.0,
         busy_s: float = 10.0,
-        drain_s: float = 0.5,
+        drain_s: float = 10.0,
         reconnect_s: float = 20.0,
         delete_after_download: bool = True,
     ) -> None:
@@ -145,6 +147,10 @@ class GPhotoCamera:
         self.strays: list[str] = []  # files announced outside any capture, discarded
         self._setup: CameraSetup | None = None
         self._delay_s = 0.0
+        # of the capture under way: whether the shutter was released, the files on the card before it
+        self._released = False
+        self._card_before: set[tuple[str, str]] | None = None
+        self._exposure_unknown = False
         self._camera: Any = None
         self._model = ""
         self.port = ""
@@ -291,7 +297,11 @@ class GPhotoCamera:
         """One exposure, every file it produced (RAW, RAW+JPEG) downloaded into ``dest``.
 
         A camera lost on the way (unplugged, switched off, hung in a transfer) is
-        reconnected, prepared again, and the capture retried once.
+        reconnected, prepared again, and the capture retried once. A file that an exposure
+        released before the loss left on the card is this capture's frame when it is the whole
+        of one exposure (`_left_on_card`), and deleted otherwise. When the exposure time is not
+        known (no shutter speed setting, or ``auto``), a camera that stops answering after the
+        release may still be exposing: it is neither reset nor released again, the capture fails.
         """
         dest = Path(dest)
         dest.mkdir(parents=True, exist_ok=True)
@@ -300,12 +310,17 @@ class GPhotoCamera:
         except CameraError as exc:
             if not getattr(exc, "gone", False):
                 raise
+            if self._released and self._exposure_unknown:
+                raise CameraError(f"{exc}; the exposure time is unknown (no shutter speed set to a time), so the "
+                                  "camera may still be exposing: not reset or released again") from None
             log.warning("camera %s lost during a capture (%s): reconnecting and retrying once", self._model, exc)
+            released, before = self._released, self._card_before
             try:
                 self.reconnect(reset_usb=True, wait_s=self.reconnect_s)
             except CameraError as again:
                 raise CameraError(f"{exc}; reconnecting failed: {again}") from None
-            return self._capture_once(dest)
+            left = self._left_on_card(before) if released and before is not None else []
+            return self._fetch(left, dest) if left else self._capture_once(dest)
 
     # ------------------------------------------------------------------ preparation steps
 
@@ -411,9 +426,15 @@ class GPhotoCamera:
     # ------------------------------------------------------------------ capture steps
 
     def _capture_once(self, dest: Path) -> list[Path]:
+        self._released, self._card_before = False, None
         timeout, bulb_s = self._capture_deadline()
         self._drain()
-        paths = self._trigger_and_collect(timeout, bulb_s)
+        if self._on_card():
+            self._card_before = self._card_files()
+        return self._fetch(self._trigger_and_collect(timeout, bulb_s), dest)
+
+    def _fetch(self, paths: list[tuple[str, str]], dest: Path) -> list[Path]:
+        """Download the files of one exposure into ``dest`` (and delete them from the camera)."""
         saved = []
         for folder, name in paths:
             saved.append(self._download(folder, name, dest))
@@ -421,11 +442,47 @@ class GPhotoCamera:
                 self._delete(folder, name)
         return saved
 
+    def _on_card(self) -> bool:
+        """Whether captures go to the card (so that they outlive a lost USB session); unprepared: may be."""
+        return self._setup is None or self._setup.capture_target == "card"
+
+    def _card_files(self, folder: str = "/") -> set[tuple[str, str]]:
+        """(folder, name) of every file on the camera's storage below ``folder``."""
+        files = self._call("listing the camera's files", self._cam().folder_list_files, folder)
+        found = {(folder, files.get_name(i)) for i in range(files.count())}
+        folders = self._call("listing the camera's folders", self._cam().folder_list_folders, folder)
+        for i in range(folders.count()):
+            found |= self._card_files(f"{folder.rstrip('/')}/{folders.get_name(i)}")
+        return found
+
+    def _left_on_card(self, before: set[tuple[str, str]]) -> list[tuple[str, str]]:
+        """The files an exposure released before the camera was lost wrote to the card, if they are one exposure.
+
+        Files new since ``before`` (the listing just before the release) are the whole of that exposure
+        when they are as many as one exposure gives and share one name (a RAW and its JPEG); otherwise
+        (the RAW of a pair without its JPEG, or a count not known) they are deleted, as files of no
+        capture, and the exposure is taken again.
+        """
+        new = sorted(self._card_files() - before)
+        if len(new) == self.files_per_exposure and len({Path(name).stem for _, name in new}) == 1:
+            log.warning("camera %s: %s, written before the camera was lost, is this capture's", self._model,
+                        ", ".join(name for _, name in new))
+            return new
+        for folder, name in new:
+            self.strays.append(f"{folder}/{name}")
+            log.warning("camera %s: %s/%s was written before the camera was lost and is not known to be a whole "
+                        "exposure; not counted", self._model, folder, name)
+            if self.delete_after_download:
+                self._delete(folder, name)
+        return []
+
     def _capture_deadline(self) -> tuple[float, float | None]:
         """Seconds allowed from the trigger to the last file, and the bulb time if the camera is on bulb."""
         config = self._config()
         shutter = next((v for n in SETTING_ALIASES["shutterspeed"] if (v := _widget_value(config, n))), None)
-        seconds = exposure_seconds(shutter) or 0.0
+        seconds = exposure_seconds(shutter)
+        self._exposure_unknown = seconds is None  # the capture's deadline cannot follow the exposure
+        seconds = seconds or 0.0
         bulb_s = None
         if math.isinf(seconds):
             bulb_s = self._setup.bulb_s if self._setup is not None else None
@@ -437,9 +494,16 @@ class GPhotoCamera:
         return self.capture_timeout + 2.0 * seconds + self._delay_s, bulb_s
 
     def _drain(self) -> None:
-        """Discard events queued before the trigger; a file among them belongs to no capture of ours."""
+        """Discard events queued before the trigger, up to the camera's first GP_EVENT_TIMEOUT.
+
+        A file among them belongs to no capture of ours. libgphoto2 hands events over in the order
+        the body reported them and answers GP_EVENT_TIMEOUT only once nothing is queued and nothing
+        came for the whole wait, so no file announced before the timeout can come after the release.
+        A body may report property changes faster than they are read, a stale file queued behind
+        them: a drain stopped by a clock would let that file through as the next exposure's.
+        """
         deadline = time.monotonic() + self.drain_s
-        while time.monotonic() < deadline:
+        while True:
             event, data = self._call("draining camera events", self._cam().wait_for_event, 10,
                                      timeout=self.timeout)
             if event == gp.GP_EVENT_TIMEOUT:
@@ -451,12 +515,17 @@ class GPhotoCamera:
                             self._model, stray)
                 if self.delete_after_download:
                     self._delete(data.folder, data.name)
+            if time.monotonic() > deadline:
+                raise CameraError(f"camera {self._model} kept reporting events for {self.drain_s:g} s before the "
+                                  "release (live view on, or a menu open?): not released, since a file of an "
+                                  "earlier exposure may be queued behind them")
 
     def _trigger_and_collect(self, timeout: float, bulb_s: float | None) -> list[tuple[str, str]]:
         """Trigger one exposure and gather the (folder, name) of each file it adds."""
         if bulb_s is None:
             return self._collect(*self._release_once(timeout), timeout)
         start = time.monotonic()
+        self._released = True
         self._bulb(bulb_s)
         return self._collect([], start, timeout)
 
@@ -492,6 +561,7 @@ class GPhotoCamera:
 
     def _release(self, timeout: float) -> list[tuple[str, str]]:
         """One release; returns the file a blocking capture names (cameras without trigger_capture)."""
+        self._released = True  # from here on, an exposure may have been taken
         try:
             # a release may take the autofocus's hunt (some 10 s on a Canon) before it answers
             self._once("triggering a capture", self._cam().trigger_capture, timeout=timeout)
