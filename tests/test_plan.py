@@ -7,7 +7,7 @@ import textwrap
 import pytest
 
 from psfd.cli import main
-from psfd.daemon.plan import Step, check_text, load_plan, parse_plan, plan_changes, plan_content
+from psfd.daemon.plan import Step, check_text, load_plan, parse_plan, plan_changes, plan_content, plan_key
 from psfd.errors import BadInputError
 
 GOOD = """
@@ -182,7 +182,58 @@ def test_plan_content_ignores_the_wording_and_changes_name_the_keys():
     assert plan_content(reworded) == plan_content(GOOD) and plan_changes(GOOD, reworded) == []
     changed = GOOD.replace("[5.6, 8]", "[5.6, 11]").replace("grid = [2, 1]\n", "")
     assert plan_content(changed) != plan_content(GOOD)
-    assert plan_changes(GOOD, changed) == ["[capture] apertures", "[estimator] grid"]
+    assert plan_changes(GOOD, changed) == ["[capture] apertures [5.6, 8] -> [5.6, 11]",
+                                           "[estimator] grid [2, 1] -> [1, 1]"]
+
+
+BARE = """
+[rig]
+simulate = true
+
+[target]
+kind = "bernoulli"
+
+[capture]
+apertures = [5.6, 8]
+x = [1300]
+"""
+
+
+def test_a_plan_is_what_it_does_not_which_defaults_it_writes_out():
+    """Defaults written out, comments, key order, channels in another order or as "all": the one plan
+    (`plan_key`); anything that changes a frame or an estimate is another, and `plan_changes` names it."""
+    same = [
+        BARE.replace("x = [1300]", 'channels = ["g1"]\nrepeats = 1\nx = [1300.0]  # mm'),
+        "# lens cap on\n" + BARE + "\n[estimator]\ns = 4\nsupport = 17\nsolver = \"nnls\"\ngrid = [1, 1]\n",
+        BARE.replace("simulate = true", 'simulate = true\nseed = 0\nrail = "simulated"\ncamera = { focus = "off" }'),
+        BARE.replace("x = [1300]", "scale = [0.25]"),  # where the simulated rig puts a cell at 1/4 px: x = 1300
+    ]
+    for text in same:
+        assert plan_key(text) == plan_key(BARE) and plan_changes(BARE, text) == [], text
+    all_four = BARE + 'channels = "all"\n'
+    assert plan_key(all_four) == plan_key(BARE + 'channels = ["b", "g2", "r", "g1"]\n')
+    other = {
+        BARE.replace("[5.6, 8]", "[5.6, 11]"): "[capture] apertures [5.6, 8] -> [5.6, 11]",
+        BARE.replace("[5.6, 8]", "[8, 5.6]"): "[capture] apertures [5.6, 8] -> [8, 5.6]",
+        BARE.replace("[1300]", "[1310]"): "[capture] x [1300] -> [1310]",
+        BARE.replace("x = [1300]", "scale = [0.2]"): "[capture] x [1300] -> [",  # farther: a cell to 0.2 px
+        BARE + "y = [0]\n": "[capture] y unset -> [0]",
+        all_four: '[capture] channels ["g1"] -> ["r", "g1", "g2", "b"]',
+        BARE + "repeats = 2\n": "[capture] repeats 1 -> 2",
+        BARE + "[estimator]\ns = 3\nsupport = 17\n": "[estimator] s 4 -> 3",
+        BARE + "[estimator]\nsupport = 21\n": "[estimator] support 17 -> 21",
+        BARE + '[estimator]\nsolver = "ls"\n': '[estimator] solver "nnls" -> "ls"',
+        BARE + "[estimator]\ngrid = [2, 1]\n": "[estimator] grid [1, 1] -> [2, 1]",
+        BARE.replace("true", 'true\nsettings = { iso = "100" }'): '[rig] settings {} -> {"iso": "100"}',
+        BARE.replace("true", "true\ncamera = { settle_s = 1.0 }"): "[rig] camera",
+        BARE.replace("true", "true\nseed = 1"): "[rig] seed 0 -> 1",
+        BARE.replace("true", "true\npitch_um = 6"): "[rig] pitch_um 8 -> 6",
+    }
+    for text, change in other.items():
+        assert plan_key(text) != plan_key(BARE), text
+        changes = plan_changes(BARE, text)
+        assert len(changes) == 1 and changes[0].startswith(change), (changes, change)
+    assert plan_key("not = [toml") == plan_content("not = [toml")  # no plan: only its text's content
 
 
 SIM_STEP = """

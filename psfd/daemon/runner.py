@@ -64,7 +64,7 @@ from typing import IO, Any, Callable
 
 from psfd.catalogue import UNFINISHED_STATES, Catalogue, FrameRecord, catalogue_exists, check_owner, discard_unused
 from psfd.daemon import work
-from psfd.daemon.plan import Plan, Step, check_rail, plan_changes
+from psfd.daemon.plan import Plan, Step, check_rail, plan_changes, plan_key, recording_problems
 from psfd.daemon.store import (INCOMING, catalogue_lock, catalogue_lock_path, check_catalogue_free, check_room,
                                shown_state, storage_error, store_frame, store_lock, sweep_frames)
 from psfd.drivers import open_rig
@@ -673,14 +673,15 @@ def position_lost(rail: Rail, catalogue: Catalogue, run_id: int) -> str | None:
 
 
 def check_rig(plan: Plan, camera: Camera, rail: Rail) -> None:
-    """Refuse a plan the open rig says it cannot do: positions off the rail, apertures the camera lacks.
+    """Refuse a plan the open rig says it cannot do: positions off the rail, apertures the camera lacks,
+    captures its recording does not hold.
 
     Raises
     ------
     BadInputError
-        The problems of `rail_problems` and `aperture_problems`, on one line.
+        The problems of `rail_problems`, `aperture_problems` and `recording_problems`, on one line.
     """
-    problems = rail_problems(plan, rail) + aperture_problems(plan, camera)
+    problems = rail_problems(plan, rail) + aperture_problems(plan, camera) + recording_problems(plan)
     if problems:
         raise BadInputError(f"{plan.path}: {'; '.join(problems)}")
 
@@ -752,7 +753,7 @@ def start_check(catalogue: Catalogue, plan: Plan, resume: bool, new: bool,
         content), saying so when one was started from this file with other values; or it has one
         and neither ``resume`` nor ``new`` was asked.
     """
-    unfinished = catalogue.unfinished_run(plan.text)
+    unfinished = catalogue.unfinished_run(plan.text, plan_key)
     if resume:
         if unfinished is None:
             raise BadInputError(f"no unfinished run of plan {plan.path} to resume"
@@ -784,7 +785,7 @@ def _reworded(run: dict, plan: Plan) -> str:
     if not _same_file(run["plan_path"], plan.path):
         notes.append(f"started from {run['plan_path']}")
     if run["plan_text"] != plan.text:
-        notes.append("the same plan: the texts differ in comments or layout only")
+        notes.append("the same plan: the texts differ in comments, layout or defaults written out only")
     return f" ({'; '.join(notes)})" if notes else ""
 
 
@@ -798,9 +799,9 @@ def _changed_since(catalogue: Catalogue, plan: Plan, frames_dir: str | os.PathLi
             changes = plan_changes(catalogue.run(run["id"])["plan_text"], plan.text)
             if changes:
                 progress = _progress(catalogue.run_summary(run["id"]), frames_dir, catalogue.path)
-                return (f": run {run['id']} of it is {progress}, "
-                        f"but with other {', '.join(changes)}; put its values back to resume it, or run without "
-                        "--resume to start this plan afresh")
+                return (f": run {run['id']} of it is {progress}, but the plan changed since ({'; '.join(changes)}); "
+                        "put its values back to resume it, or run it with --new instead of --resume to start "
+                        "afresh")
     return ""
 
 
