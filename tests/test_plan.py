@@ -8,7 +8,9 @@ import pytest
 
 from psfd.cli import main
 from psfd.daemon.plan import Step, check_text, load_plan, parse_plan, plan_changes, plan_content, plan_key
-from psfd.errors import BadInputError
+from psfd.drivers import open_rig
+from psfd.drivers.sim import SimRig
+from psfd.errors import BadInputError, CameraError
 
 GOOD = """
 [rig]
@@ -256,8 +258,18 @@ x = [1300]
     ("exposure = 5", "exposure must be a fraction of the raw range, above 0 and at most 1, got 5"),
     ('sensor = "big"', "sensor must be [rows, columns], two positive even integers, got 'big'"),
     ("sensor = [481, 640]", "sensor must be [rows, columns], two positive even integers, got [481, 640]"),
-    ("texture_mm = -3", "texture_mm must be a positive number, got -3"),
+    ("texture_mm = -3", "texture_mm must be a number from 10 to 100000 mm, got -3"),
     ("limits = { x = [3000, 200] }", "limits.x must be [low, high] with low <= high, got [3000, 200]"),
+    # absurd but positive optics: the renderer took all memory (MemoryError at the first frame, pitch_um = 1e9)
+    ("pitch_um = 1e9", "pitch_um must be a number from 0.5 to 50 um, got 1000000000.0"),
+    ("focal_mm = 1e6", "focal_mm must be a number from 4 to 2000 mm, got 1000000.0"),
+    ("cell_mm = 1e-9", "cell_mm must be a number from 0.01 to 100 mm, got 1e-09"),
+    # within those, a view the simulated camera cannot render at the plan's rail X or aperture
+    ("pitch_um = 50\nfocal_mm = 4", "at x = 1300 a target cell (cell_mm) images to 0.00309 channel pixels "
+                                   "(pitch_um = 50, focal_mm = 4), too small to simulate (at least 0.05)"),
+    ("focal_mm = 1500", "x = 1300 inside the focal length (focal_mm = 1500)"),
+    ("pitch_um = 0.6\ns = 8", "pitch_um = 0.6 is finer than the simulated PSF renders at s = 8 and f/5.6 (0.64 um "
+                              "at least)"),
 ])
 def test_simulated_rig_options_are_checked_before_the_run(tmp_path, capsys, option, needle):
     """A simulated rig's own [rig] keys are refused by plan check and by run with exit 2 and one line, before
@@ -284,3 +296,29 @@ def test_values_one_step_key_apart_are_listed_twice(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "[capture] x lists 1300.001 and 1300.004, one value (1300) to the 6 significant digits" in err
     assert check_text(GOOD.replace("[5.6, 8]", "[5.6, 5.6]")) == ["[capture] apertures lists 5.6 twice"]
+
+
+def test_the_simulated_rig_prints_the_cell_the_plan_scales_for():
+    """[target] cell_mm with ``scale`` on the simulated rig: the rail went where a 0.2 mm cell images to 1/4
+    pixel and the rig rendered its own 0.1 mm cells there, at 1/8 pixel. The rig's cell follows [target]
+    now (to the 0.01 mm the rail X is rounded to, 1e-6 pixel); given in both tables, they must agree."""
+    text = SIM_STEP.format(option="").replace('"bernoulli"', '"bernoulli"\ncell_mm = 0.2').replace("x = [1300]",
+                                                                                                  "scale = [0.25]")
+    plan = parse_plan(text)
+    camera, _ = open_rig(plan.rig_config())
+    assert camera.rig.cell_mm == 0.2 and camera.rig.pixels_per_cell(plan.x[0]) == pytest.approx(0.25, abs=1e-5)
+    assert check_text(text.replace("simulate = true", "simulate = true\ncell_mm = 0.2")) == []
+    assert check_text(text.replace("simulate = true", "simulate = true\ncell_mm = 0.1")) == [
+        "[target] cell_mm = 0.2 and [rig] cell_mm = 0.1 disagree: the simulated rig prints its target with "
+        "[target]'s cell when [rig] gives none (give it once)"]
+
+
+def test_a_view_too_small_to_render_is_refused_by_the_simulated_camera(tmp_path):
+    """A capture by hand where a target cell images to 1/50 pixel (pitch 50 um, 4 mm lens, rail at 200 mm) is
+    refused in one line, nothing written: the bound keeps the renderer's padded raster small."""
+    rig = SimRig(pitch_um=50, focal_mm=4)
+    assert rig.pixels_per_cell() == pytest.approx(4 / 196 * 0.1 / 0.1)
+    with pytest.raises(CameraError, match=r"cannot render this view: at x = 200 a target cell \(cell_mm\) images to "
+                                          r"0.0204 channel pixels .* \(at least 0.05\)"):
+        rig.camera.capture(tmp_path / "out")
+    assert not list((tmp_path / "out").iterdir())

@@ -298,7 +298,8 @@ def parse_plan(text: str, path: str = "<plan>") -> Plan:
         more = f" ({len(problems) - 1} more; run 'psfd plan check {path}')" if len(problems) > 1 else ""
         raise BadInputError(f"plan {path}: {problems[0]}{more}")
     data = tomllib.loads(text)
-    rig, target = data.get("rig", {}), data["target"]
+    target = data["target"]
+    rig = simulated_rig(data.get("rig", {}), target)
     capture, estimator = data["capture"], data.get("estimator", {})
     channels = capture.get("channels", ["g1"])
     return Plan(
@@ -353,6 +354,7 @@ def check_text(text: str) -> list[str]:
     problems += _check_count(tables["capture"], kind)
     problems += _check_optics(tables["rig"], tables["target"], tables["capture"])
     problems += _check_limits(tables["rig"], tables["target"], tables["capture"], kind)
+    problems += _check_simulated(tables["rig"], tables["target"], tables["capture"], kind)
     problems += _check_estimator(tables["estimator"], kind)
     problems += _check_ratio(tables["target"], tables["estimator"], kind)
     return problems
@@ -545,6 +547,38 @@ def _check_limits(rig: dict, target: dict, capture: dict, kind: Any) -> list[str
     return problems
 
 
+def _check_simulated(rig: dict, target: dict, capture: dict, kind: Any) -> list[str]:
+    """The simulated rig against the plan: one printed cell (`simulated_rig`), and a view it can render at
+    every rail distance of the plan (`psfd.drivers.sim.SimRig.scene_problems`)."""
+    if rig.get("simulate") is not True:
+        return []
+    from psfd.drivers.sim import SimRig, option_problems
+
+    try:
+        cell = target_cell(target)
+    except BadInputError as exc:
+        return [] if "scale" in capture else [f"[target] {exc}"]  # a scale's own problem is _check_optics'
+    if "cell_mm" in rig and _is_number(cell) and _is_number(rig["cell_mm"]) and cell != rig["cell_mm"]:
+        return [f"[target] cell_mm = {fmt(cell)} and [rig] cell_mm = {fmt(rig['cell_mm'])} disagree: the simulated "
+                "rig prints its target with [target]'s cell when [rig] gives none (give it once)"]
+    options = {k: v for k, v in simulated_rig(rig, target).items() if k in SIM_KEYS and k != "limits"}
+    problems = option_problems(options)
+    if problems:  # [rig]'s own are _check_rig's; a cell of [target] is named here (a non-positive one, _check_optics)
+        return [f"[target] {p}" for p in problems if p.startswith("cell_mm") and "cell_mm" not in rig
+                and _is_number(cell) and cell > 0]
+    if kind == TWO_PHOTO:
+        distances = [target.get("near"), target.get("far")]
+    else:
+        try:
+            distances = scale_distances(rig, target, capture["scale"]) if "scale" in capture else capture.get("x")
+        except (BadInputError, TypeError, ValueError):
+            distances = []  # the scale's own problem is reported by _check_optics
+    distances = [float(d) for d in distances or [] if _is_number(d)]
+    apertures = [float(a) for a in capture.get("apertures", []) if _is_number(a) and a > 0] \
+        if isinstance(capture.get("apertures"), list) else []
+    return [f"[rig] {p}" for p in SimRig(**options).scene_problems(distances, apertures)]
+
+
 # ---------------------------------------------------------------------- optics and the rail
 
 
@@ -560,11 +594,7 @@ def optics(rig: dict, target: dict) -> dict[str, float]:
         One of the three is missing or not a positive number.
     """
     values: dict[str, Any] = {"focal_mm": rig.get("focal_mm"), "pitch_um": rig.get("pitch_um")}
-    values["cell_mm"] = target.get("cell_mm")
-    if values["cell_mm"] is None and isinstance(target.get("printed"), str):
-        from psfd.printing import printed_cell_mm
-
-        values["cell_mm"] = printed_cell_mm(target["printed"])
+    values["cell_mm"] = target_cell(target)
     if rig.get("simulate") is True:
         from psfd.drivers.sim import SimRig
 
@@ -578,6 +608,28 @@ def optics(rig: dict, target: dict) -> dict[str, float]:
     if bad:
         raise BadInputError(f"{', '.join(bad)} must be positive numbers")
     return {k: float(v) for k, v in values.items()}
+
+
+def target_cell(target: dict) -> Any:
+    """The printed cell (mm) [target] gives: ``cell_mm``, else the page of its ``printed`` PDF; None without either.
+
+    Raises
+    ------
+    BadInputError
+        The printed PDF cannot be read.
+    """
+    if target.get("cell_mm") is None and isinstance(target.get("printed"), str):
+        from psfd.printing import printed_cell_mm
+
+        return printed_cell_mm(target["printed"])
+    return target.get("cell_mm")
+
+
+def simulated_rig(rig: dict, target: dict) -> dict:
+    """[rig] of a simulated rig with the printed cell of [target] (`target_cell`) when [rig] gives none: the
+    simulated target is then the one the plan's ``scale`` puts the rail for (else its own 0.1 mm cell)."""
+    cell = target_cell(target) if rig.get("simulate") is True and "cell_mm" not in rig else None
+    return rig if cell is None else {**rig, "cell_mm": cell}
 
 
 def scale_distances(rig: dict, target: dict, scales: list[float]) -> list[float]:
