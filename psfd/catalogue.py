@@ -1300,8 +1300,8 @@ COLUMNS: dict[str, dict[str, str]] = {
         "id": "run id",
         "rig_id": "the rig (rigs.id)",
         "plan_path": "path of the plan file as given",
-        "plan_text": "the plan's TOML text, verbatim (a run is resumed for a text of the same content: comments "
-                     "and layout aside)",
+        "plan_text": "the plan's TOML text, verbatim (a run is resumed for a text of the same plan: comments, "
+                     "layout and defaults written out aside)",
         "plan_hash": "SHA-256 of plan_text",
         "started": "start, ISO 8601 UTC",
         "finished": "end, ISO 8601 UTC (empty while running)",

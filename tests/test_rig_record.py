@@ -79,7 +79,8 @@ def test_a_plan_that_departs_from_the_recording_is_told_where_before_its_run_ope
     lists it and `psfd run` refuses it in one line (exit 2) before a catalogue is made, where the run opened and
     paused at the first capture that differs (exit 4)."""
     recording = tmp_path / "rec"
-    code, _, err = run(capfd, "record", "--simulate", "--out", str(recording), "--at", f"X={X},Y=0", "--aperture", "4,8")
+    code, _, err = run(capfd, "record", "--simulate", "--out", str(recording), "--at", f"X={X},Y=0",
+                       "--aperture", "4,8")
     assert code == 0, err
     rig = f'recording = "{recording}"'
 

@@ -331,9 +331,9 @@ class Runner:
         """Run (or resume) a plan on an open rig; the rig is released when the run ends.
 
         With ``resume`` the latest unfinished (paused or interrupted) run of this
-        plan (`Catalogue.unfinished_run`: the same content, whatever its comments or
-        layout) goes on with its own stored steps (pending, failed and interrupted). Without
-        it a new run starts, unless the plan has an unfinished run and ``new`` is
+        plan (`Catalogue.unfinished_run` by `plan_key`: the same steps and settings, whatever its
+        comments, layout or defaults written out) goes on with its own stored steps (pending, failed and
+        interrupted). Without it a new run starts, unless the plan has an unfinished run and ``new`` is
         false: that is refused, so that no PSF is stored twice by accident.
         A ``oneshot`` run (`psfd capture`) is never left resumable: where it
         would pause it is closed as ``failed``.
@@ -749,8 +749,8 @@ def start_check(catalogue: Catalogue, plan: Plan, resume: bool, new: bool,
     Raises
     ------
     BadInputError
-        ``resume`` and the plan has no unfinished run (`Catalogue.unfinished_run`: none of the same
-        content), saying so when one was started from this file with other values; or it has one
+        ``resume`` and the plan has no unfinished run (`Catalogue.unfinished_run` by `plan_key`: none
+        of the same plan), saying what changed when one was started from this file; or it has one
         and neither ``resume`` nor ``new`` was asked.
     """
     unfinished = catalogue.unfinished_run(plan.text, plan_key)
@@ -780,7 +780,7 @@ def _progress(summary: dict, frames_dir: str | os.PathLike | None, catalogue_pat
 
 
 def _reworded(run: dict, plan: Plan) -> str:
-    """Why a run is of this plan although the file was moved or edited since: a plan is what its text says."""
+    """Why a run is of this plan although the file was moved or edited since: a plan is what it does (`plan_key`)."""
     notes = []
     if not _same_file(run["plan_path"], plan.path):
         notes.append(f"started from {run['plan_path']}")
@@ -790,7 +790,7 @@ def _reworded(run: dict, plan: Plan) -> str:
 
 
 def _changed_since(catalogue: Catalogue, plan: Plan, frames_dir: str | os.PathLike | None) -> str:
-    """Why ``--resume`` finds no run of a plan file that has one: the file's content changed since, and where.
+    """Why ``--resume`` finds no run of a plan file that has one: what the plan changed since (`plan_changes`).
 
     Empty when no unfinished run was started from this file.
     """
