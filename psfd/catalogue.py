@@ -783,11 +783,14 @@ class Catalogue:
             )
         return run_id
 
-    def plan_runs(self, plan_text: str, states: tuple[str, ...] | None = None) -> list[dict]:
+    def plan_runs(self, plan_text: str, states: tuple[str, ...] | None = None,
+                  key: Callable[[str], str] = plan_content) -> list[dict]:
         """The runs of this plan, newest first: id, state, started, finished, psfs; ``states``: only those in them.
 
-        A run is of this plan when its text says the same (`plan_content`): a plan whose comments or layout
-        were edited after a stop is still the plan of its runs, so that no position is measured twice.
+        A run is of this plan when ``key`` gives its stored text and ``plan_text`` one string: by default
+        when the texts say the same (`plan_content`); the daemon's `psfd.daemon.plan.plan_key` also takes
+        defaults written out for the plan they stand for. So a plan edited after a stop without changing
+        what it does is still the plan of its runs, and no position is measured twice.
         """
         sql = ("SELECT u.id, u.state, u.started, u.finished, u.plan_text, "
                "(SELECT count(*) FROM psfs p WHERE p.run_id = u.id) AS psfs FROM runs u")
@@ -797,20 +800,20 @@ class Catalogue:
             params += list(states)
         with self._read() as db:
             rows = list(db.query(sql + " ORDER BY u.id DESC", params))
-        content, same = plan_content(plan_text), {}  # each stored text is parsed once
+        content, same = key(plan_text), {}  # each stored text is parsed once
         for row in rows:
             if row["plan_text"] not in same:
-                same[row["plan_text"]] = plan_content(row["plan_text"]) == content
+                same[row["plan_text"]] = key(row["plan_text"]) == content
         return [{k: v for k, v in row.items() if k != "plan_text"} for row in rows if same[row["plan_text"]]]
 
-    def unfinished_run(self, plan_text: str) -> int | None:
-        """The run of this plan (`plan_runs`) to resume: the newest that is ``running`` or ``paused``
+    def unfinished_run(self, plan_text: str, key: Callable[[str], str] = plan_content) -> int | None:
+        """The run of this plan (`plan_runs` by ``key``) to resume: the newest that is ``running`` or ``paused``
         (`UNFINISHED_STATES`), or None. Done, cancelled and failed runs are closed.
 
         Whether a ``running`` run is still alive or was killed is the frame store's to say
         (`psfd.daemon.store.shown_state`); either way it is unfinished.
         """
-        return next((int(r["id"]) for r in self.plan_runs(plan_text, UNFINISHED_STATES)), None)
+        return next((int(r["id"]) for r in self.plan_runs(plan_text, UNFINISHED_STATES, key)), None)
 
     def finish_run(self, run_id: int, state: str) -> None:
         """Set a run's state (``done``, ``paused``, ``cancelled``, ``failed``; ``running`` to resume it)."""
@@ -1297,8 +1300,8 @@ COLUMNS: dict[str, dict[str, str]] = {
         "id": "run id",
         "rig_id": "the rig (rigs.id)",
         "plan_path": "path of the plan file as given",
-        "plan_text": "the plan's TOML text, verbatim (a run is resumed for a text of the same content: comments "
-                     "and layout aside)",
+        "plan_text": "the plan's TOML text, verbatim (a run is resumed for a text of the same plan: comments, "
+                     "layout and defaults written out aside)",
         "plan_hash": "SHA-256 of plan_text",
         "started": "start, ISO 8601 UTC",
         "finished": "end, ISO 8601 UTC (empty while running)",

@@ -218,15 +218,15 @@ def plan_content(text: str) -> str:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError:
         return json.dumps([text])
-    return json.dumps(_canonical(data), sort_keys=True, default=repr)
+    return json.dumps(canonical(data), sort_keys=True, default=repr)
 
 
-def _canonical(value: Any) -> Any:
+def canonical(value: Any) -> Any:
     """A parsed TOML value with each whole float as an int: a plan reads 4.0 as it reads 4 (booleans stay)."""
     if isinstance(value, dict):
-        return {key: _canonical(v) for key, v in value.items()}
-    if isinstance(value, list):
-        return [_canonical(v) for v in value]
+        return {key: canonical(v) for key, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [canonical(v) for v in value]
     if isinstance(value, float) and value.is_integer():
         return int(value)
     return value

@@ -7,8 +7,10 @@ import textwrap
 import pytest
 
 from psfd.cli import main
-from psfd.daemon.plan import Step, check_text, load_plan, parse_plan, plan_changes, plan_content
-from psfd.errors import BadInputError
+from psfd.daemon.plan import Step, check_text, load_plan, parse_plan, plan_changes, plan_content, plan_key
+from psfd.drivers import open_rig
+from psfd.drivers.sim import SimRig
+from psfd.errors import BadInputError, CameraError
 
 GOOD = """
 [rig]
@@ -182,7 +184,58 @@ def test_plan_content_ignores_the_wording_and_changes_name_the_keys():
     assert plan_content(reworded) == plan_content(GOOD) and plan_changes(GOOD, reworded) == []
     changed = GOOD.replace("[5.6, 8]", "[5.6, 11]").replace("grid = [2, 1]\n", "")
     assert plan_content(changed) != plan_content(GOOD)
-    assert plan_changes(GOOD, changed) == ["[capture] apertures", "[estimator] grid"]
+    assert plan_changes(GOOD, changed) == ["[capture] apertures [5.6, 8] -> [5.6, 11]",
+                                           "[estimator] grid [2, 1] -> [1, 1]"]
+
+
+BARE = """
+[rig]
+simulate = true
+
+[target]
+kind = "bernoulli"
+
+[capture]
+apertures = [5.6, 8]
+x = [1300]
+"""
+
+
+def test_a_plan_is_what_it_does_not_which_defaults_it_writes_out():
+    """Defaults written out, comments, key order, channels in another order or as "all": the one plan
+    (`plan_key`); anything that changes a frame or an estimate is another, and `plan_changes` names it."""
+    same = [
+        BARE.replace("x = [1300]", 'channels = ["g1"]\nrepeats = 1\nx = [1300.0]  # mm'),
+        "# lens cap on\n" + BARE + "\n[estimator]\ns = 4\nsupport = 17\nsolver = \"nnls\"\ngrid = [1, 1]\n",
+        BARE.replace("simulate = true", 'simulate = true\nseed = 0\nrail = "simulated"\ncamera = { focus = "off" }'),
+        BARE.replace("x = [1300]", "scale = [0.25]"),  # where the simulated rig puts a cell at 1/4 px: x = 1300
+    ]
+    for text in same:
+        assert plan_key(text) == plan_key(BARE) and plan_changes(BARE, text) == [], text
+    all_four = BARE + 'channels = "all"\n'
+    assert plan_key(all_four) == plan_key(BARE + 'channels = ["b", "g2", "r", "g1"]\n')
+    other = {
+        BARE.replace("[5.6, 8]", "[5.6, 11]"): "[capture] apertures [5.6, 8] -> [5.6, 11]",
+        BARE.replace("[5.6, 8]", "[8, 5.6]"): "[capture] apertures [5.6, 8] -> [8, 5.6]",
+        BARE.replace("[1300]", "[1310]"): "[capture] x [1300] -> [1310]",
+        BARE.replace("x = [1300]", "scale = [0.2]"): "[capture] x [1300] -> [",  # farther: a cell to 0.2 px
+        BARE + "y = [0]\n": "[capture] y unset -> [0]",
+        all_four: '[capture] channels ["g1"] -> ["r", "g1", "g2", "b"]',
+        BARE + "repeats = 2\n": "[capture] repeats 1 -> 2",
+        BARE + "[estimator]\ns = 3\nsupport = 17\n": "[estimator] s 4 -> 3",
+        BARE + "[estimator]\nsupport = 21\n": "[estimator] support 17 -> 21",
+        BARE + '[estimator]\nsolver = "ls"\n': '[estimator] solver "nnls" -> "ls"',
+        BARE + "[estimator]\ngrid = [2, 1]\n": "[estimator] grid [1, 1] -> [2, 1]",
+        BARE.replace("true", 'true\nsettings = { iso = "100" }'): '[rig] settings {} -> {"iso": "100"}',
+        BARE.replace("true", "true\ncamera = { settle_s = 1.0 }"): "[rig] camera",
+        BARE.replace("true", "true\nseed = 1"): "[rig] seed 0 -> 1",
+        BARE.replace("true", "true\npitch_um = 6"): "[rig] pitch_um 8 -> 6",
+    }
+    for text, change in other.items():
+        assert plan_key(text) != plan_key(BARE), text
+        changes = plan_changes(BARE, text)
+        assert len(changes) == 1 and changes[0].startswith(change), (changes, change)
+    assert plan_key("not = [toml") == plan_content("not = [toml")  # no plan: only its text's content
 
 
 SIM_STEP = """
@@ -205,8 +258,18 @@ x = [1300]
     ("exposure = 5", "exposure must be a fraction of the raw range, above 0 and at most 1, got 5"),
     ('sensor = "big"', "sensor must be [rows, columns], two positive even integers, got 'big'"),
     ("sensor = [481, 640]", "sensor must be [rows, columns], two positive even integers, got [481, 640]"),
-    ("texture_mm = -3", "texture_mm must be a positive number, got -3"),
+    ("texture_mm = -3", "texture_mm must be a number from 10 to 100000 mm, got -3"),
     ("limits = { x = [3000, 200] }", "limits.x must be [low, high] with low <= high, got [3000, 200]"),
+    # absurd but positive optics: the renderer took all memory (MemoryError at the first frame, pitch_um = 1e9)
+    ("pitch_um = 1e9", "pitch_um must be a number from 0.5 to 50 um, got 1000000000.0"),
+    ("focal_mm = 1e6", "focal_mm must be a number from 4 to 2000 mm, got 1000000.0"),
+    ("cell_mm = 1e-9", "cell_mm must be a number from 0.01 to 100 mm, got 1e-09"),
+    # within those, a view the simulated camera cannot render at the plan's rail X or aperture
+    ("pitch_um = 50\nfocal_mm = 4", "at x = 1300 a target cell (cell_mm) images to 0.00309 channel pixels "
+                                   "(pitch_um = 50, focal_mm = 4), too small to simulate (at least 0.05)"),
+    ("focal_mm = 1500", "x = 1300 inside the focal length (focal_mm = 1500)"),
+    ("pitch_um = 0.6\ns = 8", "pitch_um = 0.6 is finer than the simulated PSF renders at s = 8 and f/5.6 (0.64 um "
+                              "at least)"),
 ])
 def test_simulated_rig_options_are_checked_before_the_run(tmp_path, capsys, option, needle):
     """A simulated rig's own [rig] keys are refused by plan check and by run with exit 2 and one line, before
@@ -233,3 +296,29 @@ def test_values_one_step_key_apart_are_listed_twice(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "[capture] x lists 1300.001 and 1300.004, one value (1300) to the 6 significant digits" in err
     assert check_text(GOOD.replace("[5.6, 8]", "[5.6, 5.6]")) == ["[capture] apertures lists 5.6 twice"]
+
+
+def test_the_simulated_rig_prints_the_cell_the_plan_scales_for():
+    """[target] cell_mm with ``scale`` on the simulated rig: the rail went where a 0.2 mm cell images to 1/4
+    pixel and the rig rendered its own 0.1 mm cells there, at 1/8 pixel. The rig's cell follows [target]
+    now (to the 0.01 mm the rail X is rounded to, 1e-6 pixel); given in both tables, they must agree."""
+    text = SIM_STEP.format(option="").replace('"bernoulli"', '"bernoulli"\ncell_mm = 0.2').replace("x = [1300]",
+                                                                                                  "scale = [0.25]")
+    plan = parse_plan(text)
+    camera, _ = open_rig(plan.rig_config())
+    assert camera.rig.cell_mm == 0.2 and camera.rig.pixels_per_cell(plan.x[0]) == pytest.approx(0.25, abs=1e-5)
+    assert check_text(text.replace("simulate = true", "simulate = true\ncell_mm = 0.2")) == []
+    assert check_text(text.replace("simulate = true", "simulate = true\ncell_mm = 0.1")) == [
+        "[target] cell_mm = 0.2 and [rig] cell_mm = 0.1 disagree: the simulated rig prints its target with "
+        "[target]'s cell when [rig] gives none (give it once)"]
+
+
+def test_a_view_too_small_to_render_is_refused_by_the_simulated_camera(tmp_path):
+    """A capture by hand where a target cell images to 1/50 pixel (pitch 50 um, 4 mm lens, rail at 200 mm) is
+    refused in one line, nothing written: the bound keeps the renderer's padded raster small."""
+    rig = SimRig(pitch_um=50, focal_mm=4)
+    assert rig.pixels_per_cell() == pytest.approx(4 / 196 * 0.1 / 0.1)
+    with pytest.raises(CameraError, match=r"cannot render this view: at x = 200 a target cell \(cell_mm\) images to "
+                                          r"0.0204 channel pixels .* \(at least 0.05\)"):
+        rig.camera.capture(tmp_path / "out")
+    assert not list((tmp_path / "out").iterdir())

@@ -65,7 +65,7 @@ def test_plan_check_notes_a_rail_it_cannot_ask(capsys, tmp_path):
 def test_plan_check_asks_the_recording(capsys, tmp_path):
     recording = tmp_path / "rec"
     assert main(["record", "--simulate", "--rail-limits", "X=200:3000", "--out", str(recording),
-                 "--at", "X=1300"]) == 0
+                 "--at", "X=1300", "--aperture", "8"]) == 0  # the plan's capture: it replays
     capsys.readouterr()
     code, _, err = check(capsys, tmp_path, plan_text(f'recording = "{recording}"', "x = [1300]\ny = [0, 10]"))
     assert code == 2 and "y = 0, 10: the rail (psfd simulated rail) has no Y axis (axes: X)" in err

@@ -74,12 +74,45 @@ def test_a_plan_replays_a_recording_made_at_its_positions(capfd, tmp_path):
     assert "2 steps, 2 frames, 2 PSFs" in out
 
 
-def test_a_plan_that_departs_from_the_recording_is_told_where(capfd, tmp_path):
+def test_a_plan_that_departs_from_the_recording_is_told_where_before_its_run_opens(capfd, tmp_path):
+    """Apertures in another order, another position, more steps than recorded, another scene: `psfd plan check`
+    lists it and `psfd run` refuses it in one line (exit 2) before a catalogue is made, where the run opened and
+    paused at the first capture that differs (exit 4)."""
     recording = tmp_path / "rec"
-    assert run(capfd, "record", "--simulate", "--out", str(recording), "--at", f"X={X}", "--aperture", "4,8")[0] == 0
-    code, out, err, _ = replay_run(capfd, tmp_path, recording, apertures="8, 4")
-    assert code != 0
-    assert "camera.set(name='aperture', value='8') but the recording has camera.set(name='aperture', value='4')" in err
+    code, _, err = run(capfd, "record", "--simulate", "--out", str(recording), "--at", f"X={X},Y=0",
+                       "--aperture", "4,8")
+    assert code == 0, err
+    rig = f'recording = "{recording}"'
+
+    def at_y(text: str, y: str = "0") -> str:
+        return text.replace("channels", f"y = [{y}]\nchannels")
+
+    departing = {
+        "aperture": (at_y(one_channel_plan(rig, "8, 4")),
+                     f"capture 1 (step a8/x{X:g}/y0/r0) was recorded with aperture 4 (the plan: 8); 1 more capture(s) "
+                     "differ"),
+        "position": (at_y(one_channel_plan(rig, "4, 8"), "10"),
+                     f"capture 1 (step a4/x{X:g}/y10/r0) was recorded with rail y 0 (the plan: 10); 1 more"),
+        "steps": (at_y(one_channel_plan(rig, "4, 8, 11")), "holds 2 capture(s), the plan takes 3"),
+        "an axis left alone": (one_channel_plan(rig, "4, 8"),
+                               f"capture 1 (step a4/x{X:g}/r0) was recorded with rail y 0 (the plan: unset); 1 more"),
+        "scene": (at_y(one_channel_plan(rig, "4, 8")).replace('"bernoulli"', '"two-photo"\nnear = 400\nfar = 2000')
+                  .replace(f"x = [{X}]\n", ""), 'shows the simulated scene "bernoulli": a two-photo target needs '
+                                              '"texture"'),
+    }
+    for name, (text, problem) in departing.items():
+        plan = tmp_path / f"{name}.toml"
+        plan.write_text(text)
+        code, out, err = run(capfd, "plan", "check", str(plan))
+        assert code == 2 and f"{plan}: [rig] recording {recording}" in err and problem in err, (name, err)
+        catalogue = tmp_path / f"{name}.sqlite"
+        code, out, err = run(capfd, "run", str(plan), "--local", "--catalogue", str(catalogue), "--workers", "1")
+        assert code == 2 and len(err.strip().splitlines()) == 1 and problem in err, (name, err)
+        assert not catalogue.exists() and not (tmp_path / f"{name}-frames").exists()
+    plan = tmp_path / "same.toml"
+    plan.write_text(at_y(one_channel_plan(rig, "4, 8")))
+    code, out, err = run(capfd, "plan", "check", str(plan))
+    assert code == 0 and out.startswith(f"{plan}: ok, 2 steps"), err
 
 
 def test_record_keeps_what_it_recorded_before_a_failure(capfd, tmp_path):

@@ -389,7 +389,7 @@ def test_a_plan_edited_after_a_kill_is_still_its_plan_and_another_aperture_is_no
     again = _psfd("run", plan_path, *common)
     assert again.returncode == 2 and len(again.stderr.strip().splitlines()) == 1, again.stderr
     assert f"run 1 of plan {plan_path} is interrupted (3/6 steps done): add --resume" in again.stderr
-    assert "comments or layout" in again.stderr  # why an edited file is still the run's plan
+    assert "comments, layout or defaults written out" in again.stderr  # why an edited file is still the run's plan
 
     plan_path.write_text(commented.replace("apertures = [4, 11]", "apertures = [4, 8]"))
     other = _psfd("run", plan_path, "--resume", *common)

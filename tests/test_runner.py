@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -413,3 +414,34 @@ def test_a_failed_step_keeps_the_same_frame_another_catalogue_stored_in_a_shared
         assert again.state == "done"
     with Catalogue(tmp_path / "a.sqlite", readonly=True) as a, Catalogue(tmp_path / "b.sqlite", readonly=True) as b:
         assert stored_files(shared) == a.frame_hashes() | b.frame_hashes()  # no orphan, none missing
+
+
+def test_a_run_paused_by_an_older_psfd_resumes_under_its_plan_with_defaults_written_out(tmp_path, monkeypatch,
+                                                                                         data_dir):
+    """tests/data/paused-run-f26fdaf.sqlite: a catalogue psfd f26fdaf wrote (the plan's runs compared by what its
+    text says), run 1 of the plan below without channels, paused before its first step. The same plan with its
+    defaults written out and a comment resumes that run; one that shoots other steps is refused in one line that
+    names the change and says how to start afresh."""
+    monkeypatch.chdir(tmp_path)
+    shutil.copy(data_dir / "paused-run-f26fdaf.sqlite", "cat.sqlite")
+    defaults = small_plan("repeats = 1\n\n[estimator]\ns = 4\nsupport = 17\n") + "# channels: the default, written out"
+    other = small_plan("repeats = 2\n")
+    with Catalogue("cat.sqlite") as cat:
+        stored = cat.run(1)["plan_text"]
+        assert 'channels = ["g1"]' not in stored and 'channels = ["g1"]' in defaults
+        for text in (defaults, other):  # the same positions as the stored plan
+            assert parse_plan(text).steps()[0].payload() == parse_plan(stored).steps()[0].payload()
+        camera, rail = open_rig(parse_plan(other).rig_config())
+        with pytest.raises(BadInputError) as refused:
+            Runner(cat, "frames", workers=1, progress=None).run(parse_plan(other, "paused-plan.toml"), camera, rail,
+                                                                resume=True)
+        assert str(refused.value) == ("no unfinished run of plan paused-plan.toml to resume: run 1 of it is paused "
+                                      "(0/4 steps done), but the plan changed since ([capture] repeats 1 -> 2); put "
+                                      "its values back to resume it, or run it with --new instead of --resume to "
+                                      "start afresh")
+        plan = parse_plan(defaults, "paused-plan.toml")
+        camera, rail = open_rig(plan.rig_config())
+        result = Runner(cat, "frames", workers=1, progress=None).run(plan, camera, rail, resume=True)
+        assert (result.run_id, result.state, result.steps_done) == (1, "done", 4)
+        assert [r["id"] for r in cat.runs()] == [1]
+    check_complete(tmp_path / "cat.sqlite", tmp_path / "frames", plan)

@@ -154,7 +154,8 @@ def test_pause_resume_then_sigterm_mid_run_and_resume_from_the_cli(served, tmp_p
     with pytest.raises(BadInputError, match=r"is paused .*add --resume to continue it, or --new"):
         client.request(sock, {"cmd": "submit", "plan": plan.text, "path": str(plan_path)})
     # ... with a comment added too: it is the same plan ...
-    with pytest.raises(BadInputError, match=r"is paused .*add --resume to continue it, or --new .*comments or layout"):
+    with pytest.raises(BadInputError,
+                       match=r"is paused .*add --resume to continue it, or --new .*comments, layout or defaults"):
         client.request(sock, {"cmd": "submit", "plan": plan.text + "\n# lens cap removed\n", "path": str(plan_path)})
     # ... and resuming a plan that has no unfinished run (another aperture is another plan) is refused
     with pytest.raises(BadInputError, match="no unfinished run of plan other.toml to resume"):

@@ -459,9 +459,10 @@ def _ask_rail(plan) -> tuple[list[str], str | None]:
     run) is noted on stderr and the plan is judged on its own limits, but a recording that cannot be read
     (a mistyped folder) is a problem, as `psfd run` refuses it. The simulated rig is the one the plan
     describes (its rail_limits name its axes); its camera's apertures are asked as `psfd run` asks them
-    (`runner.aperture_problems`), so that a plan check passes only what the run accepts.
+    (`runner.aperture_problems`), so that a plan check passes only what the run accepts; a recording's
+    captures are held to the plan's (`plan.recording_problems`), as `psfd run` holds them.
     """
-    from psfd.daemon.plan import check_rail
+    from psfd.daemon.plan import check_rail, recording_problems
     from psfd.drivers import open_camera, open_rail
     from psfd.errors import PsfdError
 
@@ -477,6 +478,7 @@ def _ask_rail(plan) -> tuple[list[str], str | None]:
             return [f"[rig] recording: {exc}"], None
         print(f"psfd: note: rail not asked for its travel ({exc})", file=sys.stderr)
         return problems, None
+    problems += recording_problems(plan)
     try:
         info = rail.info()
     except PsfdError as exc:  # an older recording that never asked: each move is checked when it is replayed
@@ -536,7 +538,7 @@ def run_demo(args: argparse.Namespace) -> int:
         text = plan_path.read_text(encoding="utf-8") if plan_path.exists() else demo_plan()
         plan = plans.parse_plan(text, str(plan_path))
         with Catalogue(catalogue) as cat:
-            runs, unfinished = cat.plan_runs(text), cat.unfinished_run(text)
+            runs, unfinished = cat.plan_runs(text, key=plans.plan_key), cat.unfinished_run(text, plans.plan_key)
     except BaseException:
         if created:  # leave no empty working folder behind a refused demo
             with contextlib.suppress(OSError):

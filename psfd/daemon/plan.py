@@ -45,6 +45,7 @@ camera's setup for PSF work (`psfd.drivers.base.CameraSetup`: ``focus``, ``settl
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -55,10 +56,10 @@ from typing import Any
 
 from psfd.drivers import RAIL_DRIVERS, REAL_KEYS, SIM_KEYS
 from psfd.drivers.base import CameraSetup, RailInfo, target_distance
-from psfd.errors import BadInputError
+from psfd.errors import BadInputError, PsfdError
 from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, DEFAULT_SOLVER, PLAN_BYTES_MAX,
-                             SOLVERS, TWO_PHOTO, check_grid, check_s, check_solver, check_steps, check_support,
-                             plan_content)
+                             SOLVERS, TWO_PHOTO, canonical, check_grid, check_s, check_solver, check_steps,
+                             check_support, default_support, plan_content)
 
 # [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys), our
 # camera settings, applied once before the first step, and the camera's setup for PSF work
@@ -114,7 +115,7 @@ class Step:
 
 @dataclass
 class Plan:
-    """A validated plan; ``text`` is kept verbatim with its runs (`plan_content` says which plan it is)."""
+    """A validated plan; ``text`` is kept verbatim with its runs (`plan_key` says which plan it is)."""
 
     text: str
     path: str
@@ -170,17 +171,71 @@ def plan_text(tables: dict[str, dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def plan_meaning(plan: Plan) -> dict[str, dict[str, Any]]:
+    """What a plan does: every value that changes a frame or an estimate, its defaults filled in.
+
+    Two plans of one meaning shoot the same steps with the same settings and estimate them alike,
+    whatever their comments, key order or defaults written out (``repeats = 1``; ``channels = "all"``
+    or the four listed, in any order). Rail X is where the steps go: a ``scale`` made into distances
+    (`scale_distances`), so ``x_at_lens``, ``x_away`` and the cell size count through it; the order
+    of a list of positions or apertures counts, as it orders the steps.
+    """
+    s = plan.estimator.get("s", DEFAULT_S[plan.kind])
+    estimator = {"s": s, "support": plan.estimator.get("support", default_support(s)),
+                 "grid": plan.estimator.get("grid", [1, 1])}
+    if plan.kind == BERNOULLI:
+        estimator["solver"] = plan.estimator.get("solver", DEFAULT_SOLVER)
+    capture = {"apertures": plan.apertures, "x": plan.x, "y": plan.y, "z": plan.z, "repeats": plan.repeats,
+               "channels": [c for c in CHANNELS if c in plan.channels]}
+    target = {"kind": plan.kind, "near": plan.near, "far": plan.far}
+    return canonical({"rig": _rig_meaning(plan.rig), "target": target, "capture": capture, "estimator": estimator})
+
+
+def _rig_meaning(rig: dict[str, Any]) -> dict[str, Any]:
+    """[rig] with the defaults of the rig it opens (`psfd.drivers.open_rig`, `CameraSetup`) written out."""
+    simulate = rig.get("simulate", False) is True
+    defaults: dict[str, Any] = {"simulate": False, "rail": "simulated" if simulate else "grbl", "settings": {}}
+    if simulate:
+        from psfd.drivers.sim import SimRig
+
+        fields = SimRig.__dataclass_fields__
+        defaults.update({k: fields[k].default_factory() if k == "limits" else fields[k].default  # type: ignore[misc]
+                         for k in SIM_KEYS})
+    else:
+        defaults["rail_baudrate"] = 115200
+    meaning = {**defaults, **{k: v for k, v in rig.items() if k not in ("x_at_lens", "x_away")}}
+    meaning["camera"] = dataclasses.asdict(CameraSetup.from_mapping(rig.get("camera")))
+    return meaning
+
+
+def plan_key(text: str) -> str:
+    """Which plan a text is, as one string: two texts are one plan when theirs are equal (`plan_meaning`).
+
+    A text that is no valid plan (a catalogue may hold one an older psfd took) is only its content
+    (`psfd.vocabulary.plan_content`), which the key of no valid plan is.
+    """
+    try:
+        meaning = plan_meaning(parse_plan(text))
+    except PsfdError:
+        return plan_content(text)
+    return json.dumps(["plan", meaning], sort_keys=True)
+
+
 def plan_changes(old: str, new: str) -> list[str]:
-    """Where two plan texts differ in content (`plan_content`), as ``[table] key``, e.g. ``[capture] apertures``."""
-    before, after = (_tables(text) for text in (old, new))
+    """What two plans do differently (`plan_meaning`), one ``[table] key old -> new`` each, e.g.
+    ``[capture] repeats 1 -> 2``; texts that are no valid plan are compared by their content (`plan_content`)."""
+    try:
+        before, after = plan_meaning(parse_plan(old)), plan_meaning(parse_plan(new))
+    except PsfdError:
+        before, after = _tables(old), _tables(new)
     changes = []
     for name in dict.fromkeys([*before, *after]):
         one, two = before.get(name), after.get(name)
         if not (isinstance(one, dict) and isinstance(two, dict)):
             changes += [f"[{name}]"] if _json(one) != _json(two) else []
             continue
-        changes += [f"[{name}] {key}" for key in dict.fromkeys([*one, *two])
-                    if _json(one.get(key)) != _json(two.get(key))]
+        changes += [f"[{name}] {key} {_shown(one.get(key))} -> {_shown(two.get(key))}"
+                    for key in dict.fromkeys([*one, *two]) if _json(one.get(key)) != _json(two.get(key))]
     return changes
 
 
@@ -192,6 +247,12 @@ def _tables(text: str) -> dict[str, Any]:
 def _json(value: Any) -> str:
     """A value's canonical text: compared as text, true is not 1 (as Python's == would have it)."""
     return json.dumps(value, sort_keys=True)
+
+
+def _shown(value: Any, width: int = 40) -> str:
+    """A value as a change names it, on one short line: ``unset`` for a key not given."""
+    text = "unset" if value is None else json.dumps(value, sort_keys=True)
+    return text if len(text) <= width else text[:width - 3] + "..."
 
 
 def _toml(value: Any) -> str:
@@ -237,7 +298,8 @@ def parse_plan(text: str, path: str = "<plan>") -> Plan:
         more = f" ({len(problems) - 1} more; run 'psfd plan check {path}')" if len(problems) > 1 else ""
         raise BadInputError(f"plan {path}: {problems[0]}{more}")
     data = tomllib.loads(text)
-    rig, target = data.get("rig", {}), data["target"]
+    target = data["target"]
+    rig = simulated_rig(data.get("rig", {}), target)
     capture, estimator = data["capture"], data.get("estimator", {})
     channels = capture.get("channels", ["g1"])
     return Plan(
@@ -247,7 +309,7 @@ def parse_plan(text: str, path: str = "<plan>") -> Plan:
         kind=kind_name(target["kind"]),
         apertures=[float(a) for a in capture["apertures"]],
         x=([float(v) for v in capture["x"]] if "x" in capture
-           else scale_distances(rig, target, capture.get("scale", []))),
+           else scale_distances(rig, target, capture["scale"]) if "scale" in capture else []),  # a pair: none
         y=[float(v) for v in capture["y"]] if "y" in capture else None,
         z=[float(v) for v in capture["z"]] if "z" in capture else None,
         channels=list(CHANNELS) if channels == "all" else list(channels),
@@ -292,6 +354,7 @@ def check_text(text: str) -> list[str]:
     problems += _check_count(tables["capture"], kind)
     problems += _check_optics(tables["rig"], tables["target"], tables["capture"])
     problems += _check_limits(tables["rig"], tables["target"], tables["capture"], kind)
+    problems += _check_simulated(tables["rig"], tables["target"], tables["capture"], kind)
     problems += _check_estimator(tables["estimator"], kind)
     problems += _check_ratio(tables["target"], tables["estimator"], kind)
     return problems
@@ -484,6 +547,38 @@ def _check_limits(rig: dict, target: dict, capture: dict, kind: Any) -> list[str
     return problems
 
 
+def _check_simulated(rig: dict, target: dict, capture: dict, kind: Any) -> list[str]:
+    """The simulated rig against the plan: one printed cell (`simulated_rig`), and a view it can render at
+    every rail distance of the plan (`psfd.drivers.sim.SimRig.scene_problems`)."""
+    if rig.get("simulate") is not True:
+        return []
+    from psfd.drivers.sim import SimRig, option_problems
+
+    try:
+        cell = target_cell(target)
+    except BadInputError as exc:
+        return [] if "scale" in capture else [f"[target] {exc}"]  # a scale's own problem is _check_optics'
+    if "cell_mm" in rig and _is_number(cell) and _is_number(rig["cell_mm"]) and cell != rig["cell_mm"]:
+        return [f"[target] cell_mm = {fmt(cell)} and [rig] cell_mm = {fmt(rig['cell_mm'])} disagree: the simulated "
+                "rig prints its target with [target]'s cell when [rig] gives none (give it once)"]
+    options = {k: v for k, v in simulated_rig(rig, target).items() if k in SIM_KEYS and k != "limits"}
+    problems = option_problems(options)
+    if problems:  # [rig]'s own are _check_rig's; a cell of [target] is named here (a non-positive one, _check_optics)
+        return [f"[target] {p}" for p in problems if p.startswith("cell_mm") and "cell_mm" not in rig
+                and _is_number(cell) and cell > 0]
+    if kind == TWO_PHOTO:
+        distances = [target.get("near"), target.get("far")]
+    else:
+        try:
+            distances = scale_distances(rig, target, capture["scale"]) if "scale" in capture else capture.get("x")
+        except (BadInputError, TypeError, ValueError):
+            distances = []  # the scale's own problem is reported by _check_optics
+    distances = [float(d) for d in distances or [] if _is_number(d)]
+    apertures = [float(a) for a in capture.get("apertures", []) if _is_number(a) and a > 0] \
+        if isinstance(capture.get("apertures"), list) else []
+    return [f"[rig] {p}" for p in SimRig(**options).scene_problems(distances, apertures)]
+
+
 # ---------------------------------------------------------------------- optics and the rail
 
 
@@ -499,11 +594,7 @@ def optics(rig: dict, target: dict) -> dict[str, float]:
         One of the three is missing or not a positive number.
     """
     values: dict[str, Any] = {"focal_mm": rig.get("focal_mm"), "pitch_um": rig.get("pitch_um")}
-    values["cell_mm"] = target.get("cell_mm")
-    if values["cell_mm"] is None and isinstance(target.get("printed"), str):
-        from psfd.printing import printed_cell_mm
-
-        values["cell_mm"] = printed_cell_mm(target["printed"])
+    values["cell_mm"] = target_cell(target)
     if rig.get("simulate") is True:
         from psfd.drivers.sim import SimRig
 
@@ -517,6 +608,28 @@ def optics(rig: dict, target: dict) -> dict[str, float]:
     if bad:
         raise BadInputError(f"{', '.join(bad)} must be positive numbers")
     return {k: float(v) for k, v in values.items()}
+
+
+def target_cell(target: dict) -> Any:
+    """The printed cell (mm) [target] gives: ``cell_mm``, else the page of its ``printed`` PDF; None without either.
+
+    Raises
+    ------
+    BadInputError
+        The printed PDF cannot be read.
+    """
+    if target.get("cell_mm") is None and isinstance(target.get("printed"), str):
+        from psfd.printing import printed_cell_mm
+
+        return printed_cell_mm(target["printed"])
+    return target.get("cell_mm")
+
+
+def simulated_rig(rig: dict, target: dict) -> dict:
+    """[rig] of a simulated rig with the printed cell of [target] (`target_cell`) when [rig] gives none: the
+    simulated target is then the one the plan's ``scale`` puts the rail for (else its own 0.1 mm cell)."""
+    cell = target_cell(target) if rig.get("simulate") is True and "cell_mm" not in rig else None
+    return rig if cell is None else {**rig, "cell_mm": cell}
 
 
 def scale_distances(rig: dict, target: dict, scales: list[float]) -> list[float]:
@@ -568,6 +681,61 @@ def check_rail(plan: Plan, info: RailInfo) -> list[str]:
             problems.append(f"{axis} = {', '.join(fmt(v) for v in outside)} outside the travel of the rail "
                             f"({info.controller}) {axis}: [{fmt(lo)}, {fmt(hi)}]")
     return problems
+
+
+def recording_problems(plan: Plan) -> list[str]:
+    """How the recording a plan replays (``[rig] recording``) differs from the plan; empty without one.
+
+    A replayed capture must find the rig where the recorded one stood (`psfd.drivers.recording.Replay`),
+    so each capture of the plan, in its order, is held to the recorded one: its aperture, rail position
+    and camera settings; and a simulated session's scene to the target. Said here, a plan made for another
+    recording is refused before its run opens instead of pausing it at the first capture that differs.
+    """
+    folder = plan.rig.get("recording")
+    if folder is None:
+        return []
+    from psfd.drivers.recording import Replay
+
+    where = f"[rig] recording {folder}"
+    try:
+        replay = Replay(folder)
+    except PsfdError as exc:
+        return [f"{where}: {exc}"]
+    problems = []
+    scene = replay.rig.get("scene", "bernoulli") if replay.rig.get("simulate") is True else None
+    wanted = "texture" if plan.kind == TWO_PHOTO else "bernoulli"
+    if scene is not None and scene != wanted:
+        problems.append(f'{where} shows the simulated scene "{scene}": a {plan.kind} target needs "{wanted}"')
+    captures = [(step, x) for step in plan.steps() for x in (step.x if isinstance(step.x, tuple) else (step.x,))]
+    shots = replay.shots()
+    if len(shots) < len(captures):
+        problems.append(f"{where} holds {len(shots)} capture(s), the plan takes {len(captures)}")
+    settings = {k: str(v) for k, v in plan.rig.get("settings", {}).items()}
+    differ = [(n, step, wrong) for n, ((step, x), shot) in enumerate(zip(captures, shots), 1)
+              if (wrong := _shot_differences(step, x, settings, shot))]
+    if differ:
+        n, step, wrong = differ[0]
+        more = f"; {len(differ) - 1} more capture(s) differ" if len(differ) > 1 else ""
+        problems.append(f"{where}: capture {n} (step {step.key}) was recorded with {', '.join(wrong)}{more}")
+    return problems
+
+
+def _shot_differences(step: Step, x: float, settings: dict[str, str],
+                      shot: tuple[dict[str, str], dict[str, float]]) -> list[str]:
+    """What differs between a recorded capture and the plan's capture at rail ``x`` of ``step``: ``aperture 8
+    (the plan: 5.6)``, ``rail y -40 (the plan: 0)``; compared as the replay compares them."""
+    from psfd.drivers.recording import AXIS_TOLERANCE, same_setting
+
+    recorded, at = shot
+    wanted = {"aperture": fmt(step.aperture), **settings}
+    wrong = [f"{name} {recorded.get(name, 'unset')} (the plan: {value})" for name, value in wanted.items()
+             if not (name in recorded and same_setting(recorded[name], value))]
+    planned = {axis: value for axis, value in zip(AXES, (x, step.y, step.z)) if value is not None}
+    for axis in (a for a in AXES if a in planned or a in at):  # an axis the plan leaves alone was not moved
+        if not (axis in planned and axis in at and abs(at[axis] - planned[axis]) <= AXIS_TOLERANCE):
+            shown = [fmt(where[axis]) if axis in where else "unset" for where in (at, planned)]
+            wrong.append(f"rail {axis} {shown[0]} (the plan: {shown[1]})")
+    return wrong
 
 
 def _check_ratio(target: dict, est: dict, kind: Any) -> list[str]:

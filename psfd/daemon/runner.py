@@ -64,7 +64,7 @@ from typing import IO, Any, Callable
 
 from psfd.catalogue import UNFINISHED_STATES, Catalogue, FrameRecord, catalogue_exists, check_owner, discard_unused
 from psfd.daemon import work
-from psfd.daemon.plan import Plan, Step, check_rail, plan_changes
+from psfd.daemon.plan import Plan, Step, check_rail, plan_changes, plan_key, recording_problems
 from psfd.daemon.store import (INCOMING, catalogue_lock, catalogue_lock_path, check_catalogue_free, check_room,
                                shown_state, storage_error, store_frame, store_lock, sweep_frames)
 from psfd.drivers import open_rig
@@ -331,9 +331,9 @@ class Runner:
         """Run (or resume) a plan on an open rig; the rig is released when the run ends.
 
         With ``resume`` the latest unfinished (paused or interrupted) run of this
-        plan (`Catalogue.unfinished_run`: the same content, whatever its comments or
-        layout) goes on with its own stored steps (pending, failed and interrupted). Without
-        it a new run starts, unless the plan has an unfinished run and ``new`` is
+        plan (`Catalogue.unfinished_run` by `plan_key`: the same steps and settings, whatever its
+        comments, layout or defaults written out) goes on with its own stored steps (pending, failed and
+        interrupted). Without it a new run starts, unless the plan has an unfinished run and ``new`` is
         false: that is refused, so that no PSF is stored twice by accident.
         A ``oneshot`` run (`psfd capture`) is never left resumable: where it
         would pause it is closed as ``failed``.
@@ -673,14 +673,15 @@ def position_lost(rail: Rail, catalogue: Catalogue, run_id: int) -> str | None:
 
 
 def check_rig(plan: Plan, camera: Camera, rail: Rail) -> None:
-    """Refuse a plan the open rig says it cannot do: positions off the rail, apertures the camera lacks.
+    """Refuse a plan the open rig says it cannot do: positions off the rail, apertures the camera lacks,
+    captures its recording does not hold.
 
     Raises
     ------
     BadInputError
-        The problems of `rail_problems` and `aperture_problems`, on one line.
+        The problems of `rail_problems`, `aperture_problems` and `recording_problems`, on one line.
     """
-    problems = rail_problems(plan, rail) + aperture_problems(plan, camera)
+    problems = rail_problems(plan, rail) + aperture_problems(plan, camera) + recording_problems(plan)
     if problems:
         raise BadInputError(f"{plan.path}: {'; '.join(problems)}")
 
@@ -748,11 +749,11 @@ def start_check(catalogue: Catalogue, plan: Plan, resume: bool, new: bool,
     Raises
     ------
     BadInputError
-        ``resume`` and the plan has no unfinished run (`Catalogue.unfinished_run`: none of the same
-        content), saying so when one was started from this file with other values; or it has one
+        ``resume`` and the plan has no unfinished run (`Catalogue.unfinished_run` by `plan_key`: none
+        of the same plan), saying what changed when one was started from this file; or it has one
         and neither ``resume`` nor ``new`` was asked.
     """
-    unfinished = catalogue.unfinished_run(plan.text)
+    unfinished = catalogue.unfinished_run(plan.text, plan_key)
     if resume:
         if unfinished is None:
             raise BadInputError(f"no unfinished run of plan {plan.path} to resume"
@@ -779,17 +780,17 @@ def _progress(summary: dict, frames_dir: str | os.PathLike | None, catalogue_pat
 
 
 def _reworded(run: dict, plan: Plan) -> str:
-    """Why a run is of this plan although the file was moved or edited since: a plan is what its text says."""
+    """Why a run is of this plan although the file was moved or edited since: a plan is what it does (`plan_key`)."""
     notes = []
     if not _same_file(run["plan_path"], plan.path):
         notes.append(f"started from {run['plan_path']}")
     if run["plan_text"] != plan.text:
-        notes.append("the same plan: the texts differ in comments or layout only")
+        notes.append("the same plan: the texts differ in comments, layout or defaults written out only")
     return f" ({'; '.join(notes)})" if notes else ""
 
 
 def _changed_since(catalogue: Catalogue, plan: Plan, frames_dir: str | os.PathLike | None) -> str:
-    """Why ``--resume`` finds no run of a plan file that has one: the file's content changed since, and where.
+    """Why ``--resume`` finds no run of a plan file that has one: what the plan changed since (`plan_changes`).
 
     Empty when no unfinished run was started from this file.
     """
@@ -798,9 +799,9 @@ def _changed_since(catalogue: Catalogue, plan: Plan, frames_dir: str | os.PathLi
             changes = plan_changes(catalogue.run(run["id"])["plan_text"], plan.text)
             if changes:
                 progress = _progress(catalogue.run_summary(run["id"]), frames_dir, catalogue.path)
-                return (f": run {run['id']} of it is {progress}, "
-                        f"but with other {', '.join(changes)}; put its values back to resume it, or run without "
-                        "--resume to start this plan afresh")
+                return (f": run {run['id']} of it is {progress}, but the plan changed since ({'; '.join(changes)}); "
+                        "put its values back to resume it, or run it with --new instead of --resume to start "
+                        "afresh")
     return ""
 
 

@@ -58,10 +58,10 @@ from typing import Any
 
 from psfd.catalogue import Catalogue
 from psfd.daemon.client import MAX_REQUEST
-from psfd.daemon.plan import Plan, check_text, parse_plan
+from psfd.daemon.plan import Plan, check_text, parse_plan, plan_key
 from psfd.daemon.runner import Control, preflight, run_plan, unfinished_runs
 from psfd.errors import BadInputError, PsfdError, ServiceError, path_reason, user_name
-from psfd.vocabulary import REQUEST_DEPTH_MAX, plan_content
+from psfd.vocabulary import REQUEST_DEPTH_MAX
 
 SOCKET_MODE = 0o660
 log = logging.getLogger(__name__)
@@ -263,7 +263,7 @@ class Service:
             return 0
         try:
             with Catalogue(self.catalogue_path, readonly=True) as catalogue:
-                run_id = catalogue.unfinished_run(job.plan.text)
+                run_id = catalogue.unfinished_run(job.plan.text, plan_key)
                 return 0 if run_id is None else int(catalogue.run_summary(run_id)["done"])
         except PsfdError:  # the run itself says why the catalogue cannot be used
             return 0
@@ -433,8 +433,8 @@ def _progress(run: dict) -> str:
 
 
 def same_plan(a: str, b: str) -> bool:
-    """Whether two plan texts are one plan (`plan_content`: comments and layout do not count)."""
-    return a == b or plan_content(a) == plan_content(b)
+    """Whether two plan texts are one plan (`plan_key`: comments, layout and defaults written out do not count)."""
+    return a == b or plan_key(a) == plan_key(b)
 
 
 def _refused(exc: PsfdError) -> dict:

@@ -223,7 +223,7 @@ QUERIES = {("camera", "info"), ("camera", "get"), ("camera", "choices"), ("rail"
 AXIS_TOLERANCE = 1e-6  # mm: the same requested coordinate, as a float read back from JSON
 
 
-def _same_value(a: Any, b: Any) -> bool:
+def same_setting(a: Any, b: Any) -> bool:
     """Two values of a setting mean the same: equal text, or the same f-number (``5.6``, ``f/5.6``)."""
     if str(a) == str(b):
         return True
@@ -235,7 +235,7 @@ def _same_request(entry: dict, device: str, call: str, args: dict) -> bool:
     if (entry["device"], entry["call"]) != (device, call) or set(entry["args"]) != set(args):
         return False
     if call == "set":
-        return entry["args"]["name"] == args["name"] and _same_value(entry["args"]["value"], args["value"])
+        return entry["args"]["name"] == args["name"] and same_setting(entry["args"]["value"], args["value"])
     if call == "move":
         return all((a is None and b is None) or (a is not None and b is not None and abs(a - b) <= AXIS_TOLERANCE)
                    for a, b in ((entry["args"][k], args[k]) for k in args))
@@ -266,7 +266,7 @@ class _RigState:
             return self.target is not None and all(
                 k in self.target and abs(self.target[k] - v) <= AXIS_TOLERANCE for k, v in given.items())
         if call == "set":
-            return args["name"] in self.settings and _same_value(self.settings[args["name"]], args["value"])
+            return args["name"] in self.settings and same_setting(self.settings[args["name"]], args["value"])
         return call == "prepare" and self.setup == args
 
 
@@ -346,6 +346,18 @@ class Replay:
         target = self.state.target or {}
         return {axis: target.get(axis) for axis in ("x", "y", "z")}
 
+    def shots(self) -> list[tuple[dict[str, str], dict[str, float]]]:
+        """Where the recorded rig stood at each capture, in order: the camera settings set before it (name to
+        value, the camera's spelling) and the rail position it was sent to (axis to mm; empty: never moved).
+        A replayed capture must find the rig so (`_check_state`)."""
+        state, shots = _RigState(), []
+        for entry in self.requests:
+            if entry["call"] == "capture":
+                shots.append((dict(state.settings), dict(state.target or {})))
+            elif "result" in entry:
+                state.apply(entry["call"], entry["args"], entry["result"])
+        return shots
+
     def _check_state(self, capture: int) -> None:
         """The replayed rig must stand where the recorded one stood for this capture."""
         recorded = _RigState()
@@ -354,7 +366,7 @@ class Replay:
                 recorded.apply(entry["call"], entry["args"], entry["result"])
         differences = [f"{name} {value} (recorded: {recorded.settings[name]})"
                        for name, value in self.state.settings.items()
-                       if name in recorded.settings and not _same_value(value, recorded.settings[name])]
+                       if name in recorded.settings and not same_setting(value, recorded.settings[name])]
         if recorded.target is not None and not self.state.changes_nothing("move", recorded.target):
             differences.append(f"rail at {self._position()} (recorded: {recorded.target})")
         if differences:

@@ -66,6 +66,16 @@ DEFAULT_SETTINGS = {"aperture": "5.6", "shutterspeed": "1/125", "iso": "100", "i
 WAVELENGTH_UM = {"r": 0.61, "g1": 0.53, "g2": 0.53, "b": 0.46}
 SCENES = ("bernoulli", "texture")
 TEXTURE_RASTER = 2048  # raster pixels per side of the textured plane
+# What a camera and lens on a lab rail can be (photosites of phones to scientific sensors, fisheye to long
+# telephoto, a cell of the printed target or the textured plane from a pocket print to a wall): a value
+# outside is a slip, and the renderer would take all memory for it (pitch_um = 1e9: a 8e6-pixel-wide raster).
+OPTICS_RANGES = {"pitch_um": (0.5, 50.0, "um"), "focal_mm": (4.0, 2000.0, "mm"), "cell_mm": (0.01, 100.0, "mm"),
+                 "texture_mm": (10.0, 100_000.0, "mm")}
+# The scene's raster pixels (simulate.RASTER per target cell, TEXTURE_RASTER per textured plane) one channel
+# pixel may cover: the scene is low-passed to the channel's band on a raster padded by 8/s of them per side
+# (simulate.bandlimit_scene), so this bounds the padding. 160 is a target cell at 1/20 channel pixel, the
+# whole target 16 pixels wide, far below the estimator's range (0.175 to 0.5 pixel at s = 4, IJCV 2012 sec. 3).
+RASTER_PER_PIXEL_MAX = 160.0
 
 
 def _number(value: object) -> bool:
@@ -89,9 +99,9 @@ def option_problems(options: dict) -> list[str]:
         problems.append(f"sensor must be [rows, columns], two positive even integers, got {sensor!r}")
     elif sensor[0] * sensor[1] > MAX_PIXELS:  # the size psfd reads at most (`psfd.vocabulary.check_image_size`)
         problems.append(f"sensor must have at most {MAX_PIXELS:,} photosites, got {sensor[0]} x {sensor[1]}")
-    problems += [f"{key} must be a positive number, got {options[key]!r}"
-                 for key in ("pitch_um", "focal_mm", "cell_mm", "texture_mm")
-                 if key in options and not (_number(options[key]) and options[key] > 0)]
+    problems += [f"{key} must be a number from {lo:g} to {hi:g} {unit}, got {options[key]!r}"
+                 for key, (lo, hi, unit) in OPTICS_RANGES.items()
+                 if key in options and not (_number(options[key]) and lo <= options[key] <= hi)]
     for check, key in ((check_s, "s"), (check_support, "support")):
         try:
             check(options.get(key, 17 if key == "support" else 4), key)
@@ -251,6 +261,46 @@ class SimRig:
             raise ValueError("pixels_per_cell must be positive")
         return target_distance(pixels_per_cell, self.focal_mm, self.pitch_um, self.cell_mm)
 
+    def scene_problems(self, distances: list[float], apertures: list[float]) -> list[str]:
+        """Why the rig cannot render its scene with the target at these rail distances (mm) and f-numbers,
+        one sentence each.
+
+        The target must stand beyond the focal length and image large enough for the renderer
+        (`RASTER_PER_PIXEL_MAX`); the photosites must be no finer than the PSF grid renders at the
+        smallest aperture (`simulate.finest_pitch_um`, at s and the reddest channel).
+        """
+        problems = []
+        if apertures:
+            fnumber = max(apertures)
+            finest = simulate.finest_pitch_um(fnumber, max(WAVELENGTH_UM.values()), self.s) / 2  # a channel: 2 sites
+            if self.pitch_um < finest:
+                problems.append(f"pitch_um = {self.pitch_um:g} is finer than the simulated PSF renders at s = {self.s} "
+                                f"and f/{fnumber:g} ({finest:.2g} um at least)")
+        inside = sorted({d for d in distances if d <= self.focal_mm})
+        if inside:
+            problems.append(f"x = {', '.join(f'{d:g}' for d in inside)} inside the focal length "
+                            f"(focal_mm = {self.focal_mm:g})")
+        small = [d for d in sorted(set(distances)) if d > self.focal_mm
+                 and self.raster_per_pixel(d) > RASTER_PER_PIXEL_MAX]
+        if small:
+            what = ("a target cell (cell_mm)" if self.scene == "bernoulli" else "the textured plane (texture_mm)")
+            problems.append(f"at x = {small[0]:g} {what} images to {self._scene_pixels(small[0]):.3g} channel pixels "
+                            f"(pitch_um = {self.pitch_um:g}, focal_mm = {self.focal_mm:g}), too small to simulate "
+                            f"(at least {self._scene_pixels_min():.3g})")
+        return problems
+
+    def raster_per_pixel(self, distance_mm: float | None = None) -> float:
+        """Scene raster pixels a channel pixel covers with the target at ``distance_mm`` (default: the rail X)."""
+        return (simulate.RASTER if self.scene == "bernoulli" else TEXTURE_RASTER) / self._scene_pixels(distance_mm)
+
+    def _scene_pixels(self, distance_mm: float | None = None) -> float:
+        """Channel pixels a target cell (bernoulli) or the textured plane (texture) images to."""
+        side = self.cell_mm if self.scene == "bernoulli" else self.texture_mm
+        return self.magnification(distance_mm) * side / self.channel_pitch_mm
+
+    def _scene_pixels_min(self) -> float:
+        return (simulate.RASTER if self.scene == "bernoulli" else TEXTURE_RASTER) / RASTER_PER_PIXEL_MAX
+
     def field(self, position: Position | None = None) -> tuple[float, float]:
         """Normalised image (x, y) of the target centre for a rail position (default: the current one)."""
         pos = self.pos if position is None else position
@@ -315,6 +365,9 @@ class SimRig:
 
     def render(self, path: Path) -> dict:
         """Render the current view to a DNG at ``path``; returns the simulation's ground truth."""
+        problems = self.scene_problems([self.pos.x], [float(self.settings["aperture"])])
+        if problems:  # a plan is refused before it runs (psfd.daemon.plan); a capture by hand is refused here
+            raise CameraError(f"the simulated camera cannot render this view: {problems[0]}")
         aperture = float(self.settings["aperture"])
         fx, fy = self.field()
         psfs = {c: self.truth(aperture, (fx, fy), c) for c in WAVELENGTH_UM}

@@ -37,6 +37,7 @@ Map = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 # RGGB: (row, col) offset of each channel plane on the sensor.
 RGGB_OFFSETS = {"r": (0, 0), "g1": (0, 1), "g2": (1, 0), "b": (1, 1)}
 RASTER = 8  # scene raster pixels per target cell (the paper's simulation, IJCV 2012 sec. 5.1)
+PUPIL_GRID = (4, 512)  # diffraction_psf: fine samples per s-grid sample, and per side of its pupil plane
 
 
 # --------------------------------------------------------------------------- PSFs
@@ -78,6 +79,16 @@ def gaussian_psf(
     return h / h.sum()
 
 
+def finest_pitch_um(fnumber: float, wavelength_um: float, s: int) -> float:
+    """The finest channel pitch `diffraction_psf` renders at this f-number, wavelength and s.
+
+    Its pupil must span at least 3 frequency steps of the fine grid (``PUPIL_GRID``: q samples per s-grid
+    sample, n per side): the coherent cut-off 1 / (2 lambda N) >= 3 s q / (n pitch).
+    """
+    q, n = PUPIL_GRID
+    return 6.0 * s * q * wavelength_um * fnumber / n
+
+
 def diffraction_psf(
     fnumber: float,
     wavelength_um: float = 0.55,
@@ -117,14 +128,12 @@ def diffraction_psf(
     -------
     ndarray (support, support), unit sum.
     """
-    q = 4  # fine samples per s-grid sample
-    n = 512
+    q, n = PUPIL_GRID
     dx = pitch_um / (s * q)  # fine spatial step, um
-    df = 1.0 / (n * dx)  # frequency step, cycles/um
     f = fft.fftfreq(n, dx)
     fy, fx = np.meshgrid(f, f, indexing="ij")
     radius = 1.0 / (2.0 * wavelength_um * fnumber)  # coherent cut-off of the pupil, cycles/um
-    if radius < 3 * df:
+    if pitch_um < finest_pitch_um(fnumber, wavelength_um, s):
         raise ValueError("f-number too large for the simulation grid")
     u, v = fx / radius, fy / radius
     rho2 = u * u + v * v
