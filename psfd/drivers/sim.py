@@ -344,7 +344,8 @@ class SimRig:
         return self.focal_mm + (far - self.focal_mm) / ratio, float(far)
 
     def truth(self, aperture: float | str, field_xy: tuple[float, float], channel: str = "g1") -> np.ndarray:
-        """The PSF (s-grid, unit sum) of ``channel`` at f-number ``aperture`` and normalised field point."""
+        """The PSF (s-grid, unit sum) of ``channel`` at f-number ``aperture`` and normalised field point: the
+        optics band-limited to the s-grid's band (`simulate.diffraction_psf`), so its MTF is the lens's own."""
         if channel not in WAVELENGTH_UM:
             raise ValueError(f"unknown channel {channel!r}")
         return _psf(float(aperture), round(float(field_xy[0]), 4), round(float(field_xy[1]), 4),

@@ -37,7 +37,7 @@ Map = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 # RGGB: (row, col) offset of each channel plane on the sensor.
 RGGB_OFFSETS = {"r": (0, 0), "g1": (0, 1), "g2": (1, 0), "b": (1, 1)}
 RASTER = 8  # scene raster pixels per target cell (the paper's simulation, IJCV 2012 sec. 5.1)
-PUPIL_GRID = (4, 512)  # diffraction_psf: fine samples per s-grid sample, and per side of its pupil plane
+PUPIL_SPAN = 128  # diffraction_psf: its fine grid spans PUPIL_SPAN s-grid samples a side
 
 
 # --------------------------------------------------------------------------- PSFs
@@ -82,11 +82,10 @@ def gaussian_psf(
 def finest_pitch_um(fnumber: float, wavelength_um: float, s: int) -> float:
     """The finest channel pitch `diffraction_psf` renders at this f-number, wavelength and s.
 
-    Its pupil must span at least 3 frequency steps of the fine grid (``PUPIL_GRID``: q samples per s-grid
-    sample, n per side): the coherent cut-off 1 / (2 lambda N) >= 3 s q / (n pitch).
+    Its pupil must span at least 3 frequency steps of the fine grid (``PUPIL_SPAN`` s-grid samples a side,
+    so a step of s / (PUPIL_SPAN pitch)): the coherent cut-off 1 / (2 lambda N) >= 3 s / (PUPIL_SPAN pitch).
     """
-    q, n = PUPIL_GRID
-    return 6.0 * s * q * wavelength_um * fnumber / n
+    return 6.0 * s * wavelength_um * fnumber / PUPIL_SPAN
 
 
 def diffraction_psf(
@@ -106,8 +105,21 @@ def diffraction_psf(
     pitch, full fill factor) convolved with a 4-spot birefringent low-pass
     filter of one sensor pitch displacement, as in a Bayer DSLR; the optics of
     the thesis' example camera (Delbracio PhD thesis 2013, sec. 2.2.1).
-    The kernel is point-sampled on the s-grid (Lemma 1, IJCV 2012: h = S_s h)
-    and re-centred on its centroid so that a coma tilt does not move it.
+    The kernel is the s-grid samples of LPF_s h, the PSF band-limited to
+    |fx|, |fy| < s/2 cycles per channel pixel: its transfer function is the
+    optics' own over that band. Lemma 1 (IJCV 2012: u * h = I_s(u~ * S_s h))
+    needs h band-limited there, and a fast lens is not (f/4 at 0.53 um on a
+    16 um channel pitch passes 7.5 cycles per pixel, s = 4 holds 2): the
+    point samples S_s h would fold that content into the band, lowering or
+    raising the MTF by up to 0.09 depending on the sub-sample position of
+    the kernel, and an aberrated corner could then out-resolve the
+    aberration-free centre. As the renderer band-limits the scene to the same
+    band, u~ * S_s LPF_s h is the image of the scene through h (up to the
+    light beyond the support).
+    The band-limited kernel rings where the pixel box has sharp edges: its
+    negative lobes reach 4 % of the peak (f/2.8, 0.46 um, 16 um pitch, s = 4)
+    and are kept, as clipping them would change its MTF. It is re-centred on
+    its centroid so that a coma tilt does not move it.
 
     Parameters
     ----------
@@ -128,7 +140,11 @@ def diffraction_psf(
     -------
     ndarray (support, support), unit sum.
     """
-    q, n = PUPIL_GRID
+    # Fine samples per s-grid sample: enough that the optics' transfer function (it ends at
+    # pitch / (wavelength N) cycles per channel pixel) does not wrap round the fine grid
+    # (period s q) into the band |f| < s/2; n keeps the grid PUPIL_SPAN s-grid samples a side.
+    q = max(4, int((pitch_um / (wavelength_um * fnumber) + s / 2) / s) + 1)
+    n = PUPIL_SPAN * q
     dx = pitch_um / (s * q)  # fine spatial step, um
     f = fft.fftfreq(n, dx)
     fy, fx = np.meshgrid(f, f, indexing="ij")
@@ -151,6 +167,7 @@ def diffraction_psf(
     otf /= otf[0, 0]
     # pixel aperture: a box of one channel pitch
     otf *= np.sinc(fx * pitch_um) * np.sinc(fy * pitch_um)
+    otf *= _band(fx * pitch_um, s) * _band(fy * pitch_um, s)  # LPF_s
     # Re-centre on the centroid of the part inside the support with a Fourier
     # phase ramp (exact sub-sample shift); a few passes because the window
     # moves with the shift.
@@ -167,8 +184,15 @@ def diffraction_psf(
         cy = float((part * offsets[:, None]).sum() / part.sum())
         otf = otf * np.exp(2j * np.pi * (fx * cx + fy * cy) * dx)
     fine = fft.fftshift(np.real(fft.ifft2(otf)))
-    h = np.maximum(fine[np.ix_(idx, idx)], 0.0)
+    h = fine[np.ix_(idx, idx)]
     return h / h.sum()
+
+
+def _band(f: np.ndarray, s: int) -> np.ndarray:
+    """Ideal low-pass to |f| < s/2 cycles per channel pixel; half weight on the band edge, whose
+    two frequencies +-s/2 are one on the s-grid."""
+    edge = np.isclose(np.abs(f), s / 2, rtol=0, atol=1e-9)
+    return np.where(edge, 0.5, (np.abs(f) < s / 2).astype(np.float64))
 
 
 # --------------------------------------------------------------------------- rendering
