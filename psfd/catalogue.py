@@ -862,6 +862,15 @@ class Catalogue:
             raise CatalogueError(f"no run {run_id}")
         return row
 
+    def run_rig(self, run_id: int) -> dict:
+        """The rig a run began with: its camera ``model``, body ``serial`` and ``lens`` (as `add_rig` keys it)."""
+        with self._read() as db:
+            row = next(db.query("SELECT r.model, r.serial, r.lens FROM runs u JOIN rigs r ON r.id = u.rig_id "
+                                "WHERE u.id = ?", [run_id]), None)
+        if row is None:
+            raise CatalogueError(f"no run {run_id}")
+        return row
+
     def run_summary(self, run_id: int) -> dict:
         """A run's state and counts: steps per state (``pending``, ``running``, ``done``, ``failed``),
         ``total`` steps, ``psfs`` stored and the ``frames`` they came from."""

@@ -322,3 +322,33 @@ def test_a_view_too_small_to_render_is_refused_by_the_simulated_camera(tmp_path)
                                           r"0.0204 channel pixels .* \(at least 0.05\)"):
         rig.camera.capture(tmp_path / "out")
     assert not list((tmp_path / "out").iterdir())
+
+
+REAL = """
+[rig]
+rail_port = "/dev/ttyUSB0"
+camera_port = "usb:001,004"
+
+[target]
+kind = "bernoulli"
+
+[capture]
+apertures = [5.6, 8]
+x = [-1300]
+"""
+
+
+def test_how_the_rig_is_reached_is_not_what_a_plan_does():
+    """A camera or rail controller plugged back in on another port (usb:001,004 -> 005, ttyUSB0 -> 1), and
+    the timeouts, speed and baud rate of the link, shoot the same frames: the run they paused resumes
+    under the edited plan (the runner checks that the camera is the one the run began with)."""
+    edits = [
+        REAL.replace("usb:001,004", "usb:001,005"),
+        REAL.replace("ttyUSB0", "ttyUSB1"),
+        REAL.replace('camera_port = "usb:001,004"\n', ""),
+        REAL.replace("[target]", "timeout = 30\nrail_timeout = 5\nrail_feed = 600\nrail_baudrate = 250000\n\n[target]"),
+    ]
+    for text in edits:
+        assert plan_key(text) == plan_key(REAL) and plan_changes(REAL, text) == [], text
+    limits = REAL.replace("[target]", "rail_limits = { x = [-1500, 0] }\n\n[target]")
+    assert plan_changes(REAL, limits) == ['[rig] rail_limits unset -> {"x": [-1500, 0]}']

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import random
@@ -445,3 +446,42 @@ def test_a_run_paused_by_an_older_psfd_resumes_under_its_plan_with_defaults_writ
         assert (result.run_id, result.state, result.steps_done) == (1, "done", 4)
         assert [r["id"] for r in cat.runs()] == [1]
     check_complete(tmp_path / "cat.sqlite", tmp_path / "frames", plan)
+
+
+class OtherBody:
+    """The simulated camera, reporting another body's serial or another lens (a camera swapped on the rig)."""
+
+    def __init__(self, camera, **changes) -> None:
+        self.camera, self.changes = camera, changes
+
+    def __getattr__(self, name):
+        return getattr(self.camera, name)
+
+    def info(self) -> CameraInfo:
+        return dataclasses.replace(self.camera.info(), **self.changes)
+
+
+def test_a_run_resumes_only_with_the_camera_and_lens_it_began_with(tmp_path):
+    """The catalogue keeps a run's PSFs under the rig the run began with: resumed with another body or lens
+    (a camera swapped while the run was paused), its later PSFs would be filed under the first one. Refused in
+    one line that names both; the run stays resumable with the right camera."""
+    plan = parse_plan(small_plan(), "small.toml")
+    frames = tmp_path / "frames"
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        control = Control()
+        control.request("pause")
+        camera, rail = open_rig(plan.rig_config())
+        first = Runner(cat, frames, workers=1, control=control, progress=None).run(plan, camera, rail)
+        assert first.state == "paused"
+        for changes, named in (({"serial": "SIM-9"}, "serial SIM-9"), ({"lens": "simulated 35 mm"}, "simulated 35 mm")):
+            camera, rail = open_rig(plan.rig_config())
+            with pytest.raises(BadInputError) as refused:
+                Runner(cat, frames, workers=1, progress=None).run(plan, OtherBody(camera, **changes), rail,
+                                                                  resume=True)
+            message = str(refused.value)
+            assert message.startswith(f"run {first.run_id} of plan small.toml began with psfd simulated camera")
+            assert named in message and "\n" not in message
+            assert cat.runs()[0]["state"] == "paused" and len(cat.runs()) == 1
+        camera, rail = open_rig(plan.rig_config())
+        again = Runner(cat, frames, workers=1, progress=None).run(plan, camera, rail, resume=True)
+        assert (again.run_id, again.state, again.steps_done) == (first.run_id, "done", 4)

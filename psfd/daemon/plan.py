@@ -66,6 +66,10 @@ from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S
 # ([rig.camera], `psfd.drivers.base.CameraSetup`), applied after them and before any motion.
 RUNNER_KEYS = ("settings", "camera")
 RIG_KEYS = {"simulate", "recording", *RUNNER_KEYS, *SIM_KEYS, *REAL_KEYS}
+# How the rig is reached and driven, not what it shoots: a camera plugged back in on another USB port, or a
+# longer timeout, leaves the plan what it was (`plan_meaning`); the runner checks that a resumed run has the
+# camera and lens it began with.
+LINK_KEYS = ("camera_port", "rail_port", "timeout", "rail_timeout", "rail_baudrate", "rail_feed")
 # The hardware keys of [rig] that are positive numbers (`psfd.drivers.open_rig` reads them without checking).
 HARDWARE_NUMBERS = {"timeout": "a positive number of seconds", "rail_timeout": "a positive number of seconds",
                     "rail_feed": "a positive speed in mm/min"}
@@ -192,7 +196,8 @@ def plan_meaning(plan: Plan) -> dict[str, dict[str, Any]]:
 
 
 def _rig_meaning(rig: dict[str, Any]) -> dict[str, Any]:
-    """[rig] with the defaults of the rig it opens (`psfd.drivers.open_rig`, `CameraSetup`) written out."""
+    """[rig] with the defaults of the rig it opens (`psfd.drivers.open_rig`, `CameraSetup`) written out, without
+    how it is reached (`LINK_KEYS`) and where the lens sits (x_at_lens and x_away count through rail X)."""
     simulate = rig.get("simulate", False) is True
     defaults: dict[str, Any] = {"simulate": False, "rail": "simulated" if simulate else "grbl", "settings": {}}
     if simulate:
@@ -201,9 +206,7 @@ def _rig_meaning(rig: dict[str, Any]) -> dict[str, Any]:
         fields = SimRig.__dataclass_fields__
         defaults.update({k: fields[k].default_factory() if k == "limits" else fields[k].default  # type: ignore[misc]
                          for k in SIM_KEYS})
-    else:
-        defaults["rail_baudrate"] = 115200
-    meaning = {**defaults, **{k: v for k, v in rig.items() if k not in ("x_at_lens", "x_away")}}
+    meaning = {**defaults, **{k: v for k, v in rig.items() if k not in ("x_at_lens", "x_away", *LINK_KEYS)}}
     meaning["camera"] = dataclasses.asdict(CameraSetup.from_mapping(rig.get("camera")))
     return meaning
 

@@ -382,6 +382,7 @@ class Runner:
         unfinished = start_check(self.catalogue, plan, resume, new)
         self.catalogue.close_finished_runs()
         if unfinished is not None:
+            check_same_rig(self.catalogue, unfinished, plan, camera)
             lost = position_lost(rail, self.catalogue, unfinished)
             if lost:  # refused before the run reopens: it stays resumable once the rail is put right
                 raise RailError(lost)
@@ -769,6 +770,23 @@ def start_check(catalogue: Catalogue, plan: Plan, resume: bool, new: bool,
         raise BadInputError(f"run {unfinished} of plan {plan.path} is {progress}: {advice}"
                             + _reworded(catalogue.run(unfinished), plan))
     return None
+
+
+def check_same_rig(catalogue: Catalogue, run_id: int, plan: Plan, camera: Camera) -> None:
+    """Refuse to resume a run with another camera body or lens than it began with: the catalogue files a run's
+    PSFs under the rig it began with (a camera swapped while the run was paused would be misfiled)."""
+    began = catalogue.run_rig(run_id)
+    info = camera.info()
+    now = {"model": info.model, "serial": info.serial or "", "lens": info.lens or ""}
+    if now != began:
+        raise BadInputError(f"run {run_id} of plan {plan.path} began with {_rig_name(began)}, the camera now is "
+                            f"{_rig_name(now)}: put that camera and lens back to resume it, or run the plan with "
+                            "--new instead of --resume to start afresh")
+
+
+def _rig_name(rig: dict) -> str:
+    serial = f" (serial {rig['serial']})" if rig["serial"] else ""
+    return f"{rig['model']}{serial} with {rig['lens'] or 'an unnamed lens'}"
 
 
 def _progress(summary: dict, frames_dir: str | os.PathLike | None, catalogue_path: Path) -> str:
