@@ -168,6 +168,22 @@ def test_query_table_and_note(capsys, catalogue):
     assert len(out.splitlines()) == 1 + 18 + 1
 
 
+def test_query_aperture_answers_for_every_lens_and_names_those_not_measured_at_it(capsys, catalogue):
+    """`--aperture 11` in a catalogue of a lens measured at f/5.6 and f/8 and one measured at f/11: each lens
+    answers with its own nearest f-number, shown in the f/ column, and the note on stderr names the lens
+    that has no f/11 (before, the first lens was left out without a word)."""
+    with Catalogue(catalogue) as cat:
+        rig = cat.add_rig(CameraInfo("Nikon D850", "77", "AF-S 85mm f/1.8G", 85.0))
+        run = cat.start_run("other.toml", "other", rig, [("f11", {})])
+        cat.commit_step(run, "f11", [], [(PSF(gaussian(2.0), 4, "bernoulli", "g1", ["y.nef"], (0.5, 0.5),
+                                              (0, 0, 64, 64)), {"aperture": 11.0})])
+    code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "11", "--channel", "g1",
+                             "--near", "0.5,0.5")
+    rows = [line.split() for line in out.splitlines()[1:-1]]
+    assert code == 0 and [(row[1], row[-9]) for row in rows] == [("Canon", "8"), ("Nikon", "11")]
+    assert err == "psfd: note: f/11 not measured with Canon EOS 400D #0420 / EF 50mm f/1.8 (nearest: f/8)\n"
+
+
 def test_query_json_near(capsys, catalogue):
     code, out, _ = run_cli(capsys, "query", "--catalogue", catalogue, "--near", "0.8,0.1", "--json")
     rows = [json.loads(line) for line in out.splitlines()]
