@@ -293,6 +293,30 @@ def test_query_csv_and_units(capsys, catalogue):
     assert code == 1 and len(out.splitlines()) == 1 and "no PSF matches" in err  # the header alone
 
 
+def test_the_formats_page_lists_every_csv_header_and_the_pixel_of_each_px(capsys, catalogue):
+    """docs/formats.md promises that a column is never renamed; a CSV column's name is its whole header, as
+    programs read it (`row["mtf50_x [cycles/px]"]` above: `mtf50_x [lp/mm]` shares the part before the
+    bracket). `mtf50_x [cycles/px]` counts channel pixels and `image_height [px]` photosites: read with the
+    photosite pitch, the first gave lp/mm twice too high. The page lists every header as written, in order,
+    and says which pixel each px is."""
+    import csv
+    import io
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).parents[1] / "docs" / "formats.md").read_text(encoding="utf-8")
+    section = text.split("\n## CSV", 1)[1].split("\n## ", 1)[0]
+    table = [re.match(r"\| `(.+?)` \| (.+) \|$", line) for line in section.splitlines() if line.startswith("| `")]
+    code, out, _ = run_cli(capsys, "query", "--catalogue", catalogue, "--csv")
+    assert code == 0 and [m.group(1) for m in table] == next(csv.reader(io.StringIO(out)))
+    units = {m.group(1): m.group(2) for m in table}
+    for header in ("mtf50_x [cycles/px]", "mtf50_y [cycles/px]"):
+        assert "cycles per channel pixel" in units[header]
+    assert "photosites" in units["image_height [px]"]
+    assert all("channel pixel" in unit for header, unit in units.items() if "[channel px]" in header)
+    assert "two photosites across" in " ".join(section.split())  # what a channel pixel is
+
+
 def test_bad_inputs_give_one_line_errors(capsys, catalogue, tmp_path):
     cases = [
         (["query", "--near", "0.8;0.1"], 2, "--near"),
