@@ -32,7 +32,7 @@ import os
 import sqlite3
 import stat
 import threading
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -418,15 +418,17 @@ def _stops(a: float, b: float) -> float:
     return abs(2.0 * math.log2(a / b))
 
 
+# The serial number of the lens copy that took a PSF's frames, as their EXIF records it.
+_LENS_SERIAL = """(SELECT group_concat(DISTINCT f.exif_lens_serial) FROM psf_frames pf
+                   JOIN frames f ON f.id = pf.frame_id WHERE pf.psf_id = p.id)"""
+
 # Metadata columns of a PSF row; the array is read only by Catalogue.psf().
-_ROW_SQL = """
+_ROW_SQL = f"""
 SELECT p.id, p.method, p.channel, p.aperture, p.focal_length_mm, p.focus_distance_m,
        p.field_x, p.field_y, p.window_x0, p.window_y0, p.window_x1, p.window_y1, p.s, p.support,
        p.mtf50_x, p.mtf50_y, p.fwhm_x, p.fwhm_y, p.noise_floor, p.prediction_error, p.residual, p.params,
        p.psfd_version, p.warnings, p.sources, p.created, p.rig_id, p.run_id,
-       st.key AS step, r.model AS camera, r.serial, r.lens,
-       (SELECT group_concat(DISTINCT f.exif_lens_serial) FROM psf_frames pf JOIN frames f ON f.id = pf.frame_id
-        WHERE pf.psf_id = p.id) AS lens_serial
+       st.key AS step, r.model AS camera, r.serial, r.lens, {_LENS_SERIAL} AS lens_serial
 FROM psfs p LEFT JOIN rigs r ON r.id = p.rig_id LEFT JOIN steps st ON st.id = p.step_id
 """
 
@@ -1057,8 +1059,9 @@ class Catalogue:
             Case-insensitive substring of the camera model / the lens, or the exact serial of the body / of the
             lens copy (in any case).
         aperture : float, optional
-            f-number. When it was not measured, the nearest measured aperture (in stops)
-            among the other filters is used and ``note`` says so.
+            f-number. Each camera body, lens copy and focal length (`_optics`) that was not measured at it
+            gives its PSFs at its nearest measured aperture (in stops) among the other filters, and
+            ``note`` names them.
         channel, method : str, optional
             Exact channel (r, g1, g2, b, mono), and method (`psfd.vocabulary.METHODS`, or an older alias).
         near : (x, y), optional
@@ -1071,22 +1074,18 @@ class Catalogue:
         for _, _, clause, values in _filters(camera, lens, method, channel):
             where.append(clause)
             params += values
-        note = None
+        note, nearest = None, {}
         with self._read() as db:
             if aperture is not None:
-                aperture = float(aperture)
-                measured = self._apertures(db, where, params)
-                if measured:
-                    nearest = min(measured, key=lambda a: (_stops(a, aperture), a))
-                    if _stops(nearest, aperture) > 2 * math.log2(1 + APERTURE_TOLERANCE):
-                        note = f"f/{aperture:g} not measured; nearest is f/{nearest:g}"
-                    aperture = nearest
-                lo, hi = aperture / (1 + APERTURE_TOLERANCE), aperture * (1 + APERTURE_TOLERANCE)
-                where.append("p.aperture BETWEEN ? AND ?")
-                params += [lo, hi]
+                nearest, note = self._nearest_apertures(db, where, params, float(aperture))
+                # the f-numbers kept, whatever the optics; each row is then checked against its own below
+                where.append("(" + (" OR ".join(["p.aperture BETWEEN ? AND ?"] * len(nearest)) or "0") + ")")
+                params += [bound for a in nearest.values() for bound in _aperture_range(a)]
             sql = _ROW_SQL + (f" WHERE {' AND '.join(where)}" if where else "")
             sql += " ORDER BY r.model, r.lens, p.aperture, p.channel, p.method, p.field_y, p.field_x, p.id"
             rows = [_row(r, self.folder) for r in db.query(sql, params)]
+        if aperture is not None:
+            rows = [r for r in rows if _same_aperture(r["aperture"], nearest.get(_optics(r)))]
         if near is not None:
             rows, far = _nearest_per_group(rows, near)
             note = "; ".join(n for n in (note, far) if n) or None
@@ -1141,6 +1140,37 @@ class Catalogue:
     def _apertures(db: sqlite_utils.Database, where: list[str], params: list) -> list[float]:
         return Catalogue._distinct(db, "p.aperture", [*where, "p.aperture IS NOT NULL"], params)
 
+    @staticmethod
+    def _nearest_apertures(db: sqlite_utils.Database, where: list[str], params: list, asked: float
+                           ) -> tuple[dict[tuple, float], str | None]:
+        """The measured f-number nearest ``asked`` (in stops; the smaller of two as near) of each `_optics`
+        among the PSFs of the filters ``where``, and a note naming the optics not measured at ``asked``.
+
+        Per optics, not over the catalogue: a lens measured at f/4 and f/8 answers f/11 with its f/8 PSFs
+        whether or not another lens was measured at f/11, and what one lens answers does not change when
+        another is added to the catalogue.
+        """
+        sql = (f"SELECT DISTINCT p.rig_id, {_LENS_SERIAL} AS lens_serial, p.focal_length_mm, p.aperture, "
+               "r.model AS camera, r.serial, r.lens FROM psfs p LEFT JOIN rigs r ON r.id = p.rig_id WHERE "
+               + " AND ".join([*where, "p.aperture IS NOT NULL"]))
+        measured: dict[tuple, list[float]] = {}
+        names: dict[tuple, dict] = {}
+        for row in db.query(sql, params):
+            measured.setdefault(_optics(row), []).append(row["aperture"])
+            names[_optics(row)] = row
+        nearest = {optics: min(apertures, key=lambda a: (_stops(a, asked), a)) for optics, apertures in measured.items()}
+        missing = {optics: a for optics, a in nearest.items() if not _same_aperture(asked, a)}
+        if not missing:
+            return nearest, None
+        if len(nearest) == 1:
+            return nearest, f"f/{asked:g} not measured; nearest is f/{next(iter(missing.values())):g}"
+        focal_lengths: dict[tuple, int] = {}
+        for rig, lens_serial, _ in nearest:
+            focal_lengths[rig, lens_serial] = focal_lengths.get((rig, lens_serial), 0) + 1
+        named = sorted(f"{_optics_name(names[optics], focal_lengths[optics[:2]] > 1)} (nearest: f/{a:g})"
+                       for optics, a in missing.items())
+        return nearest, f"f/{asked:g} not measured with {_listed(named)}"
+
     def psf(self, psf_id: int) -> tuple[np.ndarray, dict]:
         """The PSF array (float64) and its metadata row."""
         with self._read() as db:
@@ -1192,6 +1222,34 @@ class Catalogue:
         """SHA-256 of every catalogued frame (the daemon's frame store keeps exactly these files)."""
         with self._read() as db:
             return {row[0] for row in db.execute("SELECT sha256 FROM frames").fetchall()}
+
+
+def _optics(row: Mapping[str, Any]) -> tuple:
+    """What an f-number is measured on: the camera body (rig), the lens copy and the focal length."""
+    return row["rig_id"], row["lens_serial"], row["focal_length_mm"]
+
+
+def _optics_name(row: Mapping[str, Any], focal_length: bool) -> str:
+    """``Canon EOS 400D #0420 / EF 50mm f/1.8 #c1234``, and ``at 70 mm`` with ``focal_length``."""
+    body = " ".join(part for part in (row["camera"], f"#{row['serial']}" if row["serial"] else "") if part)
+    lens = " ".join(part for part in (row["lens"], f"#{row['lens_serial']}" if row["lens_serial"] else "") if part)
+    name = f"{body or 'unknown camera'} / {lens or 'unknown lens'}"
+    if focal_length:
+        focal = row["focal_length_mm"]
+        name += f" at {focal:g} mm" if focal is not None else " at an unknown focal length"
+    return name
+
+
+def _aperture_range(aperture: float) -> tuple[float, float]:
+    """The f-numbers that are ``aperture`` (`APERTURE_TOLERANCE`)."""
+    return aperture / (1 + APERTURE_TOLERANCE), aperture * (1 + APERTURE_TOLERANCE)
+
+
+def _same_aperture(value: float | None, aperture: float | None) -> bool:
+    if value is None or aperture is None:
+        return False
+    lo, hi = _aperture_range(aperture)
+    return lo <= value <= hi
 
 
 def _filters(camera: str | None, lens: str | None, method: str | None, channel: str | None

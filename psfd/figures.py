@@ -44,7 +44,8 @@ DPI = 110
 NEGATIVE = "#7fc8e8"  # light blue: not in inferno, so a negative sample can never pass for a small one
 LOG_DECADES = 4  # the log views show four decades below the largest value
 CHANNEL_ORDER = ("r", "g1", "g2", "b", "mono")
-FREQ_LABEL = "spatial frequency (cycles per channel pixel)"
+FREQ_UNIT = "cycles per channel pixel"  # a channel pixel: one pixel of a Bayer channel's plane, 2 photosites across
+FREQ_LABEL = f"spatial frequency ({FREQ_UNIT})"
 VALUE_LABEL = "PSF value (fraction of energy per sample)"
 
 
@@ -264,8 +265,8 @@ class _PSFPanels:
         self.title.set_text(
             f"{est.method} PSF, channel {est.channel}, field ({est.field[0]:.2f}, {est.field[1]:.2f}) of "
             f"{', '.join(Path(p).name for p in est.sources) or 'an image'}\n"
-            f"s = {s} (grid lines: channel pixels), support {psf.shape[0]} samples = {psf.shape[0] / s:.2f} px;  "
-            f"FWHM x {_num(m['fwhm_x'], '.2f')} y {_num(m['fwhm_y'], '.2f')} px;  "
+            f"s = {s} (grid lines: channel pixels), support {psf.shape[0]} samples = {psf.shape[0] / s:.2f} channel px;  "
+            f"FWHM x {_num(m['fwhm_x'], '.2f')} y {_num(m['fwhm_y'], '.2f')} channel px;  "
             f"noise floor {_num(est.relative_noise, '.1%')} of the kernel's L2 norm ({_num(per_sample, '.1e')} per sample)"
         )
         spines = [*self.ax_lin.spines.values(), *self.ax_log.spines.values(), *self.ax_mtf.spines.values()]
@@ -718,6 +719,28 @@ def _sensor_axes(ax: Any, sensor: Sensor, title: str, *, show_x: bool, show_y: b
             side.tick_params(labelsize=6)
 
 
+# The field report's fixed layout, in inches (a layout engine would measure every label: several times the
+# drawing). Above a row of panels: its titles, the mm axis on a rig's first row, and the rig's name when the
+# report holds several; below it: its tick labels, and the x label on a rig's last row.
+PANEL = 2.5  # width of a sensor panel; its height follows the sensor's aspect ratio
+COLUMN_GAP = 0.6  # the next panel's y tick labels
+LEFT, RIGHT = 0.95, 0.75  # a row's two-line y label; the mm and lp/mm axes at the right
+ROOM = {"heading": 0.3, "mm": 0.4, "title": 0.3, "ticks": 0.27, "xlabel": 0.2, "between": 0.08,
+        "bars": 0.3, "bar": 0.15, "bar_labels": 0.75, "chart": 2.8, "chart_labels": 0.55, "legend_line": 0.19}
+
+
+def _rig_name(camera: str, lens: str) -> str:
+    """How the report names a rig: the camera body and the lens copy (their serials when known)."""
+    return ", ".join(part for part in (camera, lens) if part) or "unknown camera and lens"
+
+
+def _common_pitch(bands: list) -> float | None:
+    """The photosite pitch of every row of the report, or None when it is unknown or differs between rigs
+    (then no mm or lp/mm axis fits every row of a chart drawn over all of them)."""
+    pitches = {sensor.pitch_um for _, _, sensor, _ in bands}
+    return pitches.pop() if len(pitches) == 1 else None
+
+
 def report_figure(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: str,
                   sensors: Mapping[int, Sensor | None] | None = None, note: str | None = None) -> Figure:
     """The field report: one row of panels per (camera, lens, method, aperture), and MTF50 against image height.
@@ -726,7 +749,8 @@ def report_figure(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: s
     (true aspect ratio, photosites and mm), one tile per PSF, all tiles the same size and on one log
     colour scale; then the sagittal and meridional MTF50 of ``channel`` at each measured field point:
     markers, coloured on one scale for every aperture, with linear interpolation drawn only inside
-    the measured points' hull (no extrapolation). The last row plots MTF50 against image height.
+    the measured points' hull (no extrapolation). The rows of one rig (camera body and lens copy) follow
+    each other under its name. The last panel plots MTF50 against image height.
 
     Parameters
     ----------
@@ -743,6 +767,7 @@ def report_figure(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: s
     """
     from matplotlib import patheffects, tri
     from matplotlib.colors import LogNorm, Normalize
+    from matplotlib.ticker import MaxNLocator
 
     sensors = sensors or {}
     groups = _group_rows(rows)
@@ -764,29 +789,23 @@ def report_figure(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: s
     psf_cmap = _cmap("inferno", under="black", bad=NEGATIVE)
     halo = patheffects.withStroke(linewidth=2, foreground="white")  # values stay readable on dark colours
 
-    ncols = len(channels) + 2
-    aspect = bands[0][2].aspect
-    panel_w = 2.9
-    # The colour bars take their room from the rows of panels (`Figure.colorbar`'s fraction of them): one or
-    # two rows leave too little for their ticks and two-line labels, which then ran over the height chart's
-    # title. An empty row under such panels (its spacing, and 0.15 of a row for one) gives back what they
-    # lack: 30 and 26 px clear of the title and its mm axis, as three rows leave 40 px without it.
-    spacer = [0.15 * (2 - len(bands))] if len(bands) <= 2 else []
-    fig = _figure(panel_w * ncols + 0.8, (panel_w / aspect + 0.8) * (len(bands) + sum(spacer) + 1.1) + 2.0)
-    grid = fig.add_gridspec(len(bands) + len(spacer) + 1, ncols, height_ratios=[1] * len(bands) + spacer + [1.1])
-    psf_axes, mtf_axes, psf_image, mtf_markers = [], [], None, None
-    rigs = {(camera, lens) for camera, lens, *_ in groups}
+    rigs = sorted({(camera, lens) for camera, lens, *_ in groups})
+    layout = _ReportLayout(bands, len(channels) + 2, _report_title(rows, channels, channel, rigs, note))
+    fig = layout.fig
+    psf_image, mtf_markers = None, None
     for i, ((camera, lens, method, aperture), group, sensor, points) in enumerate(bands):
-        last = i == len(bands) - 1
+        place = layout.rows[i]
         name = f"f/{aperture:g}" if aperture else "f/?"
-        rig = f" {camera} {lens}" if len(rigs) > 1 else ""
+        if place["heading"]:
+            fig.text(layout.left, place["heading_y"], _rig_name(camera, lens), fontsize=10, fontweight="bold",
+                     ha="left", va="top")
         tile = TILE * sensor.width
         for j, ch in enumerate(channels):
-            ax = fig.add_subplot(grid[i, j])
-            psf_axes.append(ax)
-            _sensor_axes(ax, sensor, f"{name}  channel {ch}: PSFs", show_x=last, show_y=j == 0, mm_x=i == 0)
+            ax = layout.panel(i, j)
+            _sensor_axes(ax, sensor, f"{name}  channel {ch}: PSFs", show_x=place["xlabel"], show_y=j == 0,
+                         mm_x=place["mm"])
             if j == 0:
-                ax.set_ylabel(f"{name} {method}{rig}\ny (photosites)", fontsize=8)
+                ax.set_ylabel(f"{name} {method}\ny (photosites)", fontsize=8)
             for row in (r for r in group if r["channel"] == ch):
                 x, y = row["field_x"] * sensor.width, row["field_y"] * sensor.height
                 array = arrays[row["id"]]
@@ -797,10 +816,9 @@ def report_figure(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: s
             ax.set_xlim(0, sensor.width)
             ax.set_ylim(sensor.height, 0)
         for j, kind in enumerate(("sagittal", "meridional")):
-            ax = fig.add_subplot(grid[i, len(channels) + j])
-            mtf_axes.append(ax)
-            _sensor_axes(ax, sensor, f"{name}  {channel}: MTF50 {kind}", show_x=last, show_y=False, mm_x=i == 0,
-                         mm_y=j == 1)
+            ax = layout.panel(i, len(channels) + j)
+            _sensor_axes(ax, sensor, f"{name}  {channel}: MTF50 {kind}", show_x=place["xlabel"], show_y=False,
+                         mm_x=place["mm"], mm_y=j == 1)
             good = [p for p in points if math.isfinite(p[kind])]
             xs, ys, vs = (np.array([p[k] for p in good]) for k in ("x", "y", kind))
             if len(good) >= 3:
@@ -814,34 +832,96 @@ def report_figure(rows: list[dict], arrays: Mapping[int, np.ndarray], channel: s
             for p in good:
                 ax.annotate(f"{p[kind]:.3f}", (p["x"], p["y"]), textcoords="offset points", xytext=(0, 7),
                             ha="center", fontsize=6.5, zorder=4, path_effects=[halo])
-    from matplotlib.ticker import MaxNLocator
 
     if psf_image is not None:
-        bar = fig.colorbar(psf_image, ax=psf_axes, location="bottom", shrink=0.6 if len(channels) > 2 else 0.95,
-                           aspect=40 if len(channels) > 2 else 15, extend="min")
+        many = len(channels) > 2
+        bar = fig.colorbar(psf_image, cax=layout.bar(0, len(channels), 0.6 if many else 0.95), orientation="horizontal",
+                           extend="min")
         bar.set_label(f"PSF value (fraction of energy per sample),\nlog scale, {LOG_DECADES} decades, the same for "
                       "every tile", fontsize=8)
     if mtf_markers is not None:
-        bar = fig.colorbar(mtf_markers, ax=mtf_axes, location="bottom", shrink=0.9, aspect=25)
+        bar = fig.colorbar(mtf_markers, cax=layout.bar(len(channels), len(channels) + 2, 0.9), orientation="horizontal")
         bar.locator = MaxNLocator(6)
         bar.update_ticks()
-        bar.set_label(f"MTF50 (cycles/pixel): one scale, {vmin:.3f} to {vmax:.3f}, for all apertures", fontsize=8)
+        bar.set_label(f"MTF50 ({FREQ_UNIT}): one scale,\n{vmin:.3f} to {vmax:.3f}, for all apertures", fontsize=8)
+    handles = _height_chart(layout.chart, bands, channel)
+    layout.chart.legend(handles=handles, fontsize=7, ncols=2, loc="upper center", bbox_to_anchor=layout.legend_at,
+                        bbox_transform=fig.transFigure)
+    return fig
 
-    ax = fig.add_subplot(grid[-1, :ncols])
-    _height_chart(ax, bands, channel)
-    import textwrap
 
+def _report_title(rows: list[dict], channels: list[str], channel: str, rigs: list[tuple[str, str]],
+                  note: str | None) -> str:
+    """The report's title, what each panel shows and in which unit, and the note; unwrapped."""
     tile_px = {r["support"] / r["s"] for r in rows}
+    pixel = ("a channel pixel, of one Bayer channel's plane, is 2 photosites across" if
+             set(channels) - {"mono"} else "a channel pixel of the mono plane is one photosite")
     about = (f"Each tile shows a whole kernel ({', '.join(f'{t:g}' for t in sorted(tile_px))} channel pixels) "
              f"enlarged to {TILE:.0%} of the sensor width at its measured position; + marks the image centre; "
-             "meridional: frequencies along the radius, sagittal: across it.")
+             "meridional: frequencies along the radius, sagittal: across it. "
+             f"MTF50 in {FREQ_UNIT} ({pixel}; Nyquist 0.5); positions on the sensor in photosites.")
     if len(rigs) == 1:
-        about = f"{' '.join(next(iter(rigs))).strip()}. {about}"
-    width = int(fig.get_figwidth() * 13)  # characters of 9-point text across the figure
-    notes = textwrap.wrap(f"Note: {note}.", width) if note else []
-    fig.suptitle("\n".join([f"Field report: PSFs of {', '.join(channels)} and MTF50 of {channel} over the sensor, "
-                            "per aperture", *textwrap.wrap(about, width), *notes]), fontsize=9)
-    return fig
+        about = f"{_rig_name(*rigs[0])}. {about}"
+    head = f"Field report: PSFs of {', '.join(channels)} and MTF50 of {channel} over the sensor, per aperture"
+    return "\n".join([head, about] + ([f"Note: {note}."] if note else []))
+
+
+class _ReportLayout:
+    """The field report's figure and where each of its parts goes (fixed margins in inches, `ROOM`)."""
+
+    def __init__(self, bands: list, ncols: int, title: str):
+        import textwrap
+
+        self.ncols = ncols
+        width = LEFT + ncols * PANEL + (ncols - 1) * COLUMN_GAP + RIGHT
+        chars = int(width * 13)  # characters of 9-point text across the figure
+        lines = [line for part in title.split("\n") for line in textwrap.wrap(part, chars)]
+        several = len({key[:2] for key, *_ in bands}) > 1
+        y = 0.15 + 0.16 * len(lines) + 0.1  # inches from the top
+        self.rows = []
+        for i, (key, _, sensor, _) in enumerate(bands):
+            first = i == 0 or bands[i - 1][0][:2] != key[:2]
+            last = i == len(bands) - 1 or bands[i + 1][0][:2] != key[:2]
+            place = {"heading": several and first, "mm": first and bool(sensor.pitch_um), "xlabel": last,
+                     "heading_y": y}
+            y += ROOM["heading"] * place["heading"] + ROOM["mm"] * place["mm"] + ROOM["title"]
+            place["top"], place["height"] = y, PANEL / sensor.aspect
+            y += place["height"] + ROOM["ticks"] + ROOM["xlabel"] * last + ROOM["between"]
+            self.rows.append(place)
+        self.bar_top = y + ROOM["bars"]
+        y = self.bar_top + ROOM["bar"] + ROOM["bar_labels"] + ROOM["title"] + ROOM["mm"] * bool(_common_pitch(bands))
+        chart_top = y
+        y += ROOM["chart"] + ROOM["chart_labels"]
+        legend_top = y
+        y += ROOM["legend_line"] * math.ceil((len(bands) + 2) / 2) + 0.25
+        self.width, self.height = width, y
+        for place in self.rows:  # the rig's name: its top at the top of the room left for it
+            place["heading_y"] = 1 - place["heading_y"] / y
+        self.fig = _figure(width, y)
+        self.fig.suptitle("\n".join(lines), fontsize=9, y=1 - 0.15 / y, va="top")
+        self.left = LEFT / width
+        span = ncols * PANEL + (ncols - 1) * COLUMN_GAP
+        self.chart = self.fig.add_axes(self._rect(LEFT, chart_top, span, ROOM["chart"]))
+        self.legend_at = ((LEFT + span / 2) / width, 1 - legend_top / y)
+
+    def _rect(self, left: float, top: float, width: float, height: float) -> tuple[float, float, float, float]:
+        """Figure coordinates of a box given in inches from the figure's top-left corner."""
+        return (left / self.width, 1 - (top + height) / self.height, width / self.width, height / self.height)
+
+    def _column(self, j: int) -> float:
+        return LEFT + j * (PANEL + COLUMN_GAP)
+
+    def panel(self, i: int, j: int) -> Any:
+        """New axes for the panel of row ``i``, column ``j``, as wide as `PANEL` and as tall as its sensor's aspect."""
+        place = self.rows[i]
+        return self.fig.add_axes(self._rect(self._column(j), place["top"], PANEL, place["height"]))
+
+    def bar(self, first: int, end: int, share: float) -> Any:
+        """Axes for a horizontal colour bar under columns ``first`` to ``end`` (excluded), ``share`` of their
+        span wide, centred."""
+        span = self._column(end - 1) + PANEL - self._column(first)
+        left = self._column(first) + span * (1 - share) / 2
+        return self.fig.add_axes(self._rect(left, self.bar_top, span * share, ROOM["bar"]), label="<colorbar>")
 
 
 def _rectangle(extent: Sequence[float]) -> Any:
@@ -851,12 +931,14 @@ def _rectangle(extent: Sequence[float]) -> Any:
     return Rectangle((left, top), right - left, bottom - top, fill=False, edgecolor="0.45", lw=0.5, zorder=2.5)
 
 
-def _height_chart(ax: Any, bands: list, channel: str) -> None:
+def _height_chart(ax: Any, bands: list, channel: str) -> list:
     """MTF50 against image height (distance from the centre), one colour per row of the report,
-    sagittal solid with circles, meridional dashed with squares, a line through the mean at each height."""
+    sagittal solid with circles, meridional dashed with squares, a line through the mean at each height;
+    its legend's handles. mm and lp/mm axes only when every row has the same known pitch."""
     from matplotlib.lines import Line2D
 
-    pitch = next((sensor.pitch_um for _, _, sensor, _ in bands if sensor.pitch_um), None)
+    pitch = _common_pitch(bands)
+    several = len({band[0][:2] for band in bands}) > 1
     handles = []
     for i, ((camera, lens, method, aperture), _, sensor, points) in enumerate(bands):
         colour = f"C{i % 10}"
@@ -873,21 +955,21 @@ def _height_chart(ax: Any, bands: list, channel: str) -> None:
             means = [value[bins == b].mean() for b in np.unique(bins)]
             ax.plot(heights, means, style, color=colour, lw=1.3)
         label = f"f/{aperture:g}" if aperture else "f/?"
-        rig = f" {camera} {lens}" if len({band[0][:2] for band in bands}) > 1 else ""
+        rig = f", {_rig_name(camera, lens)}" if several else ""
         handles.append(Line2D([], [], color=colour, lw=2, label=f"{label} {method}{rig}"))
     handles += [Line2D([], [], color="0.2", ls="-", marker="o", label="sagittal"),
                 Line2D([], [], color="0.2", ls="--", marker="s", mfc="none", label="meridional")]
     ax.set_xlabel("image height: distance from the image centre (photosites)")
     corner = max(math.hypot(sensor.width, sensor.height) / 2 for _, _, sensor, _ in bands)
     ax.set_xlim(-0.02 * corner, 1.02 * corner)  # from the centre to the corner
-    ax.set_ylabel(f"MTF50 of {channel} (cycles/pixel)")
+    ax.set_ylabel(f"MTF50 of {channel}\n({FREQ_UNIT})", fontsize=8)
     ax.grid(alpha=0.25)
     ax.set_title(f"MTF50 of {channel} against image height (lines through the mean at each measured height)",
                  fontsize=9)
-    ax.legend(handles=handles, fontsize=7, ncols=2, loc="best")
     if pitch:
         mm = pitch / 1000.0
         ax.secondary_xaxis("top", functions=(lambda v: v * mm, lambda v: v / mm)).set_xlabel("mm", fontsize=8)
         scale = mtf.lp_per_mm(1.0, pitch, channel)
         ax.secondary_yaxis("right", functions=(lambda v: v * scale, lambda v: v / scale)).set_ylabel(
             "line pairs per mm", fontsize=8)
+    return handles

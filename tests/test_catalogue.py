@@ -464,7 +464,7 @@ def test_query_filters_and_array_round_trip(tmp_path):
     with Catalogue(tmp_path / "cat.sqlite") as cat:
         fill(cat)
         assert len(cat.query()) == 37
-        exact = cat.query(aperture=5.6, channel="g1")
+        exact = cat.query(camera="Canon", aperture=5.6, channel="g1")
         assert exact.note is None and len(exact) == 9
         assert {r["aperture"] for r in exact} == {5.6} and {r["channel"] for r in exact} == {"g1"}
         assert len(cat.query(camera="canon")) == 36 and len(cat.query(camera="0420")) == 36
@@ -492,7 +492,33 @@ def test_query_nearest_aperture_with_note(tmp_path):
         assert cat.query(camera="Canon", aperture=7.1).note == "f/7.1 not measured; nearest is f/8"
         # Only the Nikon (camera filter applied first) has f/4.
         assert {r["aperture"] for r in cat.query(camera="Nikon", aperture=11)} == {4.0}
-        assert cat.query(aperture=5.65).note is None  # within the 1 % tolerance of f/5.6
+        assert cat.query(camera="Canon", aperture=5.65).note is None  # within the 1 % tolerance of f/5.6
+
+
+def test_query_takes_the_nearest_aperture_of_each_body_and_lens(tmp_path):
+    """A lens measured only at f/4 and f/8 vanished from the answer to f/11 when another lens had f/11, with no
+    note: the nearest f-number was taken over the whole catalogue. Each body, lens copy and focal length has its
+    own nearest f-number (in stops), and the note names those without the one asked."""
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        fill(cat)  # Canon at f/5.6 and f/8, Nikon at f/4
+        sony = new_run(cat, keys=("a", "b"), rig=CameraInfo("Sony A7", "9", "FE 50mm", 50.0))
+        for key, serial, aperture in (("a", "L1", 11.0), ("b", "L2", 4.0)):  # two copies of one lens
+            shot = dataclasses.replace(frame(100 + len(key) + ord(key)), exif={"lens_serial": serial})
+            cat.commit_step(sony, key, [shot], [(make_psf(channel="g1"), {"aperture": aperture})])
+        zoom = new_run(cat, keys=("70",), rig=NIKON)  # the Nikon's zoom at another focal length, at f/11
+        cat.commit_step(zoom, "70", [], [(make_psf(channel="g1"), {"aperture": 11.0, "focal_length_mm": 70.0})])
+        result = cat.query(aperture=11, channel="g1")
+        got = sorted((r["camera"], r["lens_serial"] or "", r["focal_length_mm"] or 0, r["aperture"]) for r in result)
+        assert got == [*[(CANON.model, "", 50, 8.0)] * 9,  # f/8 is 1 stop from f/11, f/5.6 2 stops
+                       (NIKON.model, "", 0, 4.0), (NIKON.model, "", 70, 11.0),
+                       ("Sony A7", "L1", 0, 11.0), ("Sony A7", "L2", 0, 4.0)]
+        assert result.note == ("f/11 not measured with Canon EOS 400D #0420 / EF 50mm f/1.8 (nearest: f/8), "
+                               "Nikon D850 #77 / AF-S 24-70mm at an unknown focal length (nearest: f/4), "
+                               "Sony A7 #9 / FE 50mm #L2 (nearest: f/4)")
+        one = cat.query(camera="Canon", aperture=11)  # one body and lens: the note as it was
+        assert one.note == "f/11 not measured; nearest is f/8" and {r["aperture"] for r in one} == {8.0}
+        assert cat.query(camera="Sony", aperture=11.05).note == "f/11.05 not measured with Sony A7 #9 / FE 50mm #L2 " \
+            "(nearest: f/4)"  # within 1 % of f/11: L1 has it
 
 
 def test_query_near_keeps_nearest_per_aperture_channel_method(tmp_path):

@@ -7,6 +7,7 @@ checks name what a reader sees without comparing pixels.
 from __future__ import annotations
 
 import math
+import re
 
 import cv2
 import numpy as np
@@ -242,8 +243,10 @@ def test_report_shows_every_channel_on_the_true_sensor_with_shared_scales():
     forward, _ = mm_axes[0]._functions
     assert forward(6000.0) == pytest.approx(23.4)
     chart = next(ax for ax in fig.axes if ax.get_xlabel().startswith("image height"))
-    assert chart.get_ylabel() == "MTF50 of g1 (cycles/pixel)"
-    assert any(child.get_ylabel() == "line pairs per mm" for child in chart.child_axes)
+    assert chart.get_ylabel() == "MTF50 of g1\n(cycles per channel pixel)"
+    (lp_mm,) = [child for child in chart.child_axes if child.get_ylabel() == "line pairs per mm"]
+    forward, _ = lp_mm._functions  # Nyquist of a Bayer plane of 3.9 um photosites: 1 / (2 x 7.8 um) = 64.1 lp/mm
+    assert forward(0.5) == pytest.approx(0.5 / (2 * 3.9e-3))
 
 
 def test_report_of_one_point_and_no_pitch():
@@ -258,11 +261,11 @@ def test_report_of_one_point_and_no_pitch():
     assert not any(child.get_xlabel() == "x (mm)" for ax in fig.axes for child in ax.child_axes)
 
 
-@pytest.mark.parametrize("key, labels", [
-    ("serial", ["f/5.6 bernoulli cam #A1 lens", "f/5.6 bernoulli cam #B2 lens"]),
-    ("lens_serial", ["f/5.6 bernoulli cam lens #A1", "f/5.6 bernoulli cam lens #B2"]),
+@pytest.mark.parametrize("key, rigs", [
+    ("serial", ["cam #A1, lens", "cam #B2, lens"]),
+    ("lens_serial", ["cam, lens #A1", "cam, lens #B2"]),
 ])
-def test_two_bodies_or_lens_copies_of_one_model_are_two_rows_not_one_map(key, labels):
+def test_two_bodies_or_lens_copies_of_one_model_are_two_rows_not_one_map(key, rigs):
     """Two bodies (serials) of one camera model, or two copies of one lens model (the serials their frames
     record), at one aperture: each its own row of tiles and of MTF50 maps, never tiles drawn over each other
     nor values interpolated between them."""
@@ -277,9 +280,9 @@ def test_two_bodies_or_lens_copies_of_one_model_are_two_rows_not_one_map(key, la
     fig = figures.report_figure(rows + other, arrays, "g1")
     psf_axes = [ax for ax in fig.axes if ax.get_title().endswith(": PSFs")]
     assert [len(ax.get_images()) for ax in psf_axes] == [9, 9]
-    assert sorted(ax.get_ylabel().split("\n")[0] for ax in psf_axes) == labels
+    assert [t.get_text() for t in fig.texts if t is not fig._suptitle] == rigs  # each row under its rig's name
     chart = next(ax for ax in fig.axes if ax.get_xlabel().startswith("image height"))
-    assert {t.get_text() for t in chart.get_legend().get_texts()} >= set(labels)
+    assert {t.get_text() for t in chart.get_legend().get_texts()} >= {f"f/5.6 bernoulli, {rig}" for rig in rigs}
 
 
 def inside_figure(fig) -> list[str]:
@@ -411,3 +414,94 @@ def test_the_colour_bars_clear_the_height_chart_with_one_aperture_or_many():
         above = [chart.title.get_window_extent(renderer)] + [child.get_tightbbox(renderer) for child in chart.child_axes]
         assert len(bars) == 2 and not any(bar.overlaps(box) for bar in bars for box in above), apertures
         assert inside_figure(fig) == []
+
+
+def drawn_texts(fig) -> list:
+    """Every text a reader sees once the figure is drawn: titles, axis and tick labels (of the ticks drawn),
+    the labels of secondary axes and colour bars, legends' entries, figure texts; not empty, not hidden."""
+    from matplotlib.text import Text
+
+    fig.canvas.draw()
+    texts = [t for t in fig.texts if isinstance(t, Text)]  # the suptitle among them
+    for ax in [*fig.axes, *(child for ax in fig.axes for child in ax.child_axes)]:
+        texts += [ax.title, ax._left_title, ax._right_title, *ax.texts]
+        for axis in (ax.xaxis, ax.yaxis):
+            texts.append(axis.label)
+            texts += [label for tick in axis._update_ticks() for label in (tick.label1, tick.label2)]
+        if ax.get_legend():
+            texts += ax.get_legend().get_texts()
+    return [t for t in texts if t.get_visible() and t.get_text().strip()]
+
+
+def overlapping_texts(fig) -> list[tuple[str, str]]:
+    """Pairs of drawn texts whose boxes overlap (by more than half a pixel): neither can be read."""
+    renderer = fig.canvas.get_renderer()
+    boxes = [(t.get_text(), t.get_window_extent(renderer).expanded(1.0, 1.0)) for t in drawn_texts(fig)]
+    clash = []
+    for i, (a, box_a) in enumerate(boxes):
+        for b, box_b in boxes[i + 1:]:
+            width = min(box_a.x1, box_b.x1) - max(box_a.x0, box_b.x0)
+            height = min(box_a.y1, box_b.y1) - max(box_a.y0, box_b.y0)
+            if width > 0.5 and height > 0.5:
+                clash.append((a, b))
+    return clash
+
+
+def rig_rows(rigs: list[tuple[str, str, str, str, tuple[float, ...]]], channels=("r", "g1")) -> tuple[list, dict]:
+    """Rows of several rigs: (camera, body serial, lens, lens serial, apertures) each, a 3x3 field grid."""
+    grid = [(x, y) for y in (0.2, 0.5, 0.8) for x in (0.15, 0.5, 0.85)]
+    rows, arrays = [], {}
+    for camera, serial, lens, lens_serial, apertures in rigs:
+        mine, mine_arrays = rows_for(apertures, grid, channels=channels)
+        for row in mine:
+            arrays[len(rows) + 1] = mine_arrays[row["id"]]
+            rows.append({**row, "id": len(rows) + 1, "camera": camera, "serial": serial, "lens": lens,
+                         "lens_serial": lens_serial})
+    return rows, arrays
+
+
+FOUR_RIGS = [("Canon EOS 5D Mark IV", "0123456789", "EF 50mm f/1.8 STM", "A1", (4.0, 8.0)),
+             ("Canon EOS 5D Mark IV", "9876543210", "EF 50mm f/1.8 STM", "B2", (5.6, 11.0)),
+             ("NIKON D850", "3001234", "AF-S NIKKOR 35mm f/1.8G ED", "", (4.0, 11.0)),
+             ("NIKON D850", "3001234", "AF-S NIKKOR 85mm f/1.8G", "", (8.0, 16.0))]
+
+
+def test_report_of_several_rigs_draws_every_label_clear_of_every_other():
+    """Four rigs (two bodies of one model with two copies of one lens, one body with two lenses), two apertures
+    each: the rows' labels named the rig in one vertical line longer than the row, drawn over the next rows',
+    and each row's tick labels ran over the next row's titles. Every text stands clear of the others and of the
+    figure's edges, and each rig is named once, above its rows."""
+    rows, arrays = rig_rows(FOUR_RIGS)
+    sensors = {r["id"]: figures.Sensor(6000, 4000, 3.9) if r["camera"].startswith("Canon")
+               else figures.Sensor(8256, 5504, 4.35) for r in rows}
+    fig = figures.report_figure(rows, arrays, "g1", sensors)
+    assert overlapping_texts(fig) == []
+    assert inside_figure(fig) == []
+    headings = [t.get_text() for t in fig.texts if t is not fig._suptitle]
+    assert headings == [f"{camera} #{serial}, {lens}" + (f" #{copy}" if copy else "")
+                        for camera, serial, lens, copy, _ in sorted(FOUR_RIGS)]
+
+
+def unnamed_pixels(fig) -> list[str]:
+    """Texts that speak of a pixel without saying which: a channel pixel (of one Bayer channel's plane, 2
+    photosites across) or a photosite. MTF50 in cycles per channel pixel read as cycles per photosite gives
+    lp/mm twice too high."""
+    texts = [" ".join(t.get_text().split()) for t in drawn_texts(fig)]  # a line may break after "channel"
+    return [text for text in texts if re.search(r"(?<!channel )\b(pixels?|px)\b", text)]
+
+
+def test_every_unit_of_every_figure_says_which_pixel_it_means():
+    """The report's colour bar and height chart said "cycles/pixel" beside axes drawn in photosites; every
+    figure names the pixel it counts in, as `psfd query`'s units line does."""
+    rows, arrays = rig_rows(FOUR_RIGS[:1])
+    report = figures.report_figure(rows, arrays, "g1", {r["id"]: figures.Sensor(6000, 4000, 3.9) for r in rows})
+    assert unnamed_pixels(report) == []
+    bar = next(ax for ax in report.axes if ax.get_label() == "<colorbar>" and "MTF50" in ax.get_xlabel())
+    assert bar.get_xlabel().startswith("MTF50 (cycles per channel pixel)")
+    assert "2 photosites across; Nyquist 0.5" in " ".join(report._suptitle.get_text().split())
+    est = estimate(gaussian(0.6, 0.9))
+    kernel = gaussian(0.5, 0.5)
+    for fig in (figures.psf_figure(est, pitch_um=4.0), figures.grid_figure(grid_estimates(2, 2)),
+                figures.comparison_figure([("truth", kernel, 4), ("bernoulli", kernel, 4)], against_truth=True),
+                figures.array_figure(kernel, "kernel", est), figures.array_figure(kernel, "residual", est)):
+        assert unnamed_pixels(fig) == []

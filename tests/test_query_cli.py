@@ -168,6 +168,22 @@ def test_query_table_and_note(capsys, catalogue):
     assert len(out.splitlines()) == 1 + 18 + 1
 
 
+def test_query_aperture_answers_for_every_lens_and_names_those_not_measured_at_it(capsys, catalogue):
+    """`--aperture 11` in a catalogue of a lens measured at f/5.6 and f/8 and one measured at f/11: each lens
+    answers with its own nearest f-number, shown in the f/ column, and the note on stderr names the lens
+    that has no f/11 (before, the first lens was left out without a word)."""
+    with Catalogue(catalogue) as cat:
+        rig = cat.add_rig(CameraInfo("Nikon D850", "77", "AF-S 85mm f/1.8G", 85.0))
+        run = cat.start_run("other.toml", "other", rig, [("f11", {})])
+        cat.commit_step(run, "f11", [], [(PSF(gaussian(2.0), 4, "bernoulli", "g1", ["y.nef"], (0.5, 0.5),
+                                              (0, 0, 64, 64)), {"aperture": 11.0})])
+    code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "11", "--channel", "g1",
+                             "--near", "0.5,0.5")
+    rows = [line.split() for line in out.splitlines()[1:-1]]
+    assert code == 0 and [(row[1], row[-9]) for row in rows] == [("Canon", "8"), ("Nikon", "11")]
+    assert err == "psfd: note: f/11 not measured with Canon EOS 400D #0420 / EF 50mm f/1.8 (nearest: f/8)\n"
+
+
 def test_query_json_near(capsys, catalogue):
     code, out, _ = run_cli(capsys, "query", "--catalogue", catalogue, "--near", "0.8,0.1", "--json")
     rows = [json.loads(line) for line in out.splitlines()]
@@ -275,6 +291,30 @@ def test_query_csv_and_units(capsys, catalogue):
             assert row["aperture [f-number]"] == format(stored["aperture"], ".6g") and row["camera"] == "Canon EOS 400D"
     code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--channel", "b", "--csv")
     assert code == 1 and len(out.splitlines()) == 1 and "no PSF matches" in err  # the header alone
+
+
+def test_the_formats_page_lists_every_csv_header_and_the_pixel_of_each_px(capsys, catalogue):
+    """docs/formats.md promises that a column is never renamed; a CSV column's name is its whole header, as
+    programs read it (`row["mtf50_x [cycles/px]"]` above: `mtf50_x [lp/mm]` shares the part before the
+    bracket). `mtf50_x [cycles/px]` counts channel pixels and `image_height [px]` photosites: read with the
+    photosite pitch, the first gave lp/mm twice too high. The page lists every header as written, in order,
+    and says which pixel each px is."""
+    import csv
+    import io
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).parents[1] / "docs" / "formats.md").read_text(encoding="utf-8")
+    section = text.split("\n## CSV", 1)[1].split("\n## ", 1)[0]
+    table = [re.match(r"\| `(.+?)` \| (.+) \|$", line) for line in section.splitlines() if line.startswith("| `")]
+    code, out, _ = run_cli(capsys, "query", "--catalogue", catalogue, "--csv")
+    assert code == 0 and [m.group(1) for m in table] == next(csv.reader(io.StringIO(out)))
+    units = {m.group(1): m.group(2) for m in table}
+    for header in ("mtf50_x [cycles/px]", "mtf50_y [cycles/px]"):
+        assert "cycles per channel pixel" in units[header]
+    assert "photosites" in units["image_height [px]"]
+    assert all("channel pixel" in unit for header, unit in units.items() if "[channel px]" in header)
+    assert "two photosites across" in " ".join(section.split())  # what a channel pixel is
 
 
 def test_bad_inputs_give_one_line_errors(capsys, catalogue, tmp_path):

@@ -441,7 +441,10 @@ def estimate_record(est: PSF, sensor: Any = None) -> dict:
 
 # ---------------------------------------------------------------- CSV
 
-# (record key, CSV header with its unit): one row per PSF, for spreadsheets and pandas.
+# (record key, CSV header with its unit): one row per PSF, for spreadsheets and pandas. A header, bracket
+# included, is the column's name that programs read (two columns share `mtf50_x`): it never changes
+# (docs/formats.md, which says which pixel each `px` counts: a channel pixel in `[cycles/px]`, a photosite
+# in `image_height [px]`).
 CSV_COLUMNS = (
     ("id", "id"), ("file", "file"), ("camera", "camera"), ("serial", "serial"), ("lens", "lens"),
     ("lens_serial", "lens_serial"),

@@ -28,7 +28,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     filters.add_argument("--camera", help="camera model (case-insensitive substring) or serial number")
     filters.add_argument("--lens", help="lens name (case-insensitive substring) or the serial number its frames "
                                         "record")
-    filters.add_argument("--aperture", metavar="F", help="f-number, e.g. 5.6; the nearest measured one if not measured")
+    filters.add_argument("--aperture", metavar="F",
+                         help="f-number, e.g. 5.6; a camera body and lens copy not measured at it gives its nearest "
+                              "measured one, shown in the f/ column and named in a note on stderr")
     filters.add_argument("--channel", help=f"Bayer channel ({', '.join(CHANNELS)}, {MONO}; any case)")
     filters.add_argument("--method", help=", ".join(METHODS[:-1]) + " or " + METHODS[-1])
     near = argparse.ArgumentParser(add_help=False)
@@ -87,7 +89,8 @@ def query_options(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run_filters(cat, options: dict[str, Any], nothing: str = ""):
-    """Run a query (`psfd.catalogue.QueryResult`); its note (nearest aperture used) goes to stderr.
+    """Run a query (`psfd.catalogue.QueryResult`); its note (the lenses answered at their nearest aperture)
+    goes to stderr.
 
     Raises NoMatchError (exit 1, as for every reader) when no PSF matches; ``nothing`` ends its message.
     """
