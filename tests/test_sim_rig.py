@@ -182,3 +182,21 @@ def test_texture_pair_is_one_plane_at_two_scales(tmp_path):
     assert corr > 0.85
     # and the far frame is not the near one: different content at the same pixels
     assert np.corrcoef(near.ravel(), far.ravel())[0, 1] < 0.5
+
+
+def test_aberrations_point_along_the_physical_radius_of_a_4_3_sensor():
+    """Astigmatism and coma are symmetric about the plane through the optical axis and the field point: the
+    PSF's principal axes lie along and across the radius on the sensor, as `figures.sagittal_meridional`
+    measures them. On a 640 x 480 sensor the radius to the field point (0.95, 0.95) is at atan(3/4) = 36.9
+    degrees, not 45 (the diagonal of the normalised field)."""
+    rig = SimRig()
+    rows, cols = rig.sensor
+    expected = np.degrees(np.arctan2(0.45 * rows, 0.45 * cols))
+    for aperture in (4, 8):
+        h = rig.truth(aperture, (0.95, 0.95), "g1")  # signed: clipping its lobes would favour the grid's axes
+        y, x = np.mgrid[:h.shape[0], :h.shape[1]] - (h.shape[0] - 1) / 2
+        x, y = x - (h * x).sum(), y - (h * y).sum()
+        sxx, syy, sxy = (h * x * x).sum(), (h * y * y).sum(), (h * x * y).sum()
+        axis = 0.5 * np.degrees(np.arctan2(2 * sxy, sxx - syy))  # a principal axis, in (-90, 90]
+        off = abs((axis - expected + 45) % 90 - 45)  # from the radius or from across it
+        assert off < 2.0, (aperture, axis, expected)  # 0.7-1.0 (the square pixel and band); 8.1 at 45

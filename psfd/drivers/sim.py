@@ -348,7 +348,8 @@ class SimRig:
         optics band-limited to the s-grid's band (`simulate.diffraction_psf`), so its MTF is the lens's own."""
         if channel not in WAVELENGTH_UM:
             raise ValueError(f"unknown channel {channel!r}")
-        return _psf(float(aperture), round(float(field_xy[0]), 4), round(float(field_xy[1]), 4),
+        rows, cols = self.sensor
+        return _psf(float(aperture), round(float(field_xy[0]), 4), round(float(field_xy[1]), 4), cols / rows,
                     WAVELENGTH_UM[channel], 2.0 * self.pitch_um, self.s, self.support,
                     self.corner_aberration).copy()
 
@@ -422,10 +423,12 @@ def state_path() -> Path:
 
 
 @functools.lru_cache(maxsize=256)
-def _psf(fnumber: float, fx: float, fy: float, wavelength: float, channel_pitch: float, s: int,
+def _psf(fnumber: float, fx: float, fy: float, aspect: float, wavelength: float, channel_pitch: float, s: int,
          support: int, corner: float) -> np.ndarray:
-    # Radial aberration vector: zero on axis, |a| = corner at the corners (|(2fx-1, 2fy-1)| = sqrt 2).
-    ax, ay = (2 * fx - 1) * corner / np.sqrt(2), (2 * fy - 1) * corner / np.sqrt(2)
+    # Radial aberration vector along the field point's radius on the sensor (``aspect``: columns / rows; the
+    # normalised field's diagonal is not the sensor's), zero on axis, |a| = corner at the corners.
+    ax, ay = (2 * fx - 1) * aspect, 2 * fy - 1
+    ax, ay = ax * corner / np.hypot(aspect, 1.0), ay * corner / np.hypot(aspect, 1.0)
     psf = simulate.diffraction_psf(fnumber, wavelength_um=wavelength, pitch_um=channel_pitch, s=s,
                                    support=support, aberration=(ax, ay))
     psf.flags.writeable = False  # shared by the cache
