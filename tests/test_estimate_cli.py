@@ -24,6 +24,8 @@ from psfd.errors import BadInputError
 from psfd.estimator import raw
 from psfd.estimator.kernels import PSF
 
+DATA = Path(__file__).parent / "data"
+
 
 def gaussian(sigma_x: float, sigma_y: float, s: int = 4, support: int = 17) -> np.ndarray:
     """A unit-sum Gaussian kernel on the s-times grid (sigmas in channel pixels)."""
@@ -232,6 +234,16 @@ def bad_files(tmp_path: Path) -> Path:
     (folder / "cut.dng").write_bytes(data[: len(data) // 2])
     pgm = cv2.imencode(".pgm", np.zeros((64, 64), np.uint8))[1].tobytes()
     (folder / "trunc.pgm").write_bytes(pgm[: len(pgm) // 2])  # OpenCV would log its own error line
+    photo = cv2.imread(str(DATA / "img_example.pgm"), cv2.IMREAD_UNCHANGED)
+    png = cv2.imencode(".png", photo)[1].tobytes()
+    (folder / "trunc.png").write_bytes(png[: len(png) // 2])  # libpng would print its own "Read Error" line
+    (folder / "empty.tif").write_bytes(b"II*\0" + bytes(100))  # tifffile would log "contains no pages"
+    # a grey photograph saved as TIFF but named .dng: LibRaw reads it as a Bayer mosaic of a camera it guesses
+    tifffile.imwrite(folder / "grey.dng", photo.astype(np.uint16) * 257)
+    # a linear DNG, demosaiced (three samples per pixel, PhotometricInterpretation LinearRaw): no photosites
+    rgb = np.stack([mosaic] * 3, axis=-1)
+    tifffile.imwrite(folder / "linear.dng", rgb, photometric=34892, subfiletype=0,
+                     extratags=[(50706, "B", 4, (1, 4, 0, 0), True), (50708, "s", 0, "linear", True)])
     return folder
 
 
@@ -239,6 +251,10 @@ BAD = [
     (["target", "{in}/notes.pgm"], "not a readable image"),
     (["target", "{in}/colour.png"], "colour channels"),
     (["target", "{in}/cut.dng"], "not a readable RAW file"),
+    (["target", "{in}/trunc.png"], "trunc.png: not a readable image"),
+    (["target", "{in}/empty.tif"], "empty.tif: not a readable image"),
+    (["target", "{in}/grey.dng"], "grey.dng: a TIFF image without a camera's make or DNG tags"),
+    (["target", "{in}/linear.dng"], "linear.dng: a linear (demosaiced) RAW file"),
     (["target", "{in}/missing.dng"], "no such file"),
     (["target", "{in}/whole.dng", "--grid", "3"], "--grid"),
     (["target", "{in}/whole.dng", "--grid", "0x2"], "--grid"),
@@ -279,12 +295,14 @@ def test_bad_input_one_line_nothing_written(bad_files, capfd, argv, message):
     assert sorted(p.name for p in bad_files.parent.rglob("*")) == before  # no results folder, no temporary
 
 
-def test_no_opencv_log_lines(bad_files):
-    # In a fresh process, as a user runs it: OpenCV reads its log level when first imported.
-    proc = subprocess.run([sys.executable, "-m", "psfd", "estimate", "target", str(bad_files / "trunc.pgm")],
+@pytest.mark.parametrize("name", ["trunc.pgm", "trunc.png", "empty.tif"])
+def test_no_decoder_log_lines(bad_files, name):
+    # In a fresh process, as a user runs it: OpenCV reads its log level when first imported, libpng writes
+    # to file descriptor 2, tifffile logs through `logging`, which psfd sends to stderr.
+    proc = subprocess.run([sys.executable, "-m", "psfd", "estimate", "target", str(bad_files / name)],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and proc.stdout == ""
-    assert proc.stderr == f"psfd: error: {bad_files / 'trunc.pgm'}: not a readable image\n"
+    assert proc.stderr == f"psfd: error: {bad_files / name}: not a readable image\n"
 
 
 def test_unwritable_out_is_one_line_error():
