@@ -510,6 +510,12 @@ def test_rendered_target_round_trip(tmp_path, capsys):
     # so the saved noise is what made the estimate work
     code, stdout, stderr = run(capsys, "estimate", "target", tmp_path / "photo.png", "--json")
     assert code == 3 and stdout == "" and "does not follow the target's pattern" in stderr
+    # psfd compare reads the printed noise the same way: its Bernoulli line is that estimate, not skipped
+    code, stdout, stderr = run(capsys, "compare", tmp_path / "photo.png", "--pattern",
+                               tmp_path / "lab.seed21.noise.pgm")
+    assert code == 0, stderr
+    line = next(text for text in stdout.splitlines() if text.startswith("bernoulli photo.png"))
+    assert f"MTF50 x {record['mtf50_x']:.4f} y {record['mtf50_y']:.4f}" in line
 
 
 def test_edges_end_to_end_passes_its_options(tmp_path, capsys):
