@@ -518,6 +518,15 @@ def test_rendered_target_round_trip(tmp_path, capsys):
     assert f"MTF50 x {record['mtf50_x']:.4f} y {record['mtf50_y']:.4f}" in line
 
 
+def test_sharp_edge_errors_name_the_frame(capsys):
+    # of several frames, the one line says which one holds no target (the wall of the real pair)
+    code, stdout, stderr = run(capsys, "estimate", "sharp-edge", DATA / "img_example.pgm",
+                               DATA / "IMG_0602_v1_CUT.pgm", "--target")
+    assert code == 3 and stdout == ""
+    assert stderr == f"psfd: error: {DATA / 'IMG_0602_v1_CUT.pgm'} (mono): no edge target and no Bernoulli target " \
+                     "found in the frame\n"
+
+
 def test_edges_end_to_end_passes_its_options(tmp_path, capsys):
     from psfd.estimator import sharpedge
 

@@ -15,7 +15,7 @@ import threading
 from pathlib import Path
 
 from psfd.cli import options, summary
-from psfd.errors import BadInputError
+from psfd.errors import BadInputError, EstimationError
 from psfd.vocabulary import ALIASES, BERNOULLI, DEFAULT_SOLVER, SHARP_EDGE, SOLVERS, TWO_PHOTO, check_solver
 
 
@@ -201,7 +201,10 @@ def run_sharp_edge(args: argparse.Namespace) -> int:
 
     estimates = []
     for frame in frames:  # seconds per megapixel: a bar on a terminal
-        with output.progress_bar(f"{Path(frame.source).name} {frame.channel}", args.quiet) as progress:
-            estimates += sharpedge.estimate_edges(frame, weight=weight, radius=radius, target_form=args.target,
-                                                  progress=progress, **settings)
+        try:
+            with output.progress_bar(f"{Path(frame.source).name} {frame.channel}", args.quiet) as progress:
+                estimates += sharpedge.estimate_edges(frame, weight=weight, radius=radius, target_form=args.target,
+                                                      progress=progress, **settings)
+        except EstimationError as exc:  # of several frames, name the one (as the Bernoulli estimator does)
+            raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
     return _report(args, estimates)
