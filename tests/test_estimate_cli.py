@@ -518,6 +518,17 @@ def test_rendered_target_round_trip(tmp_path, capsys):
     assert f"MTF50 x {record['mtf50_x']:.4f} y {record['mtf50_y']:.4f}" in line
 
 
+def test_channel_names_ignore_case_as_everywhere(tmp_path, capsys):
+    # `--channel G1` as `psfd query` and `psfd compare` take it: the channel as a datasheet prints it
+    mosaic = np.random.default_rng(3).integers(600, 4000, size=(96, 128)).astype(np.uint16)
+    raw.write_dng(tmp_path / "frame.dng", mosaic, black=512, white=16383)
+    code, stdout, stderr = run(capsys, "estimate", "bernoulli", tmp_path / "frame.dng", "--channel", "G1")
+    assert code == 3 and "(g1): no calibration target found" in stderr  # read as g1: no target in the noise
+    code, stdout, stderr = run(capsys, "estimate", "bernoulli", DATA / "img_example.pgm", "--channel", "MONO",
+                               "--json")
+    assert code == 0 and json.loads(stdout)["channel"] == "mono"
+
+
 def test_sharp_edge_errors_name_the_frame(capsys):
     # of several frames, the one line says which one holds no target (the wall of the real pair)
     code, stdout, stderr = run(capsys, "estimate", "sharp-edge", DATA / "img_example.pgm",
