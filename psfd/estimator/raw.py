@@ -325,12 +325,10 @@ def _load_single_channel(path: Path) -> Frame:
         raise BadInputError(f"{path}: not a readable image")
     if image.ndim != 2:
         raise BadInputError(f"{path}: has {image.shape[2]} colour channels; give one channel or a RAW file")
-    if image.dtype == np.uint8:
-        white = 255.0
-    elif image.dtype == np.uint16:
-        white = float(_pnm_maxval(path) or 65535)
-    else:
+    if image.dtype not in (np.uint8, np.uint16):
         raise BadInputError(f"{path}: unsupported sample type {image.dtype}; use 8 or 16 bit")
+    # a PGM's maxval is its white, 8-bit (up to 255) or 16-bit (4095 or 16383 for a camera's 12 or 14 bits)
+    white = float(_pnm_maxval(path) or np.iinfo(image.dtype).max)
     data = image.astype(np.float64)
     return Frame(
         data=data,
