@@ -529,6 +529,19 @@ def test_channel_names_ignore_case_as_everywhere(tmp_path, capsys):
     assert code == 0 and json.loads(stdout)["channel"] == "mono"
 
 
+@pytest.mark.parametrize("flip", [1, 0], ids=["left-right", "upside-down"])
+def test_a_mirrored_target_is_said_to_be_mirrored(tmp_path, capsys, flip):
+    # the real photograph as a mirror (or the back of a backlit transparency) shows it: no turn of the
+    # published layout matches it, and "no calibration target found" would send the user looking for a
+    # target that is in the frame
+    photo = cv2.imread(str(DATA / "img_example.pgm"), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(tmp_path / "mirror.pgm"), cv2.flip(photo, flip))
+    code, stdout, stderr = run(capsys, "estimate", "bernoulli", tmp_path / "mirror.pgm")
+    assert code == 3 and stdout == ""
+    assert stderr.count("\n") == 1
+    assert stderr.startswith(f"psfd: error: {tmp_path / 'mirror.pgm'} (mono): the target is seen mirrored")
+
+
 def test_sharp_edge_errors_name_the_frame(capsys):
     # of several frames, the one line says which one holds no target (the wall of the real pair)
     code, stdout, stderr = run(capsys, "estimate", "sharp-edge", DATA / "img_example.pgm",
