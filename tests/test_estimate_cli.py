@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import io
 import json
@@ -86,6 +87,28 @@ def test_estimate_tiffs_carry_the_sample_pitch_the_raw_gives(tmp_path):
         assert tags["ResolutionUnit"].value == tifffile.RESUNIT.CENTIMETER
     with tifffile.TiffFile(tmp_path / "out" / "IMG_0002_bernoulli_g1_w00.tif") as tif:
         assert tif.pages[0].tags["ResolutionUnit"].value == tifffile.RESUNIT.NONE
+
+
+def test_estimates_carry_the_settings_the_raw_records(tmp_path):
+    """The f-number, focal length and focus distance of a RAW file's EXIF go with its PSFs into NAME.json,
+    metrics.csv and --json, as `psfd query` gives them for catalogued ones; an image without EXIF has none."""
+    mosaic = np.full((64, 96), 1000, dtype=np.uint16)
+    raw.write_dng(tmp_path / "IMG_0001.dng", mosaic, black=512, white=4095,
+                  exif={"f_number": 8.0, "focal_length_mm": 50.0, "focus_distance_m": 1.3})
+    shot = dataclasses.replace(synthetic(0), sources=[str(tmp_path / "IMG_0001.dng")])
+    bare = dataclasses.replace(synthetic(0), sources=[str(tmp_path / "IMG_0002.pgm")])
+    output.write_estimates([shot, bare], tmp_path / "out", drawn=False)
+    record = json.loads((tmp_path / "out" / "IMG_0001_bernoulli_g1_w00.json").read_text())
+    assert (record["aperture"], record["focal_length_mm"], record["focus_distance_m"]) == (8.0, 50.0, 1.3)
+    record = json.loads((tmp_path / "out" / "IMG_0002_bernoulli_g1_w00.json").read_text())
+    assert (record["aperture"], record["focal_length_mm"], record["focus_distance_m"]) == (None, None, None)
+    with open(tmp_path / "out" / "metrics.csv", newline="") as stream:
+        rows = list(csv.DictReader(stream))
+    assert [(r["aperture [f-number]"], r["focal_length [mm]"], r["focus_distance [m]"]) for r in rows] == [
+        ("8", "50", "1.3"), ("", "", "")]
+    lines = io.StringIO()
+    output.print_json([shot], lines)
+    assert json.loads(lines.getvalue())["aperture"] == 8.0
 
 
 def test_write_estimates_files_round_trip(tmp_path):
