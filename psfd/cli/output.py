@@ -378,6 +378,7 @@ def _frame_metadata(path: str) -> Any:
 
 @functools.lru_cache(maxsize=64)
 def _read_metadata(path: str, version: tuple[int, int] | None) -> Any:
+    """`_frame_metadata` of one ``version`` (modification time, size) of a file; None: no such file."""
     from psfd import exif
     from psfd.estimator.raw import RAW_SUFFIXES
 

@@ -25,8 +25,8 @@ if TYPE_CHECKING:  # annotations only: numpy.typing is not imported at run time
 
 __all__ = [
     "BLACK_BLOCKS", "BLOCK", "BLOCKS", "NOISE", "NOISE_START", "NOISE_STOP", "ORIENTATION_CORNER", "SIZE",
-    "WHITE_BLOCKS", "XCORNER_BLOCKS", "block_centre", "cells", "default_noise", "load_noise", "noise_bytes", "save_noise",
-    "seeded_noise", "xcorner_points"
+    "WHITE_BLOCKS", "XCORNER_BLOCKS", "block_centre", "cells", "default_noise", "load_noise", "noise_bytes",
+    "save_noise", "seeded_noise", "xcorner_points"
 ]
 
 BLOCK = 32  # cells per block side
