@@ -15,7 +15,6 @@ has had since the start: filled rectangles (``re``), filled paths
 from __future__ import annotations
 
 import os
-import tempfile
 import zlib
 from pathlib import Path
 
@@ -247,16 +246,17 @@ def _write_atomic(out: Path, data: bytes, noise: np.ndarray | None = None, origi
     with other content is not replaced unless ``force``: a printed target's noise is never lost.
     """
     pgm = noise_path(out, origin)
+    pgm_data = None if noise is None else target.noise_bytes(noise)
     _refuse_overwrite(out, data, force, "another target")
-    if noise is not None:
-        _refuse_overwrite(pgm, _pgm_bytes(noise), force, "another noise pattern, the record of a printed target")
+    if pgm_data is not None:
+        _refuse_overwrite(pgm, pgm_data, force, "another noise pattern, the record of a printed target")
     tmp_target = out.with_name(f".{out.name}.part")
-    tmp_noise = pgm.with_name(f".{pgm.stem}.part.pgm")  # OpenCV picks the encoder by suffix
+    tmp_noise = pgm.with_name(f".{pgm.stem}.part.pgm")
     existed = out.exists()
     try:
         tmp_target.write_bytes(data)
-        if noise is not None:
-            target.save_noise(noise, tmp_noise)
+        if pgm_data is not None:
+            tmp_noise.write_bytes(pgm_data)
         os.replace(tmp_target, out)
         if noise is not None:
             try:
@@ -295,14 +295,6 @@ def write_target(
     data = pdf_bytes(noise, size_mm, caption) if suffix == ".pdf" else png_bytes(noise, px_per_cell)
     _write_atomic(out, data, noise, origin, force)
     return out, noise_path(out, origin)
-
-
-def _pgm_bytes(noise: np.ndarray) -> bytes:
-    """The bytes `psfd.estimator.target.save_noise` writes for ``noise`` (to compare with a file on disk)."""
-    with tempfile.TemporaryDirectory() as folder:
-        path = Path(folder) / "noise.pgm"
-        target.save_noise(noise, path)
-        return path.read_bytes()
 
 
 # ---------------------------------------------------------------- the sharp-edge target

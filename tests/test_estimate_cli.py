@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import io
 import json
@@ -23,6 +24,8 @@ from psfd.cli import main, output
 from psfd.errors import BadInputError
 from psfd.estimator import raw
 from psfd.estimator.kernels import PSF
+
+DATA = Path(__file__).parent / "data"
 
 
 def gaussian(sigma_x: float, sigma_y: float, s: int = 4, support: int = 17) -> np.ndarray:
@@ -84,6 +87,28 @@ def test_estimate_tiffs_carry_the_sample_pitch_the_raw_gives(tmp_path):
         assert tags["ResolutionUnit"].value == tifffile.RESUNIT.CENTIMETER
     with tifffile.TiffFile(tmp_path / "out" / "IMG_0002_bernoulli_g1_w00.tif") as tif:
         assert tif.pages[0].tags["ResolutionUnit"].value == tifffile.RESUNIT.NONE
+
+
+def test_estimates_carry_the_settings_the_raw_records(tmp_path):
+    """The f-number, focal length and focus distance of a RAW file's EXIF go with its PSFs into NAME.json,
+    metrics.csv and --json, as `psfd query` gives them for catalogued ones; an image without EXIF has none."""
+    mosaic = np.full((64, 96), 1000, dtype=np.uint16)
+    raw.write_dng(tmp_path / "IMG_0001.dng", mosaic, black=512, white=4095,
+                  exif={"f_number": 8.0, "focal_length_mm": 50.0, "focus_distance_m": 1.3})
+    shot = dataclasses.replace(synthetic(0), sources=[str(tmp_path / "IMG_0001.dng")])
+    bare = dataclasses.replace(synthetic(0), sources=[str(tmp_path / "IMG_0002.pgm")])
+    output.write_estimates([shot, bare], tmp_path / "out", drawn=False)
+    record = json.loads((tmp_path / "out" / "IMG_0001_bernoulli_g1_w00.json").read_text())
+    assert (record["aperture"], record["focal_length_mm"], record["focus_distance_m"]) == (8.0, 50.0, 1.3)
+    record = json.loads((tmp_path / "out" / "IMG_0002_bernoulli_g1_w00.json").read_text())
+    assert (record["aperture"], record["focal_length_mm"], record["focus_distance_m"]) == (None, None, None)
+    with open(tmp_path / "out" / "metrics.csv", newline="") as stream:
+        rows = list(csv.DictReader(stream))
+    assert [(r["aperture [f-number]"], r["focal_length [mm]"], r["focus_distance [m]"]) for r in rows] == [
+        ("8", "50", "1.3"), ("", "", "")]
+    lines = io.StringIO()
+    output.print_json([shot], lines)
+    assert json.loads(lines.getvalue())["aperture"] == 8.0
 
 
 def test_write_estimates_files_round_trip(tmp_path):
@@ -232,6 +257,16 @@ def bad_files(tmp_path: Path) -> Path:
     (folder / "cut.dng").write_bytes(data[: len(data) // 2])
     pgm = cv2.imencode(".pgm", np.zeros((64, 64), np.uint8))[1].tobytes()
     (folder / "trunc.pgm").write_bytes(pgm[: len(pgm) // 2])  # OpenCV would log its own error line
+    photo = cv2.imread(str(DATA / "img_example.pgm"), cv2.IMREAD_UNCHANGED)
+    png = cv2.imencode(".png", photo)[1].tobytes()
+    (folder / "trunc.png").write_bytes(png[: len(png) // 2])  # libpng would print its own "Read Error" line
+    (folder / "empty.tif").write_bytes(b"II*\0" + bytes(100))  # tifffile would log "contains no pages"
+    # a grey photograph saved as TIFF but named .dng: LibRaw reads it as a Bayer mosaic of a camera it guesses
+    tifffile.imwrite(folder / "grey.dng", photo.astype(np.uint16) * 257)
+    # a linear DNG, demosaiced (three samples per pixel, PhotometricInterpretation LinearRaw): no photosites
+    rgb = np.stack([mosaic] * 3, axis=-1)
+    tifffile.imwrite(folder / "linear.dng", rgb, photometric=34892, subfiletype=0,
+                     extratags=[(50706, "B", 4, (1, 4, 0, 0), True), (50708, "s", 0, "linear", True)])
     return folder
 
 
@@ -239,6 +274,10 @@ BAD = [
     (["target", "{in}/notes.pgm"], "not a readable image"),
     (["target", "{in}/colour.png"], "colour channels"),
     (["target", "{in}/cut.dng"], "not a readable RAW file"),
+    (["target", "{in}/trunc.png"], "trunc.png: not a readable image"),
+    (["target", "{in}/empty.tif"], "empty.tif: not a readable image"),
+    (["target", "{in}/grey.dng"], "grey.dng: a TIFF image without a camera's make or DNG tags"),
+    (["target", "{in}/linear.dng"], "linear.dng: a linear (demosaiced) RAW file"),
     (["target", "{in}/missing.dng"], "no such file"),
     (["target", "{in}/whole.dng", "--grid", "3"], "--grid"),
     (["target", "{in}/whole.dng", "--grid", "0x2"], "--grid"),
@@ -279,12 +318,14 @@ def test_bad_input_one_line_nothing_written(bad_files, capfd, argv, message):
     assert sorted(p.name for p in bad_files.parent.rglob("*")) == before  # no results folder, no temporary
 
 
-def test_no_opencv_log_lines(bad_files):
-    # In a fresh process, as a user runs it: OpenCV reads its log level when first imported.
-    proc = subprocess.run([sys.executable, "-m", "psfd", "estimate", "target", str(bad_files / "trunc.pgm")],
+@pytest.mark.parametrize("name", ["trunc.pgm", "trunc.png", "empty.tif"])
+def test_no_decoder_log_lines(bad_files, name):
+    # In a fresh process, as a user runs it: OpenCV reads its log level when first imported, libpng writes
+    # to file descriptor 2, tifffile logs through `logging`, which psfd sends to stderr.
+    proc = subprocess.run([sys.executable, "-m", "psfd", "estimate", "target", str(bad_files / name)],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and proc.stdout == ""
-    assert proc.stderr == f"psfd: error: {bad_files / 'trunc.pgm'}: not a readable image\n"
+    assert proc.stderr == f"psfd: error: {bad_files / name}: not a readable image\n"
 
 
 def test_unwritable_out_is_one_line_error():
@@ -492,6 +533,45 @@ def test_rendered_target_round_trip(tmp_path, capsys):
     # so the saved noise is what made the estimate work
     code, stdout, stderr = run(capsys, "estimate", "target", tmp_path / "photo.png", "--json")
     assert code == 3 and stdout == "" and "does not follow the target's pattern" in stderr
+    # psfd compare reads the printed noise the same way: its Bernoulli line is that estimate, not skipped
+    code, stdout, stderr = run(capsys, "compare", tmp_path / "photo.png", "--pattern",
+                               tmp_path / "lab.seed21.noise.pgm")
+    assert code == 0, stderr
+    line = next(text for text in stdout.splitlines() if text.startswith("bernoulli photo.png"))
+    assert f"MTF50 x {record['mtf50_x']:.4f} y {record['mtf50_y']:.4f}" in line
+
+
+def test_channel_names_ignore_case_as_everywhere(tmp_path, capsys):
+    # `--channel G1` as `psfd query` and `psfd compare` take it: the channel as a datasheet prints it
+    mosaic = np.random.default_rng(3).integers(600, 4000, size=(96, 128)).astype(np.uint16)
+    raw.write_dng(tmp_path / "frame.dng", mosaic, black=512, white=16383)
+    code, stdout, stderr = run(capsys, "estimate", "bernoulli", tmp_path / "frame.dng", "--channel", "G1")
+    assert code == 3 and "(g1): no calibration target found" in stderr  # read as g1: no target in the noise
+    code, stdout, stderr = run(capsys, "estimate", "bernoulli", DATA / "img_example.pgm", "--channel", "MONO",
+                               "--json")
+    assert code == 0 and json.loads(stdout)["channel"] == "mono"
+
+
+@pytest.mark.parametrize("flip", [1, 0], ids=["left-right", "upside-down"])
+def test_a_mirrored_target_is_said_to_be_mirrored(tmp_path, capsys, flip):
+    # the real photograph as a mirror (or the back of a backlit transparency) shows it: no turn of the
+    # published layout matches it, and "no calibration target found" would send the user looking for a
+    # target that is in the frame
+    photo = cv2.imread(str(DATA / "img_example.pgm"), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(tmp_path / "mirror.pgm"), cv2.flip(photo, flip))
+    code, stdout, stderr = run(capsys, "estimate", "bernoulli", tmp_path / "mirror.pgm")
+    assert code == 3 and stdout == ""
+    assert stderr.count("\n") == 1
+    assert stderr.startswith(f"psfd: error: {tmp_path / 'mirror.pgm'} (mono): the target is seen mirrored")
+
+
+def test_sharp_edge_errors_name_the_frame(capsys):
+    # of several frames, the one line says which one holds no target (the wall of the real pair)
+    code, stdout, stderr = run(capsys, "estimate", "sharp-edge", DATA / "img_example.pgm",
+                               DATA / "IMG_0602_v1_CUT.pgm", "--target")
+    assert code == 3 and stdout == ""
+    assert stderr == f"psfd: error: {DATA / 'IMG_0602_v1_CUT.pgm'} (mono): no edge target and no Bernoulli target " \
+                     "found in the frame\n"
 
 
 def test_edges_end_to_end_passes_its_options(tmp_path, capsys):

@@ -96,6 +96,16 @@ def test_sixteen_bit_pgm_white_level_comes_from_its_header(tmp_path):
     assert frame.white == 4095 and frame.saturated.all()
 
 
+def test_eight_bit_pgm_white_level_comes_from_its_header(tmp_path):
+    # Netpbm allows any maxval up to 255 in one byte per sample: 200 is its white, and what reaches it is clipped
+    path = tmp_path / "w.pgm"
+    body = np.tile(np.array([0, 100, 199, 200], np.uint8), (16, 5))
+    path.write_bytes(b"P5\n20 16\n200\n" + body.tobytes())
+    frame = raw.load_frame(path, "mono")
+    assert frame.white == 200
+    np.testing.assert_array_equal(frame.saturated, body == 200)
+
+
 @pytest.mark.parametrize(
     "name, content, message",
     [

@@ -181,14 +181,35 @@ def test_pdf_rasterised_by_poppler_matches_png(tmp_path, capsys):
         (["--out", "{tmp}/t.png", "--noise", "{tmp}/missing.pgm"], "missing.pgm: no such file"),
         (["--out", "{tmp}/t.pdf", "--size-mm", "nan"], "--size-mm"),
         (["--out", "{tmp}/t.png", "--px-per-cell", "0"], "--px-per-cell"),
+        # a pattern with no noise in it would print a target no photograph of which can be estimated
+        (["--out", "{tmp}/t.pdf", "--noise", "{tmp}/black.pgm"], "black.pgm: no noise pattern, every cell is black"),
+        (["--out", "{tmp}/t.pdf", "--noise", "{tmp}/folder"], "folder: is a folder"),
     ],
 )
 def test_bad_input_one_line_nothing_written(tmp_path, capsys, argv, message):
     (tmp_path / "file.txt").write_text("not an image\n")
+    cv2.imwrite(str(tmp_path / "black.pgm"), np.zeros((target.NOISE, target.NOISE), np.uint8))
+    (tmp_path / "folder").mkdir()
     code, stdout, stderr = run(capsys, "target", *(a.format(tmp=tmp_path) for a in argv))
     assert code == 2
     assert stderr.startswith("psfd: error: ") and stderr.count("\n") == 1 and message in stderr
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["file.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["black.pgm", "file.txt", "folder"]
+
+
+def test_a_noise_file_that_cannot_be_written_says_why(tmp_path):
+    # the kernel's file size limit (RLIMIT_FSIZE) stops the noise file past 60 kB, after the 49 kB PDF: EFBIG
+    # as a full disk gives ENOSPC, in a process of its own (Python ignores SIGXFSZ, so write() fails instead)
+    import resource
+    import sys
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (60_000, 60_000))
+
+    done = subprocess.run([sys.executable, "-m", "psfd", "target", "--out", str(tmp_path / "t.pdf"), "--seed", "3"],
+                          capture_output=True, text=True, timeout=120, preexec_fn=limit)
+    assert done.returncode == 2
+    assert done.stderr == f"psfd: error: {tmp_path / 't.pdf'}: cannot write (File too large)\n"
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_edge_target_pdf_is_well_formed(tmp_path, capsys):

@@ -53,6 +53,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "each method's own s)")
     parser.add_argument("--out", metavar="DIR", help="write compare.png, compare.json and the estimates here")
     parser.add_argument("--force", action="store_true", help="replace --out if it holds an earlier comparison")
+    parser.add_argument("--pattern", metavar="PGM",
+                        help="noise of the printed target, as `psfd target` saved it (default: the published one)")
     parser.add_argument("--channel", help="Bayer plane of RAW files: r, g1, g2 or b (default g1; a single-channel "
                                           "image is its own plane, mono)")
     options.add_size_options(parser, grid=False)
@@ -69,17 +71,18 @@ def run(args: argparse.Namespace) -> int:
         raise BadInputError("--weights: expected non-negative numbers separated by commas")
     if args.channel is not None:  # None: each file's default plane (`psfd.estimator.raw.load_frame`)
         args.channel = options.parse_channel(args.channel, allowed=(*CHANNELS, MONO))  # G1 is g1
-    inputs = [*args.frames, *([args.truth] if args.truth else [])]  # never deleted by --force
+    inputs = [*args.frames, *(path for path in (args.truth, args.pattern) if path)]  # never deleted by --force
     if args.out is not None:
         from psfd.cli import output
 
         output.check_out_dir(args.out, args.force, inputs)
-    from psfd.estimator import mtf, raw
+    from psfd.estimator import mtf, raw, target
 
     truth_s = sizes[BERNOULLI]["s"]
     truth = load_truth(args.truth, truth_s) if args.truth else None
+    noise = target.load_noise(args.pattern) if args.pattern else None
     frames = [raw.load_frame(path, args.channel) for path in args.frames]
-    estimates = run_methods(frames, sizes, weights, quiet=args.quiet)
+    estimates = run_methods(frames, sizes, weights, quiet=args.quiet, noise=noise)
     done = [e for e in estimates if e.psf is not None]
     if not done:
         reasons = "; ".join(f"{e.label}: {e.reason}" for e in estimates)
@@ -189,10 +192,12 @@ def _size(frame) -> int:
     return rows * cols
 
 
-def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quiet: int = 1) -> list[Estimate]:
+def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quiet: int = 1,
+                noise: Any = None) -> list[Estimate]:
     """Every method that applies to the frames (see the module docstring), in a stable order.
 
-    ``sizes`` holds each method's ``s`` and ``support`` (`psfd.cli.options.sizes`). What each frame
+    ``sizes`` holds each method's ``s`` and ``support`` (`psfd.cli.options.sizes`), ``noise`` the printed
+    target's noise cells (`psfd.estimator.target.load_noise`; None: the published ones). What each frame
     shows (`_search`) decides its methods. The largest frame is searched and its methods run in this
     process, with a progress bar on a terminal unless ``quiet``; the other frames are searched and
     their methods and the pair's run beside it in a forked worker (`_Beside`), without one: each
@@ -203,7 +208,8 @@ def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quie
     others = [i for i in range(len(frames)) if i != main]
     if not others:
         found = _search(frames[main])
-        return _in_order({main: found.kind}, {main: _frame_methods(frames[main], found, sizes, weights, quiet)})
+        return _in_order({main: found.kind},
+                         {main: _frame_methods(frames[main], found, sizes, weights, quiet, noise)})
     # the frames are searched for the targets at once, unless the searches' temporaries together would pass
     # the memory bound (some 40 bytes per pixel each): then the others wait for this frame's search
     together = sum(_size(frame) for frame in frames) <= SEARCH_TOGETHER_PIXELS
@@ -213,12 +219,12 @@ def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quie
 
     told = _Message(_forks())  # this frame's kind, for the worker: the pair needs it
     # the worker draws no bar: two processes redrawing one terminal line would garble it
-    beside = _Beside(lambda: _beside_main(frames, main, told.receive, together, sizes, weights))
+    beside = _Beside(lambda: _beside_main(frames, main, told.receive, together, sizes, weights, noise))
     try:
         found = _search(frames[main])
         told.send(found.kind)
         kinds = {main: found.kind}
-        results = {main: _frame_methods(frames[main], found, sizes, weights, quiet)}
+        results = {main: _frame_methods(frames[main], found, sizes, weights, quiet, noise)}
     except BaseException:
         beside.cancel()
         raise
@@ -229,7 +235,8 @@ def run_methods(frames: list, sizes: dict[str, dict], weights: list[float], quie
 
 
 def _beside_main(frames: list, main: int, main_kind: Callable[[], str], together: bool,
-                 sizes: dict[str, dict], weights: list[float]) -> tuple[dict[int, str], dict[int, list]]:
+                 sizes: dict[str, dict], weights: list[float], noise: Any = None
+                 ) -> tuple[dict[int, str], dict[int, list]]:
     """The work beside the largest frame's (``main``): the other frames' kinds and methods, then the pair's.
 
     ``main_kind`` returns the largest frame's kind, waiting for it if need be. Returns the other
@@ -240,7 +247,7 @@ def _beside_main(frames: list, main: int, main_kind: Callable[[], str], together
         main_kind()  # this frame's search has ended: the memory of its temporaries is free
     searches = [lambda f=frames[i]: _search(f) for i in others]
     found = dict(zip(others, concurrently(*searches) if together else [search() for search in searches]))
-    results = {i: _frame_methods(frames[i], found[i], sizes, weights, 1) for i in others}
+    results = {i: _frame_methods(frames[i], found[i], sizes, weights, 1, noise) for i in others}
     kinds = {i: f.kind for i, f in found.items()}
     every = {**kinds, main: main_kind()}
     plain = [frames[i] for i in range(len(frames)) if every[i] == PLAIN_FRAME]
@@ -258,13 +265,14 @@ def _in_order(kinds: dict[int, str], results: dict[int, list]) -> list[Estimate]
 
 
 def _frame_methods(frame, found: _Found, sizes: dict[str, dict], weights: list[float],
-                   quiet: int) -> list[Estimate]:
-    """The estimates of one frame as `_search` ``found`` it: its target's methods, or the blind sharp-edge."""
+                   quiet: int, noise: Any = None) -> list[Estimate]:
+    """The estimates of one frame as `_search` ``found`` it: its target's methods (the Bernoulli one with the
+    printed ``noise``), or the blind sharp-edge."""
     if found.kind == BERNOULLI_FRAME:
         from psfd.estimator import bernoulli, sharpedge
 
         estimates = _attempt(f"bernoulli {Path(frame.source).name}",
-                             lambda: bernoulli.estimate_target(frame, detection=found.target,
+                             lambda: bernoulli.estimate_target(frame, detection=found.target, noise=noise,
                                                                **_method_size(sizes, BERNOULLI)))
         # its marks: the noise cells are no isolated step edges
         return estimates + _edges(frame, sharpedge.bernoulli_pattern(found.target), sizes, weights, quiet)

@@ -15,8 +15,9 @@ import threading
 from pathlib import Path
 
 from psfd.cli import options, summary
-from psfd.errors import BadInputError
-from psfd.vocabulary import ALIASES, BERNOULLI, DEFAULT_SOLVER, SHARP_EDGE, SOLVERS, TWO_PHOTO, check_solver
+from psfd.errors import BadInputError, EstimationError
+from psfd.vocabulary import (ALIASES, BERNOULLI, CHANNELS, DEFAULT_SOLVER, MONO, SHARP_EDGE, SOLVERS, TWO_PHOTO,
+                             check_solver)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -86,6 +87,8 @@ def _common(p: argparse.ArgumentParser, method: str) -> None:
 def _settings(args: argparse.Namespace, method: str) -> dict:
     """The options every method shares, checked; the output folder checked before any work."""
     settings = options.sizes(args, method)
+    if args.channel != "all":  # G1 is g1, as for every command (`options.parse_channel`)
+        args.channel = options.parse_channel(args.channel, allowed=(*CHANNELS, MONO, "all"))
     if args.no_figures and args.out is None:
         raise BadInputError("--no-figures leaves figures out of --out: give --out DIR too")
     if args.out is not None:
@@ -201,7 +204,10 @@ def run_sharp_edge(args: argparse.Namespace) -> int:
 
     estimates = []
     for frame in frames:  # seconds per megapixel: a bar on a terminal
-        with output.progress_bar(f"{Path(frame.source).name} {frame.channel}", args.quiet) as progress:
-            estimates += sharpedge.estimate_edges(frame, weight=weight, radius=radius, target_form=args.target,
-                                                  progress=progress, **settings)
+        try:
+            with output.progress_bar(f"{Path(frame.source).name} {frame.channel}", args.quiet) as progress:
+                estimates += sharpedge.estimate_edges(frame, weight=weight, radius=radius, target_form=args.target,
+                                                      progress=progress, **settings)
+        except EstimationError as exc:  # of several frames, name the one (as the Bernoulli estimator does)
+            raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
     return _report(args, estimates)

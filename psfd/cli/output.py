@@ -17,6 +17,7 @@ FWHM in channel pixels; field coordinates normalised, (0, 0) top-left.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import os
@@ -365,20 +366,48 @@ def estimate_sensors(estimates: list[PSF]) -> dict[str, Any]:
     return {path: source_sensor(path) for path in {est.sources[0] for est in estimates if est.sources}}
 
 
+def _frame_metadata(path: str) -> Any:
+    """The `psfd.exif.FrameMetadata` of a RAW file, read once per version of the file (its sensor and settings
+    go with each of its PSFs); empty for an image without EXIF."""
+    try:
+        stat = os.stat(path)
+    except OSError:
+        return _read_metadata(path, None)
+    return _read_metadata(path, (stat.st_mtime_ns, stat.st_size))
+
+
+@functools.lru_cache(maxsize=64)
+def _read_metadata(path: str, version: tuple[int, int] | None) -> Any:
+    """`_frame_metadata` of one ``version`` (modification time, size) of a file; None: no such file."""
+    from psfd import exif
+    from psfd.estimator.raw import RAW_SUFFIXES
+
+    if version is not None and Path(path).suffix.lower() in RAW_SUFFIXES:  # a PGM or PNG plane carries no EXIF
+        try:
+            return exif.read_metadata(path)
+        except (BadInputError, OSError):
+            pass
+    return exif.FrameMetadata()
+
+
+# the settings of a frame its PSFs carry (record key: `psfd.exif.FrameMetadata` field), as catalogue rows do
+SETTINGS = {"aperture": "f_number", "focal_length_mm": "focal_length_mm", "focus_distance_m": "focus_distance_m"}
+
+
+def source_settings(path: str | os.PathLike) -> dict:
+    """f-number, focal length and focus distance (`SETTINGS`) a frame file's EXIF records, None where it does not."""
+    meta = _frame_metadata(str(path))
+    return {key: getattr(meta, field) for key, field in SETTINGS.items()}
+
+
 def source_sensor(path: str | os.PathLike, pitch_um: float | None = None) -> Any:
     """The `psfd.figures.Sensor` of a frame file from its EXIF (size, pitch), or None when it says neither.
 
     ``pitch_um`` (e.g. a plan's ``[rig] pitch_um``) stands in when the file gives no pitch.
     """
-    from psfd import exif, figures
-    from psfd.estimator.raw import RAW_SUFFIXES
+    from psfd import figures
 
-    meta = exif.FrameMetadata()
-    if Path(path).suffix.lower() in RAW_SUFFIXES:  # a PGM or PNG plane carries no EXIF: nothing to warn about
-        try:
-            meta = exif.read_metadata(path)
-        except (BadInputError, OSError):
-            pass
+    meta = _frame_metadata(str(path))
     pitch = meta.pixel_pitch_um or pitch_um
     if not (meta.width and meta.height):
         return figures.Sensor(0, 0, pitch) if pitch else None
@@ -434,9 +463,11 @@ def units(record: dict, sensor: Any) -> dict:
 
 
 def estimate_record(est: PSF, sensor: Any = None) -> dict:
-    """The CSV / JSON record of one estimate: `PSF.to_json` without the array, with `units`."""
+    """The CSV / JSON record of one estimate: `PSF.to_json` without the array, with its first frame's
+    settings (`source_settings`) and `units`."""
     record = {k: v for k, v in est.to_json().items() if k != "psf"}
-    return units(plain(record), sensor)
+    settings = source_settings(est.sources[0]) if est.sources else dict.fromkeys(SETTINGS)
+    return units(plain({**record, **settings}), sensor)
 
 
 # ---------------------------------------------------------------- CSV

@@ -28,7 +28,7 @@ from typing import Callable
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from psfd.errors import BadInputError, EstimationError, SaturatedError
+from psfd.errors import BadInputError, EstimationError, SaturatedError, TargetNotFoundError
 from psfd.estimator import detect, geometry, kernels, quantiles, radiometry, resample, target
 from psfd.estimator.kernels import PSF
 from psfd.estimator.nnls import _cholesky_solve, nnls_normal
@@ -1153,7 +1153,26 @@ def _search(frame: Frame, found: dict[str, tuple[Frame, detect.Detection]]) -> d
                 pass
         return detect.find_target(image, frame.saturated)
     except EstimationError as exc:  # say which of several frames and planes could not be used
+        if isinstance(exc, TargetNotFoundError) and _seen_mirrored(image, frame.saturated):
+            exc = TargetNotFoundError("the target is seen mirrored (in a mirror, or a transparency from behind); "
+                                      "psfd reads it as printed: photograph its printed side directly")
         raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
+
+
+def _seen_mirrored(image: np.ndarray, saturated: np.ndarray | None) -> bool:
+    """Whether the target is in the left-right mirror image of a plane where it was not found.
+
+    No quarter turn of the published layout matches its mirror image (the hourglasses would lie across
+    their rows), so the detector rightly finds no target there; asked only once the search has failed, so
+    that the one line says what is wrong rather than that nothing is there. A vertical flip is a half
+    turn of a horizontal one: this one search covers both.
+    """
+    flipped = None if saturated is None else np.ascontiguousarray(saturated[:, ::-1])
+    try:
+        detect.find_target(np.ascontiguousarray(image[:, ::-1]), flipped)
+    except EstimationError:
+        return False
+    return True
 
 
 class _TargetPlane(_Plane):

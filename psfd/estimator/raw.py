@@ -160,7 +160,11 @@ def _load_raw(path: Path, wanted: str | None = None) -> dict[str, Frame]:
             with _quiet_stderr():
                 raw.open_file(str(path))  # reads the header only: the size is checked before the data is unpacked
                 check_image_size(raw.sizes.raw_width, raw.sizes.raw_height, str(path))
+                _check_camera_raw(path)
                 raw.unpack()
+                if raw.raw_type != rawpy.RawType.Flat:  # read once unpacked (rawpy would unpack to tell)
+                    raise BadInputError(f"{path}: a linear (demosaiced) RAW file, {raw.num_colors} colours per "
+                                        "pixel: psfd reads the photosites of a Bayer mosaic, not demosaiced images")
                 # the photosites as decoded (uint16), LibRaw's own buffer, not copied: the requested planes
                 # are converted from it before it is freed, and only the 2 x 2 colour pattern is read
                 # (raw_colors_visible would build a second full-size array)
@@ -184,6 +188,23 @@ def _load_raw(path: Path, wanted: str | None = None) -> dict[str, Frame]:
             raise BadInputError(f"{path}: a {shape} colour filter pattern, not a 2 x 2 Bayer mosaic (psfd reads "
                                 "Bayer sensors only)")
         return _bayer_planes(path, mosaic, colors, desc, blacks, white, wanted)
+
+
+def _check_camera_raw(path: Path) -> None:
+    """Refuse a plain TIFF image under a RAW file's name (a grey photograph saved as ``.dng``).
+
+    LibRaw reads such a file as the mosaic of an unknown camera with a colour pattern it guesses, so its
+    planes would be no colour channels. A camera's TIFF-based RAW file names its maker (TIFF/EP: Make) and a
+    DNG carries DNGVersion (DNG 1.4, sec. "DNGVersion": required); a file that has neither is not one.
+    """
+    with open(path, "rb") as fh:
+        if fh.read(4) not in TIFF_MAGIC:
+            return  # not TIFF-based (CR3, RAF, ...): LibRaw knows the camera from the format itself
+    page = _first_tiff_page(path)
+    make, dng_version = 271, 50706
+    if page is not None and not {make, dng_version} & page[2]:
+        raise BadInputError(f"{path}: a TIFF image without a camera's make or DNG tags, not a camera RAW file "
+                            "(a single-channel image is read as such when named .tif)")
 
 
 def _bayer_planes(path: Path, mosaic: np.ndarray, colors: np.ndarray, desc: str, blacks: list, white: float,
@@ -253,16 +274,32 @@ def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
         if len(fields) >= 3 and fields[1].isdigit() and fields[2].isdigit():
             return int(fields[1]), int(fields[2])
         return None
-    if head[:4] in (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"):
-        import tifffile
-
-        try:
-            with tifffile.TiffFile(path) as tif:
-                page = tif.pages[0]
-                return int(page.imagewidth), int(page.imagelength)
-        except Exception:  # noqa: BLE001 - a TIFF tifffile cannot parse: the decoder says why
-            return None
+    if head[:4] in TIFF_MAGIC:
+        page = _first_tiff_page(path)
+        return None if page is None else (page[0], page[1])
     return None
+
+
+TIFF_MAGIC = (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+")  # classic and BigTIFF, both byte orders
+
+
+def _first_tiff_page(path: str | os.PathLike) -> tuple[int, int, set[int]] | None:
+    """(width, height, tag codes) of a TIFF file's first image, or None when tifffile cannot parse it."""
+    import logging
+
+    import tifffile
+
+    log = logging.getLogger("tifffile")
+    level = log.level
+    log.setLevel(logging.CRITICAL)  # its complaints ("contains no pages") would add lines to the one-line error
+    try:
+        with tifffile.TiffFile(path) as tif:
+            page = tif.pages[0]
+            return int(page.imagewidth), int(page.imagelength), set(page.tags.keys())
+    except Exception:  # noqa: BLE001 - a TIFF tifffile cannot parse: the decoder says why
+        return None
+    finally:
+        log.setLevel(level)
 
 
 def check_image(path: str | os.PathLike) -> None:
@@ -276,7 +313,8 @@ def read_image(path: str | os.PathLike) -> np.ndarray | None:
     """``cv2.imread(path, IMREAD_UNCHANGED)`` after `check_image`; None when OpenCV cannot decode it."""
     check_image(path)
     try:
-        return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        with _quiet_stderr():  # libpng prints "libpng error: Read Error" on a truncated PNG before failing
+            return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     except cv2.error:  # OpenCV's own size limit on a header `image_size` does not parse
         raise BadInputError(f"{path}: the image is larger than psfd reads") from None
 
@@ -287,12 +325,10 @@ def _load_single_channel(path: Path) -> Frame:
         raise BadInputError(f"{path}: not a readable image")
     if image.ndim != 2:
         raise BadInputError(f"{path}: has {image.shape[2]} colour channels; give one channel or a RAW file")
-    if image.dtype == np.uint8:
-        white = 255.0
-    elif image.dtype == np.uint16:
-        white = float(_pnm_maxval(path) or 65535)
-    else:
+    if image.dtype not in (np.uint8, np.uint16):
         raise BadInputError(f"{path}: unsupported sample type {image.dtype}; use 8 or 16 bit")
+    # a PGM's maxval is its white, 8-bit (up to 255) or 16-bit (4095 or 16383 for a camera's 12 or 14 bits)
+    white = float(_pnm_maxval(path) or np.iinfo(image.dtype).max)
     data = image.astype(np.float64)
     return Frame(
         data=data,

@@ -25,8 +25,8 @@ if TYPE_CHECKING:  # annotations only: numpy.typing is not imported at run time
 
 __all__ = [
     "BLACK_BLOCKS", "BLOCK", "BLOCKS", "NOISE", "NOISE_START", "NOISE_STOP", "ORIENTATION_CORNER", "SIZE",
-    "WHITE_BLOCKS", "XCORNER_BLOCKS", "block_centre", "cells", "default_noise", "load_noise", "save_noise",
-    "seeded_noise", "xcorner_points"
+    "WHITE_BLOCKS", "XCORNER_BLOCKS", "block_centre", "cells", "default_noise", "load_noise", "noise_bytes",
+    "save_noise", "seeded_noise", "xcorner_points"
 ]
 
 BLOCK = 32  # cells per block side
@@ -62,7 +62,13 @@ def default_noise() -> np.ndarray:
 
 
 def load_noise(path: str | os.PathLike) -> np.ndarray:
-    """Read a 256 x 256 noise realisation from an image (dark = 0, light = 1)."""
+    """Read a 256 x 256 noise realisation from an image (dark = 0, light = 1).
+
+    An image of one value is refused: it holds no noise, and neither a target printed from it nor a
+    photograph estimated with it could give a PSF.
+    """
+    if Path(path).is_dir():
+        raise BadInputError(f"{path}: is a folder, not a noise pattern image")
     if not Path(path).is_file():  # otherwise imread's None reads as a bad image
         raise BadInputError(f"{path}: no such file")
     image = read_image(path)  # its header's size checked before it is decoded
@@ -70,6 +76,9 @@ def load_noise(path: str | os.PathLike) -> np.ndarray:
         raise BadInputError(f"{path}: not a single-channel noise pattern image")
     if image.shape != (NOISE, NOISE):
         raise BadInputError(f"{path}: noise pattern must be {NOISE}x{NOISE} cells, got {image.shape[1]}x{image.shape[0]}")
+    if image.min() == image.max():
+        colour = "black" if image.max() == 0 else "white" if image.max() == np.iinfo(image.dtype).max else "one grey"
+        raise BadInputError(f"{path}: no noise pattern, every cell is {colour}")
     return (image.astype(np.float64) > image.max() / 2).astype(np.float64)
 
 
@@ -79,10 +88,17 @@ def seeded_noise(seed: int) -> np.ndarray:
     return rng.integers(0, 2, size=(NOISE, NOISE)).astype(np.float64)
 
 
+def noise_bytes(noise: np.ndarray) -> bytes:
+    """A noise realisation as an 8-bit binary PGM (0 black, 255 white), the published format."""
+    ok, encoded = cv2.imencode(".pgm", (np.asarray(noise) > 0.5).astype(np.uint8) * 255)
+    if not ok:  # OpenCV encodes any grey uint8 image; this guards a broken build
+        raise BadInputError("cannot encode the noise pattern as PGM")
+    return encoded.tobytes()
+
+
 def save_noise(noise: np.ndarray, path: str | Path) -> None:
-    """Write a noise realisation as an 8-bit PGM (0 black, 255 white), the published format."""
-    if not cv2.imwrite(str(path), (np.asarray(noise) > 0.5).astype(np.uint8) * 255):
-        raise BadInputError(f"{path}: cannot write noise pattern")
+    """Write a noise realisation as `noise_bytes`; a failed write is the OSError that says why (a full disk)."""
+    Path(path).write_bytes(noise_bytes(noise))
 
 
 def cells(noise: np.ndarray | None = None, supersample: int = 1, dtype: npt.DTypeLike = np.float64) -> np.ndarray:
