@@ -636,17 +636,19 @@ def test_guard_of_a_closed_rail_sends_nothing(make_fake, connect):
     assert fake.wait_for(lambda f: not f.peer_open, timeout=2)
 
 
+def _owner(tmp_path, fake, *lines: str) -> subprocess.Popen:
+    """A process that opens the fake's rail as psfd does (its guard and all) and runs ``lines``; stdout piped."""
+    script = tmp_path / "owner.py"
+    script.write_text("import os, signal, sys, time\nfrom psfd.drivers.grbl import GrblRail\n"
+                      "rail = GrblRail(sys.argv[1])\n" + "".join(line + "\n" for line in lines))
+    return subprocess.Popen([sys.executable, str(script), fake.port], stdout=subprocess.PIPE, text=True)
+
+
 def test_guard_of_a_process_killed_standing_only_asks(make_fake, connect, tmp_path):
     """A process killed while the carriage stands: its guard asks for one status report and sends nothing
     else (no feed hold, no reset)."""
     fake = make_fake()
-    script = tmp_path / "owner.py"
-    script.write_text("import sys, time\n"
-                      "from psfd.drivers.grbl import GrblRail\n"
-                      "rail = GrblRail(sys.argv[1])\n"
-                      "print(rail.move(x=-10).x, flush=True)\n"
-                      "time.sleep(60)\n")
-    proc = subprocess.Popen([sys.executable, str(script), fake.port], stdout=subprocess.PIPE, text=True)
+    proc = _owner(tmp_path, fake, "print(rail.move(x=-10).x, flush=True)", "time.sleep(60)")
     try:
         assert proc.stdout.readline() == "-10.0\n"
         realtime, lines = len(fake.realtime), list(fake.lines)
@@ -686,16 +688,11 @@ def test_sigkill_just_after_the_move_line_is_stopped_by_the_guard(make_fake, con
     """Killed the moment the move line is written: the guard may meet GRBL still Idle, before the line runs;
     it asks again before deciding the carriage stands."""
     fake = make_fake(SLOW)
-    script = tmp_path / "owner.py"
-    script.write_text("import os, signal, sys, time\n"
-                      "from psfd.drivers.grbl import GrblRail\n"
-                      "rail = GrblRail(sys.argv[1])\n"
-                      "rail._ensure_guard()\n"
-                      "time.sleep(0.5)  # the guard is up and waiting: it reacts within a millisecond\n"
-                      "rail._serial.write(b'G90 G21 G0 X-150.0000\\n')\n"
-                      "os.kill(os.getpid(), signal.SIGKILL)\n")
-    proc = subprocess.run([sys.executable, str(script), fake.port], timeout=60)
-    assert proc.returncode == -signal.SIGKILL
+    proc = _owner(tmp_path, fake, "rail._ensure_guard()",
+                  "time.sleep(0.5)  # the guard is up and waiting: it reacts within a millisecond",
+                  "rail._serial.write(b'G90 G21 G0 X-150.0000\\n')", "os.kill(os.getpid(), signal.SIGKILL)")
+    assert proc.wait(timeout=60) == -signal.SIGKILL
+    proc.stdout.close()
     assert fake.wait_for(lambda f: not f.peer_open, timeout=15)
     assert settled(fake) and -5.0 < fake.machine_position()[0] <= 0.0
     assert fake.resets() == ["Hold:0"] and fake.alarms() == []
@@ -734,13 +731,7 @@ def test_guard_of_a_process_killed_moving_after_homing_holds_first(make_fake, tm
     carriage as after any move (feed hold, Hold:0, reset: the position kept), not with the reset at once that
     a homing cycle needs."""
     fake = make_fake({**SLOW, 22: 1}, start=(-30.0, -50.0, -50.0))
-    script = tmp_path / "owner.py"
-    script.write_text("import sys\n"
-                      "from psfd.drivers.grbl import GrblRail\n"
-                      "rail = GrblRail(sys.argv[1])\n"
-                      "print(rail.home().x, flush=True)\n"
-                      "rail.move(x=-150)\n")
-    proc = subprocess.Popen([sys.executable, str(script), fake.port], stdout=subprocess.PIPE, text=True)
+    proc = _owner(tmp_path, fake, "print(rail.home().x, flush=True)", "rail.move(x=-150)")
     try:
         assert proc.stdout.readline() == "-1.0\n"
         assert fake.wait_for(lambda f: f.machine_position()[0] < -20.0, timeout=30)
