@@ -17,8 +17,34 @@ import numpy as np
 
 from psfd.estimator import mtf
 
-__all__ = ["PSF", "centroid", "clip_negatives", "core_centroid", "field_of_window", "normalise", "split_grid",
-           "translations"]
+__all__ = ["NOISE_WARN", "PSF", "RING_WARN", "centroid", "clip_negatives", "core_centroid", "field_of_window",
+           "kernel_warnings", "normalise", "split_grid", "translations"]
+
+# Relative noise floor (`PSF.relative_noise`) above which a kernel is flagged as more noise than PSF: the
+# expected error norm then exceeds the kernel's own norm (an upper bound for a non-negative kernel). Measured
+# in normal use: 0.02-0.03 on the simulated rig's target (f/2.8-f/22, 3 x 3 field, 4 channels), 0.06-0.15
+# on its two-photo pair at f/8; on the real photographs 0.05 (img_example.pgm, Bernoulli; 0.08-0.15 on a
+# 3 x 3 grid), 0.05 (the pair, two-photo; 0.11 at s = 4), 0.41 and 0.68 (img_example.pgm by the sharp-edge
+# method, blind and --target: a posterior floor, regularised). Past it: 1.63 by blind sharp edge on
+# IMG_0608_v1.pgm (a wall, no edges to predict), 1.63 and 2.23 on img_example.pgm at s = 6 and 8. The
+# two-photo method refuses its inter-image kernel from 0.5 on (twoscale.NOISE_MAX); a warning at 0.5 would
+# flag the sharp-edge method on its own target.
+NOISE_WARN = 1.0
+# Share of the kernel's sum in the outermost ring of its support, beyond what noise alone can put there,
+# above which the kernel is flagged as cut by its support. Noise alone: at most the ring's samples times the
+# noise per sample, floor / k for a k x k kernel (a mean |error| of 0.8 of it; the whole of it clipped to
+# >= 0 and kept as mass). Measured at s = 4 on renders of known PSF (tests/render.py, 0.30 pixel per cell,
+# 30000 e-) and img_example.pgm, support by support: share (MTF50 change from 25 x 25, 17 x 17 for the Gaussian)
+#   Gaussian 0.45 px    7: 0.28 (+8 %)   9: 0.10 (+2 %)   17: < 0
+#   anisotropic         9: 0.16 (+12 %) 11: 0.07 (+5 %)   13: 0.02 (+1 %)
+#   f/11 diffraction    7: 0.13 (+6 %)   9: 0.08 (-1 %)   11: 0.051 (-4 %) 13: 0.03 (-3 %)  17: 0.01
+#   f/22 diffraction    9: 0.22 (+21 %) 11: 0.10 (+13 %) 13: 0.051 (+8 %) 17: 0.038 (0 %)
+#   defocus             5: 0.54 (+18 %)  7: 0.19 (+4 %)   9: 0.06 (0 %)   11: 0.03 (-2 %)
+#   img_example.pgm     3: 0.90 (+56 %)  5: 0.41 (+14 %)  7: 0.13 (+3 %)   9: 0.06 (-2 %)  11: 0.02 (-3 %)
+# Every support that moved MTF50 by 8 % or more is flagged, none of those left by more than 3 %. The
+# default supports give at most 0.038 (f/22 at 17 x 17, an r^-3 tail that no finite support holds), below
+# 0.01 on the real photographs (two-photo pair 13 x 13: < 0; on 5 x 5: 0.15) and the simulated rig.
+RING_WARN = 0.05
 
 
 @dataclass
@@ -119,6 +145,40 @@ class PSF:
             "warnings": list(self.warnings),
             "psf": self.psf.tolist(),
         }
+
+
+def kernel_warnings(psf: np.ndarray, noise_floor: float | None) -> list[str]:
+    """What makes a unit-sum kernel not a PSF, in the words every method uses: more noise than kernel, or
+    a kernel cut by its support (`NOISE_WARN`, `RING_WARN` say why these thresholds).
+
+    Parameters
+    ----------
+    psf : ndarray
+        The kernel, k x k, unit sum.
+    noise_floor : float or None
+        `PSF.noise_floor`: the L2 norm of the error sensor noise alone makes in it.
+
+    Returns
+    -------
+    list of str, empty when neither holds.
+    """
+    notes = []
+    norm = float(np.linalg.norm(psf))
+    if noise_floor is not None and noise_floor > NOISE_WARN * norm:
+        notes.append(
+            f"noise floor {noise_floor / norm:.0%} of the kernel: it may be more noise than PSF; give it more signal: "
+            "more light or a longer exposure, a lower -s, or a larger window (fewer --grid windows)"
+        )
+    size = psf.shape[0]
+    ring = float(np.sum(psf) - np.sum(psf[1:-1, 1:-1]))
+    # noise alone puts at most its RMS per sample, noise_floor / k, into each of the ring's 4 (k - 1) samples
+    noise = 4 * (size - 1) * (noise_floor or 0.0) / size
+    if ring - noise > RING_WARN:
+        notes.append(
+            f"the kernel reaches the edge of its support: {ring:.0%} of its sum lies in the outermost ring "
+            f"({noise:.0%} from noise), so it is truncated and too sharp: raise --support"
+        )
+    return notes
 
 
 def normalise(psf: np.ndarray) -> np.ndarray:

@@ -39,7 +39,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from psfd.errors import BadInputError, EstimationError, TargetNotFoundError
 from psfd.vocabulary import DEFAULT_S, SHARP_EDGE, check_sizes
 from psfd.estimator import target
-from psfd.estimator.kernels import PSF, field_of_window, split_grid
+from psfd.estimator.kernels import PSF, field_of_window, kernel_warnings, split_grid
 from psfd.estimator.nnls import nnls_normal
 from psfd.estimator.raw import Frame
 
@@ -1456,13 +1456,14 @@ def estimate_edges(
         step = None if progress is None else (lambda f, w=w: progress((w + f) / len(windows)))
         kernel, info, warnings = _estimate_window(image, frame.saturated, window, s, support, weight, band, length,
                                                   sigma, known, step)
+        floor = info.pop("noise_floor")
         out.append(PSF(
             psf=kernel, s=s, method=SHARP_EDGE, channel=frame.channel, sources=[frame.source],
             field=field_of_window(window, (rows, cols)), window=window,
-            noise_floor=info.pop("noise_floor"), residual=info.pop("residual"),
+            noise_floor=floor, residual=info.pop("residual"),
             params={"support": support, "weight": weight, "gamma": support**2, "radius": radius, "grid": list(grid),
                     "pattern": known.name if known else "blind", **info},
-            warnings=warnings,
+            warnings=warnings + kernel_warnings(kernel, floor),
         ))
         _trim_heap()
     return out

@@ -27,8 +27,8 @@ from numpy.lib.stride_tricks import sliding_window_view
 from psfd.errors import BadInputError, PairError
 from psfd.vocabulary import DEFAULT_S, TWO_PHOTO, check_sizes
 from psfd.estimator import fourier, pair_register, resample
-from psfd.estimator.kernels import (PSF, clip_negatives, core_centroid, field_of_window, normalise, split_grid,
-                                    translations)
+from psfd.estimator.kernels import (PSF, clip_negatives, core_centroid, field_of_window, kernel_warnings, normalise,
+                                    split_grid, translations)
 from psfd.estimator.raw import Frame
 from psfd.estimator.resample import keys_bicubic
 from psfd.workers import concurrently
@@ -282,7 +282,7 @@ def _estimate_window(
         noise_floor=fit["noise_floor"],
         residual=fit["rms"],
         params=params,
-        warnings=warnings,
+        warnings=warnings + kernel_warnings(h, fit["noise_floor"]),
         figures={"kernel": k, "residual": fit["residual"]},
     )
 
