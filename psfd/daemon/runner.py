@@ -803,7 +803,8 @@ def _reworded(run: dict, plan: Plan) -> str:
     if not _same_file(run["plan_path"], plan.path):
         notes.append(f"started from {run['plan_path']}")
     if run["plan_text"] != plan.text:
-        notes.append("the same plan: the texts differ in comments, layout or defaults written out only")
+        notes.append("the same plan: the texts differ in comments, layout or defaults written out, "
+                     "or the rig's link, only")
     return f" ({'; '.join(notes)})" if notes else ""
 
 
