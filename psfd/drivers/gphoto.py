@@ -65,6 +65,7 @@ FOCUS_MODE_WIDGETS = ("focusmode", "focusmode2")
 DELAY_WIDGETS = ("exposuredelaymode",)
 
 # What the usual libgphoto2 failures mean for the person at the bench.
+_CARD_FULL = "on a capture: the camera's memory card is full; free it, or capture to RAM"
 _HINTS = {
     gp.GP_ERROR_IO_USB_CLAIM: "the camera is claimed by another process (a desktop photo importer such as "
     "gvfs-gphoto2-volume-monitor, or another gphoto2): close it and retry",
@@ -77,10 +78,8 @@ _HINTS = {
     gp.GP_ERROR_CAMERA_BUSY: "the camera is busy (still writing a previous frame, or in a menu)",
     gp.GP_ERROR_NOT_SUPPORTED: "the camera does not support this operation",
     # libgphoto2's ptp2 driver: a Canon release refused with "Perhaps no more memory on card?"
-    gp.GP_ERROR_NO_MEMORY: "out of memory (on a capture: the camera's memory card is full; free it, or capture "
-    "to RAM)",
-    gp.GP_ERROR_NO_SPACE: "not enough free space (on a capture: the camera's memory card is full; free it, or "
-    "capture to RAM)",
+    gp.GP_ERROR_NO_MEMORY: f"out of memory ({_CARD_FULL})",
+    gp.GP_ERROR_NO_SPACE: f"not enough free space ({_CARD_FULL})",
     gp.GP_ERROR_FILE_NOT_FOUND: "the file is no longer on the camera (a frame in the camera's RAM that the body let "
     "go, or one deleted on the body)",
     gp.GP_ERROR_DIRECTORY_NOT_FOUND: "the folder is no longer on the camera (the card was changed or formatted)",
@@ -667,8 +666,7 @@ class GPhotoCamera:
                 return
             # a read-only card, or a RAM capture the camera dropped itself: nothing is lost; but a
             # file left on the card (a body that stayed busy) fills it over a night
-            on_card = self._setup is None or self._setup.capture_target == "card"
-            log.log(logging.WARNING if on_card else logging.DEBUG, "camera %s: %s stays on the camera (%s)",
+            log.log(logging.WARNING if self._on_card() else logging.DEBUG, "camera %s: %s stays on the camera (%s)",
                     self._model, name, exc)
 
     # ------------------------------------------------------------------ plumbing

@@ -1050,11 +1050,11 @@ class GrblRail:
         """What to do after alarm ``code`` (None: found locked in Alarm)."""
         if self._homing_failed(code) and code in HOMING_FAILED:
             return f"{HOMING_FAILED[code]}, then `psfd rail home` again"
+        kept = "the position was kept: `psfd rail unlock` is enough"
         if code in POSITION_KEPT:
-            return ("homing needed: `psfd rail home` (the position was kept: `psfd rail unlock` is enough)"
-                    if self._homing_enabled else "the position was kept: `psfd rail unlock` is enough")
+            return f"{self._known_position()} ({kept})" if self._homing_enabled else kept
         if self._homing_enabled:
-            return "homing needed: `psfd rail home`" + (
+            return self._known_position() + (
                 ", or `psfd rail unlock` if the position is known to be right" if code is None else "")
         # `psfd rail home` would only be refused: the position the controller counts, or the + end at power-up
         return ("`psfd rail unlock` (homing is disabled, $22=0) goes on from the position the controller counted, "
