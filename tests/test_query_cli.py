@@ -67,12 +67,19 @@ def assert_one_line_error(code, err, expected_code, text):
     assert err.startswith("psfd: error:") and err.count("\n") == 1 and text in err
 
 
+def measured_at_centre(cat: Catalogue, info: CameraInfo, plan: tuple[str, str], steps: list[str], sigma: float,
+                       source: str, aperture: float) -> int:
+    """A run of ``plan`` (path, text) by the rig ``info``, its first step done: one g1 PSF at the field centre."""
+    run = cat.start_run(*plan, cat.add_rig(info), [(key, {}) for key in steps])
+    cat.commit_step(run, steps[0], [], [(PSF(gaussian(sigma), 4, "bernoulli", "g1", [source], (0.5, 0.5),
+                                             (0, 0, 64, 64)), {"aperture": aperture})])
+    return run
+
+
 def test_the_table_names_the_body_when_two_bodies_of_one_model_answer(capsys, catalogue):
     with Catalogue(catalogue) as cat:  # a second body of the same model and lens, measured at the centre
-        rig = cat.add_rig(CameraInfo("Canon EOS 400D", "0777", "EF 50mm f/1.8", 50.0))
-        run = cat.start_run("other.toml", "other plan", rig, [("f5.6", {})])
-        cat.commit_step(run, "f5.6", [], [(PSF(gaussian(3.0), 4, "bernoulli", "g1", ["y.dng"], (0.5, 0.5),
-                                                (0, 0, 64, 64)), {"aperture": 5.6})])
+        measured_at_centre(cat, CameraInfo("Canon EOS 400D", "0777", "EF 50mm f/1.8", 50.0),
+                           ("other.toml", "other plan"), ["f5.6"], 3.0, "y.dng", 5.6)
     code, out, _ = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "5.6", "--channel", "g1",
                            "--near", "0.5,0.5")
     header, *rows, _ = out.splitlines()
@@ -101,10 +108,8 @@ def test_readers_say_when_a_run_is_not_done(capsys, catalogue, tmp_path):
     """A run stopped part-way (killed, paused, cancelled): query, export and report say that its other
     PSFs are missing, on stderr, in index.json and under the report's title; a whole run says nothing."""
     with Catalogue(catalogue) as cat:
-        rig = cat.add_rig(CameraInfo("Canon EOS 400D", "0420", "EF 50mm f/1.8", 50.0))
-        run = cat.start_run("part.toml", "part", rig, [("f11", {}), ("f16", {}), ("f22", {})])
-        cat.commit_step(run, "f11", [], [(PSF(gaussian(3.0), 4, "bernoulli", "g1", ["y.dng"], (0.5, 0.5),
-                                              (0, 0, 64, 64)), {"aperture": 11.0})])
+        run = measured_at_centre(cat, CameraInfo("Canon EOS 400D", "0420", "EF 50mm f/1.8", 50.0),
+                                 ("part.toml", "part"), ["f11", "f16", "f22"], 3.0, "y.dng", 11.0)
         cat.finish_run(run, "paused")
     note = f"run {run} is not done (paused, 1 of 3 steps): the PSFs of its other steps are missing"
     code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--channel", "g1")
@@ -128,10 +133,8 @@ def test_readers_call_a_killed_run_interrupted_as_status_does(capsys, catalogue)
     """A run whose process was killed stays journalled ``running``: the readers' note said "running", as if
     it were still shooting, where `psfd status` says "interrupted" (nobody holds its frame store)."""
     with Catalogue(catalogue) as cat:
-        rig = cat.add_rig(CameraInfo("Canon EOS 400D", "0420", "EF 50mm f/1.8", 50.0))
-        run = cat.start_run("killed.toml", "killed", rig, [("f11", {}), ("f16", {})])
-        cat.commit_step(run, "f11", [], [(PSF(gaussian(3.0), 4, "bernoulli", "g1", ["y.dng"], (0.5, 0.5),
-                                              (0, 0, 64, 64)), {"aperture": 11.0})])
+        run = measured_at_centre(cat, CameraInfo("Canon EOS 400D", "0420", "EF 50mm f/1.8", 50.0),
+                                 ("killed.toml", "killed"), ["f11", "f16"], 3.0, "y.dng", 11.0)
     code, out, err = run_cli(capsys, "status", "--catalogue", catalogue, "--json")
     assert code == 0 and json.loads(out)["runs"][0]["state"] == "interrupted"
     code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "11")
@@ -173,10 +176,8 @@ def test_query_aperture_answers_for_every_lens_and_names_those_not_measured_at_i
     answers with its own nearest f-number, shown in the f/ column, and the note on stderr names the lens
     that has no f/11 (before, the first lens was left out without a word)."""
     with Catalogue(catalogue) as cat:
-        rig = cat.add_rig(CameraInfo("Nikon D850", "77", "AF-S 85mm f/1.8G", 85.0))
-        run = cat.start_run("other.toml", "other", rig, [("f11", {})])
-        cat.commit_step(run, "f11", [], [(PSF(gaussian(2.0), 4, "bernoulli", "g1", ["y.nef"], (0.5, 0.5),
-                                              (0, 0, 64, 64)), {"aperture": 11.0})])
+        measured_at_centre(cat, CameraInfo("Nikon D850", "77", "AF-S 85mm f/1.8G", 85.0), ("other.toml", "other"),
+                           ["f11"], 2.0, "y.nef", 11.0)
     code, out, err = run_cli(capsys, "query", "--catalogue", catalogue, "--aperture", "11", "--channel", "g1",
                              "--near", "0.5,0.5")
     rows = [line.split() for line in out.splitlines()[1:-1]]
