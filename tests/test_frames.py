@@ -63,6 +63,29 @@ def test_a_warning_shared_by_windows_is_logged_once_per_plane(capsys):
     ]
 
 
+
+def test_a_warning_whose_numbers_differ_by_window_is_logged_once_with_their_range(capsys):
+    """Per-window warnings (noise floor, outer ring) differ in their numbers: a 10 x 10 grid printed one line per
+    window, or "2 of 100 windows" for two that happened to round alike, without saying where."""
+    from psfd.cli import logs, output
+
+    noise = "noise floor {}% of the kernel: it may be more noise than PSF"
+    ring = "the kernel reaches the edge of its support: 6% of its sum lies in the outermost ring"
+    estimates = [
+        _estimate("b", (0.46, 0.56), [noise.format(586)]),
+        _estimate("b", (0.47, 0.56), [noise.format(148), ring]),
+        _estimate("b", (0.48, 0.56), [noise.format(113)]),
+        _estimate("b", (0.50, 0.56), [noise.format(148)]),
+        _estimate("b", (0.50, 0.50), []),
+    ]
+    logs.setup()
+    output.log_warnings(estimates)
+    assert capsys.readouterr().err.splitlines() == [
+        "psfd: warning: IMG_1.dng b, 4 of 5 windows, the largest at (0.46, 0.56): noise floor 113 to 586% of the "
+        "kernel: it may be more noise than PSF",
+        f"psfd: warning: IMG_1.dng b at (0.47, 0.56): {ring}",
+    ]
+
 # ---------------------------------------------------------------- a small RAW, every plane, a grid
 
 

@@ -596,6 +596,9 @@ def log_warnings(estimates: list[PSF]) -> None:
     A warning that several windows of one plane share (the imaging scale of a
     whole frame, for each of its 100 windows) is logged once for the plane,
     with how many of its windows carry it: ``SOURCE CH, N of M windows: ...``.
+    The same warning with other numbers (each window's noise floor) is the
+    same warning: its numbers are given as ranges, with the window of the
+    largest first number.
     """
     import logging
 
@@ -604,16 +607,38 @@ def log_warnings(estimates: list[PSF]) -> None:
     for est in estimates:
         planes.setdefault(("+".join(Path(s).name for s in est.sources) or "estimate", est.channel), []).append(est)
     for (source, channel), group in planes.items():
-        carriers: dict[str, list[PSF]] = {}  # warning -> the windows that carry it, in order of first appearance
+        # warning with its numbers left out -> (the window, its warning) of each carrier, in order of first appearance
+        carriers: dict[str, list[tuple[PSF, str]]] = {}
         for est in group:
             for warning in est.warnings:
-                carriers.setdefault(warning, []).append(est)
-        for warning, carried in carriers.items():
+                carriers.setdefault(_NUMBER.sub("#", warning), []).append((est, warning))
+        for carried in carriers.values():
+            est, warning = carried[0]
             if len(carried) == 1:
-                est = carried[0]
                 log.warning("%s %s at (%.2f, %.2f): %s", source, channel, est.field[0], est.field[1], warning)
-            else:
-                log.warning("%s %s, %d of %d windows: %s", source, channel, len(carried), len(group), warning)
+                continue
+            where = f"{len(carried)} of {len(group)} windows"
+            warning, largest = _ranged([text for _, text in carried])
+            if largest is not None:
+                field = carried[largest][0].field
+                where += f", the largest at ({field[0]:.2f}, {field[1]:.2f})"
+            log.warning("%s %s, %s: %s", source, channel, where, warning)
+
+
+_NUMBER = re.compile(r"\d+(?:\.\d+)?")
+
+
+def _ranged(texts: list[str]) -> tuple[str, int | None]:
+    """Texts alike but for their numbers as one, each number that differs as 'LOW to HIGH'; and the index of the
+    text with the largest first differing number (None when none differs)."""
+    columns = list(zip(*(_NUMBER.findall(text) for text in texts)))
+    spans = [(min(col, key=float), max(col, key=float)) for col in columns]
+    differ = [k for k, (lo, hi) in enumerate(spans) if float(lo) != float(hi)]
+    if not differ:
+        return texts[0], None
+    pieces = iter(f"{lo} to {hi}" if float(lo) != float(hi) else lo for lo, hi in spans)
+    largest = max(range(len(texts)), key=lambda i: float(columns[differ[0]][i]))
+    return _NUMBER.sub(lambda _: next(pieces), texts[0]), largest
 
 
 def print_table(estimates: list[PSF], stream: TextIO | None = None) -> None:
