@@ -147,7 +147,11 @@ class PSF:
         }
 
 
-def kernel_warnings(psf: np.ndarray, noise_floor: float | None) -> list[str]:
+# what gives an estimate more signal, said when its noise floor exceeds the kernel (`kernel_warnings`)
+MORE_SIGNAL = "more light or a longer exposure, a lower -s, or a larger window (fewer --grid windows)"
+
+
+def kernel_warnings(psf: np.ndarray, noise_floor: float | None, more_signal: str = MORE_SIGNAL) -> list[str]:
     """What makes a unit-sum kernel not a PSF, in the words every method uses: more noise than kernel, or
     a kernel cut by its support (`NOISE_WARN`, `RING_WARN` say why these thresholds).
 
@@ -157,6 +161,8 @@ def kernel_warnings(psf: np.ndarray, noise_floor: float | None) -> list[str]:
         The kernel, k x k, unit sum.
     noise_floor : float or None
         `PSF.noise_floor`: the L2 norm of the error sensor noise alone makes in it.
+    more_signal : str
+        What gives the method more signal, said with a noise floor above the kernel.
 
     Returns
     -------
@@ -167,7 +173,7 @@ def kernel_warnings(psf: np.ndarray, noise_floor: float | None) -> list[str]:
     if noise_floor is not None and noise_floor > NOISE_WARN * norm:
         notes.append(
             f"noise floor {noise_floor / norm:.0%} of the kernel: it may be more noise than PSF; give it more signal: "
-            "more light or a longer exposure, a lower -s, or a larger window (fewer --grid windows)"
+            + more_signal
         )
     size = psf.shape[0]
     ring = float(np.sum(psf) - np.sum(psf[1:-1, 1:-1]))

@@ -39,7 +39,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from psfd.errors import BadInputError, EstimationError, TargetNotFoundError
 from psfd.vocabulary import DEFAULT_S, SHARP_EDGE, check_sizes
 from psfd.estimator import target
-from psfd.estimator.kernels import PSF, field_of_window, kernel_warnings, split_grid
+from psfd.estimator.kernels import MORE_SIGNAL, PSF, field_of_window, kernel_warnings, split_grid
 from psfd.estimator.nnls import nnls_normal
 from psfd.estimator.raw import Frame
 
@@ -106,6 +106,9 @@ def edge_target(
 
 ORIENTATION_BINS = 18  # 10-degree bins over [0, 180): an edge and its flipped twin constrain the same slice
 MIN_PER_BIN = 100  # edges per orientation bin (sec. 5.2, test (b))
+# the blind method's signal is the photograph's own edges: more light or a longer exposure gives it few more
+_MORE_EDGES = ("a photograph with long straight edges in every direction (or of a printed target, with --target), "
+               "a lower -s, or a larger window (fewer --grid windows)")
 LAMBDA = 2.0  # smoothness weight found "to work well" (sec. 5)
 DOG_RATIO = 1.6  # sigma2 / sigma1 of the difference of Gaussians
 
@@ -1463,7 +1466,7 @@ def estimate_edges(
             noise_floor=floor, residual=info.pop("residual"),
             params={"support": support, "weight": weight, "gamma": support**2, "radius": radius, "grid": list(grid),
                     "pattern": known.name if known else "blind", **info},
-            warnings=warnings + kernel_warnings(kernel, floor),
+            warnings=warnings + kernel_warnings(kernel, floor, MORE_SIGNAL if known else _MORE_EDGES),
         ))
         _trim_heap()
     return out
