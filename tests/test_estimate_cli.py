@@ -217,7 +217,7 @@ def test_print_json_lines():
     # sampled on 17 taps at s = 4 the truncation changes it by far less than 1 %.
     assert first["mtf50_x"] == pytest.approx(math.sqrt(math.log(2) / 2) / (math.pi * 0.6), rel=0.01)
     assert first["params"]["grid"] == [2, 1]
-    assert records[2]["source"] == ["a.pgm", "b.pgm"]
+    assert records[2]["source"] == [os.path.abspath("a.pgm"), os.path.abspath("b.pgm")]  # results outlive the cwd
 
 
 def test_print_json_nan_is_null():
@@ -428,6 +428,23 @@ def test_target_end_to_end_on_real_photo(capsys, data_dir):
     assert row.split()[-1] == f"{record['prediction_error']:.2f}"
     assert row.split()[-2] == f"{record['noise_floor'] / np.linalg.norm(record['psf']):.1%}"  # relative to the kernel
 
+
+
+def test_results_name_their_photograph_by_a_path_that_outlives_the_working_folder(tmp_path, monkeypatch, capsys,
+                                                                                    data_dir):
+    """A photograph given by a relative path: the JSON, NAME.json and metrics.csv name it by its absolute path
+    (a relative one is relative to a folder the results do not record)."""
+    monkeypatch.chdir(data_dir.parent)
+    relative = Path(data_dir.name) / "img_example.pgm"
+    code, stdout, stderr = run(capsys, "estimate", "target", relative, "--json", "--out", tmp_path / "out",
+                               "--no-figures")
+    assert code == 0, stderr
+    where = str(data_dir / "img_example.pgm")
+    assert json.loads(stdout)["source"] == where
+    (written,) = (tmp_path / "out").glob("*.json")
+    assert json.loads(written.read_text())["source"] == where
+    with open(tmp_path / "out" / "metrics.csv", encoding="utf-8") as stream:
+        assert [row["source"] for row in csv.DictReader(stream)] == [where]
 
 def test_thesis_spline_geometry_is_selectable_and_agrees_on_the_real_photo(capsys, data_dir):
     records = {}

@@ -464,8 +464,11 @@ def units(record: dict, sensor: Any) -> dict:
 
 def estimate_record(est: PSF, sensor: Any = None) -> dict:
     """The CSV / JSON record of one estimate: `PSF.to_json` without the array, with its first frame's
-    settings (`source_settings`) and `units`."""
+    settings (`source_settings`) and `units`; its photographs by absolute path (results outlive the
+    folder a relative one was typed in)."""
     record = {k: v for k, v in est.to_json().items() if k != "psf"}
+    source = record["source"]
+    record["source"] = os.path.abspath(source) if isinstance(source, str) else [os.path.abspath(s) for s in source]
     settings = source_settings(est.sources[0]) if est.sources else dict.fromkeys(SETTINGS)
     return units(plain({**record, **settings}), sensor)
 
