@@ -230,3 +230,10 @@ def canonical(value: Any) -> Any:
     if isinstance(value, float) and value.is_integer():
         return int(value)
     return value
+
+
+def setting_text(value: str | int | float) -> str:
+    """The text a camera setting is set to for a plan's value: gphoto2 widgets take text, so a string is
+    sent as written and a number as its text, a whole one as an integer (a plan reads 100.0 as 100):
+    ``iso = 100``, ``100.0`` and ``"100"`` all set ``"100"``."""
+    return str(canonical(value))

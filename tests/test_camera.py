@@ -335,6 +335,21 @@ def _value(config, name):
     return config.get_child_by_name(name).get_value()
 
 
+def test_an_f_number_however_psfd_reads_it_sets_the_bodys_own_choice(fake, bodies, monkeypatch):
+    """A Nikon lists f/8, a Canon 8 (libgphoto2's ptp2 widgets ``f-number`` and ``aperture``): every spelling psfd
+    reads as f/8 (`psfd.vocabulary.parse_fnumber`, as `psfd capture --aperture` and a recording read it) sets it.
+    Before, the driver had its own matching and refused F8, which the rest of psfd takes."""
+    from psfd.drivers.gphoto import GPhotoCamera
+
+    for model, tree, widget, choice in (("Nikon DSC D5300", bodies.nikon_d5300(), "f-number", "f/8"),
+                                        ("Canon EOS 5D Mark III", bodies.canon_eos(), "aperture", "8")):
+        for spelling in ("8", "8.0", "f/8", "F8", "F/8"):
+            body = bodies.Body(tree)
+            bodies.install(monkeypatch, bodies.Bus(model, body))
+            GPhotoCamera(timeout=5.0).set("aperture", spelling)
+            assert _value(body.config, widget) == choice, (model, spelling)
+
+
 def test_canon_prepare_picks_raw_ram_single_and_refuses_an_af_lens(fake, bodies):
     from psfd.drivers.base import CameraSetup
     from psfd.errors import CameraError

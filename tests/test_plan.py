@@ -120,7 +120,7 @@ def test_every_problem_is_reported():
     (GOOD.replace("x = [1200]", ""), "needs x"),
     (GOOD.replace("y = [-40, 40]", "y = [1, 1]"), "[capture] y lists 1 twice"),
     # a boolean is no camera setting's value (TOML's true is not the "1" or "On" a camera offers)
-    (GOOD.replace("simulate = true", "simulate = true\nsettings = { iso = true }"), "[rig] settings must be a table"),
+    (GOOD.replace("simulate = true", "simulate = true\nsettings = { iso = true }"), "[rig] settings iso = true:"),
     # the simulated rig's default travel (200..3000 mm) applies when the plan gives no rail_limits
     ("[rig]\nsimulate = true\n[target]\nkind = 'bernoulli'\n[capture]\napertures = [8]\nx = [1200, 9999]\n",
      "x = 9999 outside the simulated rail's limits.x [200, 3000]"),
@@ -336,6 +336,42 @@ kind = "bernoulli"
 apertures = [5.6, 8]
 x = [-1300]
 """
+
+
+def test_a_camera_setting_is_the_text_its_widget_takes():
+    """gphoto2 widgets take text ("100", "1/125", "-0.3"): a setting written as a number is that number's text,
+    so iso = 100, 100.0 and "100" are one plan (before, the number 100 and the text "100" were two plans, and
+    a run paused under one could not be resumed under the other); another value is another plan."""
+    settings = 'settings = { iso = "100", shutterspeed = "1/125", exposurecompensation = "-0.3" }'
+    text = BARE.replace("true", f"true\n{settings}")
+    for same in (text.replace('"100"', "100"), text.replace('"100"', "100.0"), text.replace('"-0.3"', "-0.3")):
+        assert plan_key(same) == plan_key(text) and plan_changes(text, same) == [], same
+        assert plan_changes(same, text) == []
+    for other in (text.replace('"100"', "200"), text.replace('"1/125"', '"1/250"'), text.replace('"100"', '"Auto"')):
+        assert plan_key(other) != plan_key(text)
+        assert len(plan_changes(text, other)) == 1 and plan_changes(text, other)[0].startswith("[rig] settings")
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "true", "[100]", "{ value = 100 }", "1979-05-27"])
+def test_a_setting_no_camera_widget_takes_is_refused_by_plan_check_in_one_line(tmp_path, capsys, value):
+    """A camera widget is set to text: a finite number becomes its text, a string is sent as written. nan and
+    inf (TOML numbers with no camera choice of theirs), a boolean, a list, a table or a date are none: plan
+    check said ok to nan and inf, and the run paused at the camera's refusal."""
+    plan = tmp_path / "plan.toml"
+    plan.write_text(BARE.replace("true", f"true\nsettings = {{ shutterspeed = \"1/125\", iso = {value} }}"))
+    assert main(["plan", "check", str(plan)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and err[0].startswith(f"{plan}: [rig] settings iso = {value}: "), err
+    assert "shutterspeed" not in err[0]
+
+
+def test_an_aperture_among_the_settings_is_refused_by_plan_check():
+    """Each step sets the aperture from [capture] apertures: one in [rig] settings as well was checked against
+    every frame's EXIF, so plan check said ok and the run paused at the first step of another aperture."""
+    for value in ("5.6", '"5.6"', '"f/5.6"'):
+        problems = check_text(BARE.replace("true", f"true\nsettings = {{ aperture = {value} }}"))
+        assert len(problems) == 1 and problems[0].startswith("[rig] settings aperture: "), problems
+        assert "[capture] apertures" in problems[0]
 
 
 def test_how_the_rig_is_reached_is_not_what_a_plan_does():

@@ -448,6 +448,40 @@ def test_a_run_paused_by_an_older_psfd_resumes_under_its_plan_with_defaults_writ
     check_complete(tmp_path / "cat.sqlite", tmp_path / "frames", plan)
 
 
+class SettingSpy:
+    """The simulated camera, keeping each (name, value) it is set to."""
+
+    def __init__(self, camera) -> None:
+        self.camera, self.sets = camera, []
+
+    def __getattr__(self, name):
+        return getattr(self.camera, name)
+
+    def set(self, name: str, value: str) -> None:
+        self.sets.append((name, value))
+        self.camera.set(name, value)
+
+
+def test_a_setting_written_as_a_number_or_as_its_text_is_one_plan(tmp_path):
+    """iso = 100.0 and iso = "100" set the camera to its one choice "100": a run paused under one resumes
+    under the other, and the camera is sent the choice's text, not "100.0" (before, the resume was refused as
+    another plan, and a free-form widget would have been set to "100.0")."""
+    number, text = (parse_plan(small_plan().replace("simulate = true", f"simulate = true\nsettings = {{ iso = {v} }}"),
+                               "small.toml") for v in ("100.0", '"100"'))
+    frames = tmp_path / "frames"
+    with Catalogue(tmp_path / "cat.sqlite") as cat:
+        control = Control()
+        control.request("pause")  # after the settings, before the first step
+        camera, rail = open_rig(number.rig_config())
+        spy = SettingSpy(camera)
+        first = Runner(cat, frames, workers=1, control=control, progress=None).run(number, spy, rail)
+        assert first.state == "paused" and spy.sets == [("iso", "100")]
+        camera, rail = open_rig(text.rig_config())
+        again = Runner(cat, frames, workers=1, progress=None).run(text, camera, rail, resume=True)
+        assert (again.run_id, again.state, again.steps_done) == (first.run_id, "done", 4)
+    check_complete(tmp_path / "cat.sqlite", frames, text)
+
+
 class OtherBody:
     """The simulated camera, reporting another body's serial or another lens (a camera swapped on the rig)."""
 

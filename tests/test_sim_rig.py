@@ -37,8 +37,10 @@ def test_protocols_and_settings(tmp_path):
     assert isinstance(camera, Camera) and isinstance(rail, Rail)
     assert camera.info().focal_length_mm == 50.0
     assert camera.choices("aperture") == ["2.8", "4", "5.6", "8", "11", "16", "22"]
-    camera.set("aperture", "f/8")
-    assert camera.get("aperture") == "8"
+    for spelling in ("f/8", "F8", "8.0"):  # every spelling psfd reads as f/8 (`parse_fnumber`), as the gphoto driver
+        camera.set("aperture", "5.6")
+        camera.set("aperture", spelling)
+        assert camera.get("aperture") == "8", spelling
     with pytest.raises(CameraError, match=r"aperture 3.3 is not offered by the camera \(offered: 2.8, 4, 5.6"):
         camera.set("aperture", "3.3")
     with pytest.raises(CameraError, match="no setting 'zoom'"):

@@ -47,11 +47,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="blind: two photographs of a textured plane at different distances",
         description=(
             "Sub-pixel PSF from a near/far pair (Delbracio et al., SIAM J. Imaging Sciences 2012; "
-            "IPOL 2013). Which is near is detected."
+            "IPOL 2013). Which is near is detected from the scale between them: the photos may come in "
+            "either order, for one PSF, and the output names the near one first."
         ),
     )
-    p.add_argument("photo_a", metavar="PHOTO_A")
-    p.add_argument("photo_b", metavar="PHOTO_B")
+    p.add_argument("photo_a", metavar="PHOTO_A", help="one photo of the pair, near or far")
+    p.add_argument("photo_b", metavar="PHOTO_B", help="the other photo")
     _common(p, TWO_PHOTO)
     p.add_argument("--clip", action="store_true", help="set negative PSF values to 0 before normalising")
     p.set_defaults(func=run_two_photo)

@@ -233,7 +233,7 @@ def _record_plan(args: argparse.Namespace) -> Session:
 def _record_session(recorder, session: Session, downloads: Path) -> int:
     """The camera and the rail described (so a replay can answer `plan check`), set up, then the shots."""
     from psfd.drivers.base import CameraSetup
-    from psfd.vocabulary import camera_fnumber
+    from psfd.vocabulary import camera_fnumber, setting_text
 
     camera, rail = recorder.camera, recorder.rail
     camera.info()
@@ -243,7 +243,7 @@ def _record_session(recorder, session: Session, downloads: Path) -> int:
         if aperture is not None and not any(camera_fnumber(c) == camera_fnumber(aperture) for c in offered):
             raise CameraError(f"aperture {aperture} is not offered by the camera (offered: {', '.join(offered)})")
     for name, value in session.settings.items():
-        camera.set(name, str(value))
+        camera.set(name, setting_text(value))
     camera.prepare(CameraSetup.from_mapping(session.setup))
     if session.home:
         rail.home()

@@ -59,7 +59,7 @@ from psfd.drivers.base import CameraSetup, RailInfo, target_distance
 from psfd.errors import BadInputError, PsfdError
 from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, DEFAULT_SOLVER, PLAN_BYTES_MAX,
                              SOLVERS, TWO_PHOTO, canonical, check_grid, check_s, check_solver, check_steps,
-                             check_support, default_support, plan_content)
+                             check_support, default_support, plan_content, setting_text)
 
 # [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys), our
 # camera settings, applied once before the first step, and the camera's setup for PSF work
@@ -196,8 +196,9 @@ def plan_meaning(plan: Plan) -> dict[str, dict[str, Any]]:
 
 
 def _rig_meaning(rig: dict[str, Any]) -> dict[str, Any]:
-    """[rig] with the defaults of the rig it opens (`psfd.drivers.open_rig`, `CameraSetup`) written out, without
-    how it is reached (`LINK_KEYS`) and where the lens sits (x_at_lens and x_away count through rail X)."""
+    """[rig] with the defaults of the rig it opens (`psfd.drivers.open_rig`, `CameraSetup`) written out, its camera
+    settings as the text the camera is sent (`setting_text`), without how it is reached (`LINK_KEYS`) and where
+    the lens sits (x_at_lens and x_away count through rail X)."""
     simulate = rig.get("simulate", False) is True
     defaults: dict[str, Any] = {"simulate": False, "rail": "simulated" if simulate else "grbl", "settings": {}}
     if simulate:
@@ -207,6 +208,7 @@ def _rig_meaning(rig: dict[str, Any]) -> dict[str, Any]:
         defaults.update({k: fields[k].default_factory() if k == "limits" else fields[k].default  # type: ignore[misc]
                          for k in SIM_KEYS})
     meaning = {**defaults, **{k: v for k, v in rig.items() if k not in ("x_at_lens", "x_away", *LINK_KEYS)}}
+    meaning["settings"] = {name: setting_text(v) for name, v in rig.get("settings", {}).items()}
     meaning["camera"] = dataclasses.asdict(CameraSetup.from_mapping(rig.get("camera")))
     return meaning
 
@@ -422,8 +424,9 @@ def _check_rig(rig: dict) -> list[str]:
 
     problems += [f"[rig] {problem}" for problem in option_problems({k: rig[k] for k in SIM_KEYS if k in rig})]
     settings = rig.get("settings", {})
-    if not isinstance(settings, dict) or not all(isinstance(v, (str, int, float)) and not isinstance(v, bool)
-                                                 for v in settings.values()):
+    if isinstance(settings, dict):
+        problems += _check_settings(settings)
+    else:
         problems.append("[rig] settings must be a table of camera setting names to values")
     camera = rig.get("camera", {})
     if not isinstance(camera, dict):
@@ -442,6 +445,32 @@ def _check_rig(rig: dict) -> list[str]:
         elif not (isinstance(pair, list) and len(pair) == 2 and all(map(_is_number, pair)) and pair[0] < pair[1]):
             problems.append(f"[rig] rail_limits.{axis} must be [low, high] with low < high, got {pair!r}")
     return problems
+
+
+def _check_settings(settings: dict) -> list[str]:
+    """Values no camera widget takes, and an aperture, which each step sets from [capture] apertures.
+
+    gphoto2 widgets take text: a string is sent as written, a finite number as its text (`setting_text`);
+    nan, inf, a boolean (not the "On" or "1" a camera lists), a list, a table or a date is none of them.
+    """
+    bad = [f"{name} = {_written(v)}" for name, v in settings.items() if not (isinstance(v, str) or _is_number(v))]
+    problems = [f"[rig] settings {', '.join(bad)}: a camera setting takes its value as the camera lists it "
+                '("100", "1/125", "On") or a finite number'] if bad else []
+    if "aperture" in settings:
+        problems.append("[rig] settings aperture: each step sets the aperture from [capture] apertures "
+                        "(remove it from settings)")
+    return problems
+
+
+def _written(value: Any) -> str:
+    """A TOML value as a plan writes it: ``true``, ``nan``, ``-inf``, ``[100]``, ``1979-05-27``."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)  # Python spells nan, inf and -inf as TOML does
+    if hasattr(value, "isoformat"):
+        return value.isoformat()
+    return _toml(value)
 
 
 def _check_target(target: dict, kind: Any, present: bool) -> list[str]:
@@ -713,7 +742,7 @@ def recording_problems(plan: Plan) -> list[str]:
     shots = replay.shots()
     if len(shots) < len(captures):
         problems.append(f"{where} holds {len(shots)} capture(s), the plan takes {len(captures)}")
-    settings = {k: str(v) for k, v in plan.rig.get("settings", {}).items()}
+    settings = {k: setting_text(v) for k, v in plan.rig.get("settings", {}).items()}
     differ = [(n, step, wrong) for n, ((step, x), shot) in enumerate(zip(captures, shots), 1)
               if (wrong := _shot_differences(step, x, settings, shot))]
     if differ:
@@ -800,7 +829,8 @@ def plan_template(simulate: bool = False) -> str:
         (False, "rail_baudrate = 115200", "serial speed of the rail controller"),
         (False, "rail_feed = 1000", "rail speed, mm/min"),
         (False, "rail_timeout = 2.0", "rail: seconds to wait for an answer"),
-        (False, 'settings = { iso = "100", shutterspeed = "1/125" }', "camera settings set before the first step"),
+        (False, 'settings = { iso = "100", shutterspeed = "1/125" }',
+         "camera settings set before the first step (each step sets the aperture)"),
         (False, 'camera = { focus = "off", settle_s = 1.0, capture_target = "ram" }',
          "[rig.camera]: autofocus off (or manual, any), seconds to settle after a move, frames to ram or card"),
         (False, 'rail = "grbl"', 'the rail driver: "grbl", or "simulated"'),

@@ -73,7 +73,7 @@ from psfd.errors import (BadInputError, CameraError, EstimationError, HardwareEr
                          StorageError)
 from psfd.estimator.raw import RAW_SUFFIXES
 from psfd.exif import check_settings, read_metadata
-from psfd.vocabulary import BACKLOG_MAX, WORKERS_MAX, camera_fnumber, check_count
+from psfd.vocabulary import BACKLOG_MAX, WORKERS_MAX, camera_fnumber, check_count, setting_text
 
 # Below this much free space, a failed download is put down to the storage: no RAW file is smaller.
 FRAME_BYTES_MIN = 1 << 20
@@ -484,13 +484,13 @@ class Runner:
     @staticmethod
     def _apply_settings(camera: Camera, settings: dict) -> None:
         for name, value in settings.items():
-            camera.set(name, str(value))
+            camera.set(name, setting_text(value))
 
     def _capture(self, plan: Plan, step: Step, camera: Camera, rail: Rail) -> list[FrameRecord]:
         """Move, set the aperture, expose; returns the FrameRecords of the stored RAW files."""
         camera.set("aperture", _aperture_choice(camera, step.aperture))
         distances = step.x if isinstance(step.x, tuple) else (step.x,)
-        settings = {"aperture": step.aperture, **{k: str(v) for k, v in plan.rig.get("settings", {}).items()}}
+        settings = {"aperture": step.aperture, **{k: setting_text(v) for k, v in plan.rig.get("settings", {}).items()}}
         records: list[FrameRecord] = []
         try:
             for x in distances:

@@ -36,7 +36,7 @@ from typing import Any, Callable
 import gphoto2 as gp
 
 from psfd.drivers.base import CameraInfo, CameraReady, CameraSetup
-from psfd.drivers.recording import free_name
+from psfd.drivers.recording import free_name, offered_choice
 from psfd.errors import CameraError
 from psfd.exif import exposure_seconds
 
@@ -250,7 +250,7 @@ class GPhotoCamera:
             raise CameraError(f"{name} ({vendor}) is read-only on this camera (mode dial or lens may fix it)")
         offered = _widget_choices(widget)
         if offered:
-            raw = _match_choice(name, str(value), offered)
+            raw = offered_choice(str(value), offered)
             if raw is None:
                 listing = ", ".join(_normalise(name, c) for c in offered)
                 raise CameraError(f"{name} {value} is not offered by the camera (offered: {listing})")
@@ -940,27 +940,6 @@ def _normalise(name: str, value: str) -> str:
     if name == "aperture" and value.lower().startswith("f/"):
         return value[2:]
     return value
-
-
-def _match_choice(name: str, value: str, offered: list[str]) -> str | None:
-    """The offered raw value equal to ``value`` as written, after normalising, or numerically."""
-    if value in offered:
-        return value
-    wanted = _normalise(name, value)
-    for raw in offered:
-        if _normalise(name, raw) == wanted:
-            return raw
-    try:
-        number = float(wanted)
-    except ValueError:
-        return None
-    for raw in offered:
-        try:
-            if abs(float(_normalise(name, raw)) - number) < 1e-9:
-                return raw
-        except ValueError:
-            continue
-    return None
 
 
 def _leading_number(text: str | None) -> float | None:

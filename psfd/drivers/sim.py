@@ -43,7 +43,7 @@ import numpy as np
 from scipy import fft
 
 from psfd.drivers.base import CameraInfo, CameraReady, CameraSetup, Position, RailInfo, target_distance
-from psfd.drivers.recording import free_name
+from psfd.drivers.recording import free_name, offered_choice
 from psfd.errors import BadInputError, CameraError, PsfdError, RailError
 from psfd.estimator import simulate
 from psfd.exif import exposure_seconds
@@ -485,11 +485,10 @@ class SimCamera:
     def set(self, name: str, value: str) -> None:
         self.rig._check_fault("camera")
         offered = CHOICES[self._known(name)]
-        text = str(value).removeprefix("f/")
-        match = [c for c in offered if c == text or _same_number(c, text)]
-        if not match:
+        choice = offered_choice(str(value), list(offered))
+        if choice is None:
             raise CameraError(f"{name} {value} is not offered by the camera (offered: {', '.join(offered)})")
-        self.rig.settings[name] = match[0]
+        self.rig.settings[name] = choice
         self.rig.save_state()
 
     def prepare(self, setup: CameraSetup) -> CameraReady:
@@ -583,13 +582,6 @@ class SimRail:
 
     def _zero(self, axis: str) -> float | None:
         return 0.0 if axis in self.rig.limits else None
-
-
-def _same_number(a: str, b: str) -> bool:
-    try:
-        return abs(float(a) - float(b)) < 1e-9
-    except ValueError:
-        return False
 
 
 
