@@ -33,6 +33,12 @@ in the order libgphoto2 reports them:
 - a RAW+JPEG exposure is announced as two GP_EVENT_FILE_ADDED, the JPEG
   after the RAW (Canon writes the RAW first; on a slow card the second comes
   seconds later);
+- file names as the body writes them on its card (DCF): the files of one exposure share
+  its number (``IMG_0002.CR2`` and ``IMG_0002.JPG``), numbered on from one exposure to the next,
+  and libgphoto2 passes the body's own name on (the ptp2 driver copies ``oi.Filename`` into the
+  event's path); a body writes its buffer to the card in order and announces each file once
+  written, so a file of an earlier exposure that a slow card writes late (``late``) comes after the
+  next release but before that exposure's own files;
 - a file the camera no longer holds: ``file_get`` and ``file_delete`` fail
   with GP_ERROR_FILE_NOT_FOUND (-108), as the virtual camera of libgphoto2
   2.5.34 answers;
@@ -245,6 +251,9 @@ class Body:
         File names the body announces but no longer holds (a frame in RAM it let go).
     clock : Clock, optional
         The clock of the body's exposures and waits (default: the real one).
+    late : dict, optional
+        Seconds a named file (``IMG_0001.JPG``: the file of that shot) is written later than the
+        others of its exposure (a slow card).
     store : dict, optional
         The files the body holds, by name. Files on the card outlive the USB session: give the
         sessions of one body the same dict (and the later one the ``shots`` taken before it).
@@ -264,7 +273,8 @@ class Body:
     def __init__(self, config: Widget, files=(("IMG_0001.CR2", 0.05),), script=None, queued=(),
                  unplug_after_trigger=False, af_locks=True, af_hunt_s=0.0,
                  card_shots=None, library_wait_s=1000.0, hangs=False, dropped=(), clock=None,
-                 flood_s=0.0, flood_every_s=0.005, event_read_s=0.01, store=None, shots=0, auto_exposure_s=0.0) -> None:
+                 flood_s=0.0, flood_every_s=0.005, event_read_s=0.01, store=None, shots=0, auto_exposure_s=0.0,
+                 late=None) -> None:
         self.config, self.files = config, list(files)
         self.script = {k: list(v) for k, v in (script or {}).items()}
         self.calls: list[str] = []
@@ -279,6 +289,7 @@ class Body:
         self.unplugged = False
         self.unplug_after_trigger = unplug_after_trigger
         self.shots, self.auto_exposure_s = shots, auto_exposure_s
+        self.late = dict(late or {})
         self.bulb_log: list[tuple[int, float]] = []
         self.af_locks, self.af_hunt_s = af_locks, af_hunt_s
         self.card_shots = card_shots
@@ -368,7 +379,9 @@ class Body:
             shot_name = name.replace("0001", f"{self.shots:04d}")
             if shot_name not in self.dropped:
                 self.store[shot_name] = f"{shot_name} of shot {self.shots}".encode()
-            self.pending.append((ends + delay, shot_name))
+            written = ends + delay + self.late.get(shot_name, 0.0)
+            # the card is written in order: a file waits for those buffered before it
+            self.pending.append((max([written] + [t for t, _ in self.pending]), shot_name))
         if self._nikon():  # busy until the last file is written
             self.busy_until = math.inf if self.hangs else max(t for t, _ in self.pending)
 

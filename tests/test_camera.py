@@ -36,7 +36,7 @@ Nikon widget trees (sRAW/mRAW refused), single-frame drive, exposure delay,
 autofocus reported by the lens, busy (-110) then ready, busy for good, busy
 answered to reading the configuration and to deleting, an autofocus that cannot
 lock (Canon: busy after the hunt; Nikon: -1), a full card (-3), a RAW+JPEG pair
-1.5 s apart, a stale file queued behind a flood of property changes, a cable
+1.5 s apart, the JPEG of an earlier pair written by a slow card after the next release, a stale file queued behind a flood of property changes, a cable
 pulled mid-capture (reconnect, prepare again, retry once; the file the lost exposure
 left on the card collected, or deleted when it may not be all of it), a release of unknown
 exposure time that outlasts its call's deadline (reported, not reset or released again), bulb, a capture that never announces its file, a file the
@@ -566,6 +566,24 @@ def test_raw_and_jpeg_seconds_apart_are_one_exposure(fake, bodies, tmp_path):
     assert [f.name for f in second] == ["IMG_0002.CR2", "IMG_0002.JPG"]
     assert (tmp_path / "1" / "IMG_0001.JPG").read_bytes() == b"IMG_0001.JPG of shot 1"
     assert body.store == {}  # every file deleted from the camera once downloaded
+
+
+def test_a_late_file_of_an_earlier_exposure_is_not_this_exposures(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+
+    # RAW+JPEG on a slow card: the first exposure's JPEG is written 30 s late, after its capture gave up with
+    # the RAW alone and after the next capture's drain; the card writes it before the next exposure's files
+    clock = bodies.Clock()
+    config = bodies.canon_eos(lens_af=False, image_format="RAW + Large Fine JPEG")
+    body = bodies.Body(config, files=(("IMG_0001.CR2", 0.5), ("IMG_0001.JPG", 1.0)), late={"IMG_0001.JPG": 30.5},
+                       clock=clock)
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), clock=clock)
+    camera.prepare(CameraSetup(focus="manual", raw=False))
+    assert [f.name for f in camera.capture(tmp_path / "1")] == ["IMG_0001.CR2"]  # 1 of 2 files, said in the log
+    second = camera.capture(tmp_path / "2")
+    assert [f.read_bytes() for f in second] == [b"IMG_0002.CR2 of shot 2", b"IMG_0002.JPG of shot 2"]
+    assert camera.strays == [f"{body.FOLDER}/IMG_0001.JPG"] and body.store == {}
+    assert [f.name for f in camera.capture(tmp_path / "3")] == ["IMG_0003.CR2", "IMG_0003.JPG"]
 
 
 def test_a_file_queued_before_the_trigger_is_not_counted(fake, bodies, tmp_path):

@@ -13,7 +13,8 @@ and autofocus off. `GPhotoCamera.capture` drains stale events before the
 trigger (until the camera reports none), retries a busy camera with backoff (a
 release answered busy only once the body answers again and no file came of it: the
 release may have been taken), waits as long as the exposure needs, collects every
-file of the exposure, and reconnects once (with a USB reset where the device is
+file of the exposure (a file carrying the number of an earlier exposure that may not
+have been whole is discarded, whenever it comes), and reconnects once (with a USB reset where the device is
 still there) when the camera was lost: the file a lost exposure left on the card is
 collected or deleted, and an exposure of unknown length is never cut short by a reset.
 
@@ -150,6 +151,8 @@ class GPhotoCamera:
         self._released = False
         self._card_before: set[tuple[str, str]] | None = None
         self._exposure_unknown = False
+        # (folder, DCF stem) of exposures filed or discarded whose files may still come: how many (None: unknown)
+        self._open: dict[tuple[str, str], int | None] = {}
         self._camera: Any = None
         self._model = ""
         self.port = ""
@@ -430,7 +433,9 @@ class GPhotoCamera:
         self._drain()
         if self._on_card():
             self._card_before = self._card_files()
-        return self._fetch(self._trigger_and_collect(timeout, bulb_s), dest)
+        files = self._trigger_and_collect(timeout, bulb_s)
+        self._still_open(files)
+        return self._fetch(files, dest)
 
     def _fetch(self, paths: list[tuple[str, str]], dest: Path) -> list[Path]:
         """Download the files of one exposure into ``dest`` (and delete them from the camera)."""
@@ -440,6 +445,40 @@ class GPhotoCamera:
             if self.delete_after_download:
                 self._delete(folder, name)
         return saved
+
+    def _still_open(self, files: list[tuple[str, str]]) -> None:
+        """Remember an exposure of ``files`` that may not be whole, so that a file of it coming later is no frame.
+
+        A body names the files of one exposure with one file number (DCF: ``IMG_0002.CR2``, ``IMG_0002.JPG``)
+        and libgphoto2 passes that name on; a file of this exposure written after its capture gave up (a slow
+        card) comes with the next exposure's, as the first file the body writes after the next release.
+        """
+        expected = self.files_per_exposure
+        for folder, stem in {(f, Path(n).stem) for f, n in files}:
+            owed = None if expected is None else expected - sum(Path(n).stem == stem for _, n in files)
+            if owed is None or owed > 0:
+                self._open[(folder, stem)] = owed
+        while len(self._open) > 16:  # exposures of unknown count: only the latest can still be writing
+            del self._open[next(iter(self._open))]
+
+    def _earlier(self, folder: str, name: str) -> bool:
+        """Whether a file announced now belongs to an exposure filed or discarded before (`_still_open`);
+        if so it is discarded as a stray."""
+        key = (folder, Path(name).stem)
+        if key not in self._open:
+            return False
+        owed = self._open.pop(key)
+        if owed is None or owed > 1:
+            self._open[key] = None if owed is None else owed - 1
+        self._stray(folder, name, "belongs to an earlier exposure (it carries that exposure's file number)")
+        return True
+
+    def _stray(self, folder: str, name: str, why: str) -> None:
+        """Discard a file that is no frame of this capture: noted, and deleted from the camera."""
+        self.strays.append(f"{folder}/{name}")
+        log.warning("camera %s: %s/%s %s; not counted", self._model, folder, name, why)
+        if self.delete_after_download:
+            self._delete(folder, name)
 
     def _on_card(self) -> bool:
         """Whether captures go to the card (so that they outlive a lost USB session); unprepared: may be."""
@@ -468,11 +507,7 @@ class GPhotoCamera:
                         ", ".join(name for _, name in new))
             return new
         for folder, name in new:
-            self.strays.append(f"{folder}/{name}")
-            log.warning("camera %s: %s/%s was written before the camera was lost and is not known to be a whole "
-                        "exposure; not counted", self._model, folder, name)
-            if self.delete_after_download:
-                self._delete(folder, name)
+            self._stray(folder, name, "was written before the camera was lost and is not known to be a whole exposure")
         return []
 
     def _capture_deadline(self) -> tuple[float, float | None]:
@@ -507,13 +542,9 @@ class GPhotoCamera:
                                      timeout=self.timeout)
             if event == gp.GP_EVENT_TIMEOUT:
                 return
-            if event == gp.GP_EVENT_FILE_ADDED:
-                stray = f"{data.folder}/{data.name}"
-                self.strays.append(stray)
-                log.warning("camera %s: %s was announced after its capture had been collected; not counted",
-                            self._model, stray)
-                if self.delete_after_download:
-                    self._delete(data.folder, data.name)
+            if event == gp.GP_EVENT_FILE_ADDED and not self._earlier(data.folder, data.name):
+                self._stray(data.folder, data.name, "was announced after its capture had been collected")
+                self._still_open([(data.folder, data.name)])
             if time.monotonic() > deadline:
                 raise CameraError(f"camera {self._model} kept reporting events for {self.drain_s:g} s before the "
                                   "release (live view on, or a menu open?): not released, since a file of an "
@@ -598,7 +629,7 @@ class GPhotoCamera:
                 quiet_since = time.monotonic()
                 busy_s, window = quiet_since - entered, max(window, self.quiet_s)
                 continue
-            if event == gp.GP_EVENT_FILE_ADDED:
+            if event == gp.GP_EVENT_FILE_ADDED and not self._earlier(data.folder, data.name):
                 return [(data.folder, data.name)], busy_s
             if time.monotonic() - quiet_since >= window:
                 return [], busy_s
@@ -627,7 +658,8 @@ class GPhotoCamera:
             event, data = self._call("waiting for the capture", self._cam().wait_for_event, wait_ms,
                                      timeout=wait_ms / 1000 + self.timeout,
                                      busy_s=max(self.busy_s, start + timeout - now))
-            if event == gp.GP_EVENT_FILE_ADDED and (data.folder, data.name) not in files:
+            if (event == gp.GP_EVENT_FILE_ADDED and (data.folder, data.name) not in files
+                    and not self._earlier(data.folder, data.name)):
                 files.append((data.folder, data.name))
                 last_new = time.monotonic()
             elif event == gp.GP_EVENT_TIMEOUT and time.monotonic() - now < 0.01:
