@@ -50,7 +50,9 @@ in the order libgphoto2 reports them:
   back at their defaults, events not yet handed over lost); the files on its
   card are still there, listed by ``folder_list_folders`` and
   ``folder_list_files`` as python-gphoto2 returns them (a ``CameraList`` of
-  names), and the body numbers its files on from where it was.
+  names; a folder not on the card fails with GP_ERROR_DIRECTORY_NOT_FOUND, -107),
+  and the body numbers its files on from where it was, in the folder it writes to
+  (the next DCF folder once it opens one) beside the folders of earlier photographs.
 
 Widget trees are modelled on libgphoto2's ptp2 driver (widget names, types,
 choices and read-only flags as ``gphoto2 --list-config`` shows them for a Canon
@@ -251,6 +253,10 @@ class Body:
         File names the body announces but no longer holds (a frame in RAM it let go).
     clock : Clock, optional
         The clock of the body's exposures and waits (default: the real one).
+    folder : str, optional
+        The folder the body writes its files to (default `FOLDER`).
+    card : dict, optional
+        Other folders on the card and the files they hold (earlier photographs, listed only).
     late : dict, optional
         Seconds a named file (``IMG_0001.JPG``: the file of that shot) is written later than the
         others of its exposure (a slow card).
@@ -274,7 +280,7 @@ class Body:
                  unplug_after_trigger=False, af_locks=True, af_hunt_s=0.0,
                  card_shots=None, library_wait_s=1000.0, hangs=False, dropped=(), clock=None,
                  flood_s=0.0, flood_every_s=0.005, event_read_s=0.01, store=None, shots=0, auto_exposure_s=0.0,
-                 late=None) -> None:
+                 late=None, folder=None, card=None) -> None:
         self.config, self.files = config, list(files)
         self.script = {k: list(v) for k, v in (script or {}).items()}
         self.calls: list[str] = []
@@ -290,13 +296,17 @@ class Body:
         self.unplug_after_trigger = unplug_after_trigger
         self.shots, self.auto_exposure_s = shots, auto_exposure_s
         self.late = dict(late or {})
+        if folder is not None:
+            self.FOLDER = folder
+        self.card = {f: list(names) for f, names in (card or {}).items()}
+        self.listed: list[tuple[str, str]] = []  # (listing call, folder) in the order made
         self.bulb_log: list[tuple[int, float]] = []
         self.af_locks, self.af_hunt_s = af_locks, af_hunt_s
         self.card_shots = card_shots
         self.library_wait_s, self.hangs, self.dropped = library_wait_s, hangs, set(dropped)
         self.busy_until = -math.inf  # a Nikon answers DeviceBusy until then
 
-    FOLDER = "/store_00020001/DCIM/100CANON"
+    FOLDER = "/store_00020001/DCIM/100CANON"  # where the body writes, unless given ``folder``
 
     def _enter(self, method: str) -> None:
         self.calls.append(method)
@@ -415,16 +425,28 @@ class Body:
         if self.store.pop(name, None) is None:
             raise gp.GPhoto2Error(gp.GP_ERROR_FILE_NOT_FOUND)
 
+    def _folders(self) -> set[str]:
+        return {self.FOLDER, *self.card}
+
+    def _known(self, folder: str) -> bool:
+        """Whether ``folder`` is on the card (a folder that holds files, or one above such a folder)."""
+        top = folder.rstrip("/")
+        return any(path == top or path.startswith(top + "/") for path in self._folders())
+
     def folder_list_folders(self, folder: str) -> "CameraList":
         self._enter("folder_list_folders")
-        below = self.FOLDER[len(folder.rstrip("/")):]
-        if not self.FOLDER.startswith(folder) or not below.startswith("/") and below:
+        self.listed.append(("folders", folder))
+        if not self._known(folder):
             raise gp.GPhoto2Error(gp.GP_ERROR_DIRECTORY_NOT_FOUND)
-        return CameraList(below.split("/")[1:2])
+        top = folder.rstrip("/") + "/"
+        return CameraList(sorted({p[len(top):].split("/")[0] for p in self._folders() if p.startswith(top)}))
 
     def folder_list_files(self, folder: str) -> "CameraList":
         self._enter("folder_list_files")
-        return CameraList(sorted(self.store) if folder == self.FOLDER else [])
+        self.listed.append(("files", folder))
+        if not self._known(folder):
+            raise gp.GPhoto2Error(gp.GP_ERROR_DIRECTORY_NOT_FOUND)
+        return CameraList(sorted(self.store) if folder == self.FOLDER else self.card.get(folder, []))
 
     def exit(self) -> None:
         self._enter("exit")

@@ -30,18 +30,18 @@ shutter speed, a second file announced 2.5 s after the trigger collected with
 the first, a late file from an earlier exposure discarded instead of counted,
 a hung call ending at its deadline, and reconnecting.
 
-Stand-ins (`tests/fake_gphoto.py`, real gphoto2 error codes in the order a body
-produces them) show what the virtual camera cannot: RAW chosen on Canon and
-Nikon widget trees (sRAW/mRAW refused), single-frame drive, exposure delay,
-autofocus reported by the lens, busy (-110) then ready, busy for good, busy
-answered to reading the configuration and to deleting, an autofocus that cannot
-lock (Canon: busy after the hunt; Nikon: -1), a full card (-3), a RAW+JPEG pair
-1.5 s apart, the JPEG of an earlier pair written by a slow card after the next release, a stale file queued behind a flood of property changes, a cable
-pulled mid-capture (reconnect, prepare again, retry once; the file the lost exposure
-left on the card collected, or deleted when it may not be all of it), a release of unknown
-exposure time that outlasts its call's deadline (reported, not reset or released again), bulb, a capture that never announces its file, a file the
-camera no longer holds (-108), and on a fake clock a Nikon busy through a 30 s
-exposure (libgphoto2 giving up on it after 5, 20 or 1000 s) or hung after it.
+Stand-ins (`tests/fake_gphoto.py`, real gphoto2 error codes in the order a body produces them) show what the
+virtual camera cannot: RAW chosen on Canon and Nikon widget trees (sRAW/mRAW refused), single-frame drive,
+exposure delay, autofocus reported by the lens, busy (-110) then ready, busy for good, busy answered to
+reading the configuration and to deleting, an autofocus that cannot lock (Canon: busy after the hunt; Nikon:
+-1), a full card (-3), a RAW+JPEG pair 1.5 s apart, the JPEG of an earlier pair written by a slow card after
+the next release, a stale file queued behind a flood of property changes, a cable pulled mid-capture
+(reconnect, prepare again, retry once; the file the lost exposure left on the card collected, or deleted when
+it may not be all of it; found in the folder the body opened for it), each step listing only the folder the
+body writes to on a card of thousands of photographs, a release of unknown exposure time that outlasts its
+call's deadline (reported, not reset or released again), bulb, a capture that never announces its file, a file
+the camera no longer holds (-108), and on a fake clock a Nikon busy through a 30 s exposure (libgphoto2 giving
+up on it after 5, 20 or 1000 s) or hung after it.
 """
 
 from __future__ import annotations
@@ -653,6 +653,33 @@ def test_a_file_the_lost_exposure_left_on_the_card_is_collected_or_deleted(fake,
     files = camera.capture(tmp_path / "2")
     assert [f.read_bytes() for f in files] == [b"IMG_0002.CR2 of shot 2"]
     assert camera.strays == [f"{first.FOLDER}/IMG_0001.CR2"] and card == {}
+
+
+def test_each_step_lists_only_the_folder_the_camera_writes_to(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+
+    # a card used for months: three full DCF folders of earlier photographs beside the one the body writes to
+    dcim = "/store_00020001/DCIM"
+    earlier = {f"{dcim}/{100 + k}CANON": [f"IMG_{i:04d}.JPG" for i in range(2000)] for k in range(3)}
+    config = bodies.canon_eos(lens_af=False)
+    body = bodies.Body(config, folder=f"{dcim}/103CANON", card=earlier)
+    bus = bodies.Bus("Canon EOS 5D Mark III", body)
+    camera = fake(bus, quiet_s=0.1)
+    camera.prepare(CameraSetup(focus="manual", capture_target="card"))
+    camera.capture(tmp_path / "1")  # where the body writes is not known before its first frame: the whole card
+    assert {folder for _, folder in body.listed} >= set(earlier)
+    body.listed.clear()
+    for step in (2, 3):
+        camera.capture(tmp_path / str(step))
+    assert body.listed == [("files", f"{dcim}/103CANON"), ("folders", dcim)] * 2
+    # the cable goes after the next release, and the body opened the next folder for that frame: found there
+    body.unplug_after_trigger = True
+    again = bodies.Body(config, folder=f"{dcim}/104CANON", card={**earlier, f"{dcim}/103CANON": []},
+                        store=body.store, shots=3)
+    bus.bodies.append(again)
+    files = camera.capture(tmp_path / "4")
+    assert [f.read_bytes() for f in files] == [b"IMG_0004.CR2 of shot 4"]
+    assert again.shots == 3 and body.store == {}  # not shot again, nothing left
 
 
 def test_a_second_loss_fails_the_capture(fake, bodies, tmp_path):

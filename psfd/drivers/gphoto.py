@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import posixpath
 import re
 import threading
 import time
@@ -153,6 +154,9 @@ class GPhotoCamera:
         self._exposure_unknown = False
         # (folder, DCF stem) of exposures filed or discarded whose files may still come: how many (None: unknown)
         self._open: dict[tuple[str, str], int | None] = {}
+        # the card folder the camera wrote its last frame to, and the folders a listing of the whole card found
+        self._writes_to: str | None = None
+        self._folders_seen: set[str] = set()
         self._camera: Any = None
         self._model = ""
         self.port = ""
@@ -440,6 +444,8 @@ class GPhotoCamera:
     def _fetch(self, paths: list[tuple[str, str]], dest: Path) -> list[Path]:
         """Download the files of one exposure into ``dest`` (and delete them from the camera)."""
         saved = []
+        if paths:
+            self._wrote_in(paths[-1][0])
         for folder, name in paths:
             saved.append(self._download(folder, name, dest))
             if self.delete_after_download:
@@ -484,14 +490,44 @@ class GPhotoCamera:
         """Whether captures go to the card (so that they outlive a lost USB session); unprepared: may be."""
         return self._setup is None or self._setup.capture_target == "card"
 
-    def _card_files(self, folder: str = "/") -> set[tuple[str, str]]:
-        """(folder, name) of every file on the camera's storage below ``folder``."""
-        files = self._call("listing the camera's files", self._cam().folder_list_files, folder)
-        found = {(folder, files.get_name(i)) for i in range(files.count())}
-        folders = self._call("listing the camera's folders", self._cam().folder_list_folders, folder)
-        for i in range(folders.count()):
-            found |= self._card_files(f"{folder.rstrip('/')}/{folders.get_name(i)}")
+    def _card_files(self) -> set[tuple[str, str]]:
+        """(folder, name) of the files on the card wherever a new file can appear.
+
+        Listing a folder makes libgphoto2 read the information of every object in it: on a card that holds
+        months of photographs that grows with the card, each step. So once the camera has written a frame in
+        this session, only the folder it writes to is listed, with any folder new beside it (a body opens the
+        next DCF folder when one is full or the numbering is reset); before that, the whole card.
+        """
+        if self._writes_to is None:
+            return self._walk("/")
+        found = self._files_in(self._writes_to)
+        for folder in self._subfolders(posixpath.dirname(self._writes_to)):
+            if folder != self._writes_to and folder not in self._folders_seen:
+                found |= self._walk(folder)
         return found
+
+    def _walk(self, folder: str) -> set[tuple[str, str]]:
+        """(folder, name) of every file below ``folder``; the folders found are remembered as seen."""
+        self._folders_seen.add(folder)
+        found = self._files_in(folder)
+        for sub in self._subfolders(folder):
+            found |= self._walk(sub)
+        return found
+
+    def _files_in(self, folder: str) -> set[tuple[str, str]]:
+        files = self._call("listing the camera's files", self._cam().folder_list_files, folder)
+        return {(folder, files.get_name(i)) for i in range(files.count())}
+
+    def _subfolders(self, folder: str) -> list[str]:
+        folders = self._call("listing the camera's folders", self._cam().folder_list_folders, folder)
+        return [posixpath.join(folder, folders.get_name(i)) for i in range(folders.count())]
+
+    def _wrote_in(self, folder: str) -> None:
+        """The camera wrote a frame in ``folder``: listings look there (`_card_files`)."""
+        folder = folder.rstrip("/") or "/"
+        if self._writes_to is not None and folder != self._writes_to:
+            self._folders_seen.add(self._writes_to)
+        self._writes_to = folder
 
     def _left_on_card(self, before: set[tuple[str, str]]) -> list[tuple[str, str]]:
         """The files an exposure released before the camera was lost wrote to the card, if they are one exposure.
