@@ -86,6 +86,10 @@ class Clock:
     def monotonic(self) -> float:
         return self.now
 
+    def time(self) -> float:
+        """Wall-clock time on this clock (seconds since the epoch)."""
+        return 1.8e9 + self.now
+
     def sleep(self, seconds: float) -> None:
         with self._lock:
             self.now += max(0.0, seconds)

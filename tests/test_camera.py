@@ -39,9 +39,11 @@ the next release, a stale file queued behind a flood of property changes, a cabl
 (reconnect, prepare again, retry once; the file the lost exposure left on the card collected, or deleted when
 it may not be all of it; found in the folder the body opened for it), each step listing only the folder the
 body writes to on a card of thousands of photographs, a release of unknown exposure time that outlasts its
-call's deadline (reported, not reset or released again), bulb, a capture that never announces its file, a file
-the camera no longer holds (-108), and on a fake clock a Nikon busy through a 30 s exposure (libgphoto2 giving
-up on it after 5, 20 or 1000 s) or hung after it.
+call's deadline (reported, not reset or released again; its file deleted by the next capture, of this camera
+or of a resumed run's), a capture that gets no file before its deadline (the next one not released until that
+file comes, then discarded), bulb, a capture that never announces its file, a file the camera no longer holds
+(-108), and on a fake clock a Nikon busy through a 30 s exposure (libgphoto2 giving up on it after 5, 20 or
+1000 s) or hung after it.
 """
 
 from __future__ import annotations
@@ -502,6 +504,71 @@ def test_a_release_of_unknown_exposure_time_is_not_cut_short_and_taken_again(fak
                                           r"reset or released again$"):
         camera.capture(tmp_path)
     assert body.shots + again.shots == 1 and bus.resets == [] and bus.opened == ["usb:001,004"]
+
+
+def _lost_auto_exposure(fake, bodies, tmp_path, clock, card):
+    """A D5300 on auto exposing 40 s to its card, its release outliving the capture's deadline (then set to 1 s
+    on its dial); returns the camera, the body's settings and its bus."""
+    from psfd.drivers.base import CameraSetup
+    from psfd.errors import CameraError
+
+    config = bodies.nikon_d5300(quality="NEF (Raw)", shutter="auto")
+    body = bodies.Body(config, files=(("DSC_0001.NEF", 2.0),), clock=clock, auto_exposure_s=40.0, store=card)
+    bus = bodies.Bus("Nikon DSC D5300", body)
+    camera = fake(bus, clock=clock)
+    camera.prepare(CameraSetup(focus="manual", capture_target="card"))
+    with pytest.raises(CameraError, match=r"exposure time is unknown"):
+        camera.capture(tmp_path / "1")
+    assert list(card) == ["DSC_0001.NEF"] and list((tmp_path / "1").iterdir()) == []
+    config.get_child_by_name("shutterspeed").value = "1.0000s"
+    return camera, config, bus
+
+
+# the same camera captures again (reconnecting), or the failed step paused the run, which let the camera go, and
+# the resumed run's camera captures (a new camera, a new session)
+@pytest.mark.parametrize("resumed", [False, True])
+def test_the_file_of_a_lost_exposure_is_deleted_by_the_next_capture(fake, bodies, tmp_path, resumed):
+    from psfd.drivers.base import CameraSetup
+
+    clock, card = bodies.Clock(), {}
+    camera, config, bus = _lost_auto_exposure(fake, bodies, tmp_path, clock, card)
+    note = "lost-Nikon_DSC_D5300-00000000000000000000000006909849.json"  # the body's model and serial number
+    assert [p.name for p in camera.state_dir.iterdir()] == [note]
+    again = bodies.Body(config, files=(("DSC_0001.NEF", 2.0),), clock=clock, store=card, shots=1)
+    if resumed:
+        camera.close()
+        camera = fake(bodies.Bus("Nikon DSC D5300", again), clock=clock)
+        camera.prepare(CameraSetup(focus="manual", capture_target="card"))
+    else:
+        bus.bodies.append(again)
+    files = camera.capture(tmp_path / "2")
+    assert [f.read_bytes() for f in files] == [b"DSC_0002.NEF of shot 2"]
+    assert camera.strays == [f"{again.FOLDER}/DSC_0001.NEF"] and card == {}  # nothing left to fill the card
+    assert list(camera.state_dir.iterdir()) == []  # the body's note of the lost exposure is gone with it
+    assert [f.name for f in camera.capture(tmp_path / "3")] == ["DSC_0003.NEF"] and again.shots == 3
+
+
+def test_a_late_file_of_a_capture_that_got_none_is_not_a_later_frame(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+    from psfd.errors import CameraError
+
+    # a Canon on auto exposing 40 s into its RAM: no file within the capture's deadline (30 s + nothing known)
+    clock = bodies.Clock()
+    config = bodies.canon_eos(lens_af=False, shutter="auto")
+    body = bodies.Body(config, clock=clock, auto_exposure_s=40.0)
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), clock=clock)
+    camera.prepare(CameraSetup(focus="manual"))
+    with pytest.raises(CameraError, match=r"capture produced no file within 30 s"):
+        camera.capture(tmp_path / "1")
+    camera.set("shutterspeed", "1/125")
+    # the next step comes while that exposure may still be under way: not released, said in one line
+    with pytest.raises(CameraError, match=r"^an earlier exposure .* may still be under way.*not released"):
+        camera.capture(tmp_path / "2")
+    assert body.shots == 1
+    clock.sleep(15.0)  # its file comes: discarded, and the step is taken
+    files = camera.capture(tmp_path / "3")
+    assert [f.read_bytes() for f in files] == [b"IMG_0002.CR2 of shot 2"]
+    assert camera.strays == [f"{body.FOLDER}/IMG_0001.CR2"] and body.store == {}
 
 
 def test_a_file_the_camera_no_longer_holds(fake, bodies, tmp_path, caplog):
