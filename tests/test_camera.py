@@ -28,7 +28,8 @@ refused before any motion. It also shows the capture target and the
 autofocus switch set by `prepare`, the capture deadline following the
 shutter speed, a second file announced 2.5 s after the trigger collected with
 the first, a late file from an earlier exposure discarded instead of counted,
-a hung call ending at its deadline, and reconnecting.
+a hung call ending at its deadline, reconnecting, and the card listing of each step following the
+folder it writes to (``DCIM/nnnGPHOT``, the next one every 100 file numbers, from GPH_0099.JPG on).
 
 Stand-ins (`tests/fake_gphoto.py`, real gphoto2 error codes in the order a body produces them) show what the
 virtual camera cannot: RAW chosen on Canon and Nikon widget trees (sRAW/mRAW refused), single-frame drive,
@@ -290,6 +291,52 @@ def test_a_hung_call_ends_at_its_deadline(session):
     assert "camera is not connected" in report["after_hung"]["error"]
     assert report["after_second_reconnect"] == "2.8"  # the virtual camera starts afresh on each connection
     assert report["usb_reset_elsewhere"] is False  # nothing is reset without a still-image device there
+
+
+LISTING = r"""
+import json, sys
+from psfd.drivers.base import CameraSetup
+from psfd.drivers.gphoto import GPhotoCamera
+
+class Listed:
+    # the libgphoto2 camera, its folder listings noted
+    def __init__(self, camera):
+        self.camera, self.folders = camera, []
+    def __getattr__(self, name):
+        return getattr(self.camera, name)
+    def folder_list_files(self, folder):
+        self.folders.append(folder)
+        return self.camera.folder_list_files(folder)
+
+camera = GPhotoCamera(quiet_s=0.1, timeout=5.0)
+camera.prepare(CameraSetup(raw=False, capture_target="card"))
+camera._camera = listed = Listed(camera._camera)
+steps = []
+for step in range(3):
+    files = camera.capture(sys.argv[1])
+    steps.append({"files": [f.name for f in files], "listed": listed.folders[:]})
+    listed.folders.clear()
+print(json.dumps(steps))
+"""
+
+
+def test_on_the_virtual_camera_each_step_lists_the_folder_it_writes_to(tmp_path):
+    # earlier photographs in the card's first DCF folder; the virtual camera writes its first capture there, and
+    # the next ones in a folder it opens (101GPHOT: it moves on every 100 file numbers, starting at 99)
+    env, _ = _virtual_camera(tmp_path / "store")
+    earlier = tmp_path / "store" / "DCIM" / "100GPHOT"
+    earlier.mkdir(parents=True)
+    for i in range(50):
+        (earlier / f"IMG_{i:04d}.JPG").write_bytes((tmp_path / "store" / "frame.jpg").read_bytes())
+    proc = subprocess.run([sys.executable, "-c", LISTING, str(tmp_path / "out")], env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    steps = json.loads(proc.stdout.strip().splitlines()[-1])
+    dcim = "/store_00010001/DCIM"
+    assert [step["files"] for step in steps] == [["GPH_0099.JPG"], ["GPH_0101.JPG"], ["GPH_0103.JPG"]]
+    assert steps[0]["listed"] == ["/", "/store_00010001", dcim, f"{dcim}/100GPHOT"]  # where it writes: not known yet
+    assert steps[1]["listed"] == [f"{dcim}/100GPHOT"]  # where the first capture was written
+    assert steps[2]["listed"] == [f"{dcim}/101GPHOT"]  # the folder it opened for the second: not 100GPHOT again
 
 
 def test_cli_on_the_virtual_camera(tmp_path):

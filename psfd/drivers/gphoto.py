@@ -527,14 +527,17 @@ class GPhotoCamera:
 
         Listing a folder makes libgphoto2 read the information of every object in it: on a card that holds
         months of photographs that grows with the card, each step. So once the camera has written a frame in
-        this session, only the folder it writes to is listed, with any folder new beside it (a body opens the
-        next DCF folder when one is full or the numbering is reset); before that, the whole card.
+        this session, only the folder it writes to is listed, with the folders beside it that are new or
+        numbered next (a body moves on to the next DCF folder when one is full, libgphoto2's virtual camera
+        every 100 file numbers, whether that folder is there already or not); before that, the whole card.
         """
         if self._writes_to is None:
             return self._walk("/")
         found = self._files_in(self._writes_to)
+        number = _folder_number(self._writes_to)
         for folder in self._subfolders(posixpath.dirname(self._writes_to)):
-            if folder != self._writes_to and folder not in self._folders_seen:
+            following = number is not None and _folder_number(folder) == number + 1
+            if folder != self._writes_to and (following or folder not in self._folders_seen):
                 found |= self._walk(folder)
         return found
 
@@ -981,6 +984,12 @@ def _first_exposure(listing: set[tuple[str, str]], folders: list[str], before: s
     stem = Path(min(new, key=lambda f: _file_number(f[1]))[1]).stem
     same = sorted(f for f in new if Path(f[1]).stem == stem)
     return same[:files] if files else same
+
+
+def _folder_number(folder: str) -> int | None:
+    """The number of a DCF folder (``/store_00010001/DCIM/101CANON``: 101), None for another folder."""
+    match = re.match(r"([1-9]\d\d)[0-9A-Z_]{5}$", posixpath.basename(folder), re.I)
+    return int(match.group(1)) if match else None
 
 
 def _file_number(name: str) -> tuple[int, str]:
