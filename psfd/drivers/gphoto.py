@@ -14,12 +14,14 @@ trigger (until the camera reports none), retries a busy camera with backoff (a
 release answered busy only once the body answers again and no file came of it: the
 release may have been taken), waits as long as the exposure needs, collects every
 file of the exposure (a file carrying the number of an earlier exposure that may not
-have been whole is discarded, whenever it comes), and reconnects once (with a USB reset where the device is
-still there) when the camera was lost: the file a lost exposure left on the card is
-collected or deleted, and an exposure of unknown length is never cut short by a reset.
-An exposure whose capture failed without its file is remembered (on disk too, by the
-body's serial number): the next capture on the body deletes its file once it is there,
-and is not released while that exposure may still be going on without having written it.
+have been whole is discarded, whenever it comes), and reconnects once (with a USB
+reset where the device is still there) when the camera was lost: the file a lost
+exposure left on the card is collected or deleted, and an exposure of unknown length
+is never cut short by a reset. An exposure whose capture failed without its file is
+remembered (on disk too, by the body's serial number): the next capture on the body
+deletes its file once it is there, and is not released while that exposure may still
+be going on without having written it. Before a release to the card, only the folder
+the camera writes to is listed (and the folders new or numbered next beside it).
 
 Every libgphoto2 call runs in a worker thread with a deadline: python-gphoto2
 releases the GIL during libgphoto2 calls, so a camera unplugged in the middle of
