@@ -595,6 +595,27 @@ def test_the_file_of_a_lost_exposure_is_deleted_by_the_next_capture(fake, bodies
     assert [f.name for f in camera.capture(tmp_path / "3")] == ["DSC_0003.NEF"] and again.shots == 3
 
 
+
+def test_a_file_found_after_the_lost_exposure_could_have_ended_is_left_on_the_card(fake, bodies, tmp_path, caplog):
+    """The run resumed the next morning: the new file on the card may be the lost exposure's, or a photograph
+    someone took with the body meanwhile (when that exposure wrote none). Nothing is deleted that may be a
+    user's photograph; the file is named, never taken as a frame, and the note is forgotten."""
+    from psfd.drivers.base import CameraSetup
+
+    clock, card = bodies.Clock(), {}
+    camera, config, bus = _lost_auto_exposure(fake, bodies, tmp_path, clock, card)
+    camera.close()
+    clock.sleep(8 * 3600.0)
+    again = bodies.Body(config, files=(("DSC_0001.NEF", 2.0),), clock=clock, store=card, shots=1)
+    camera = fake(bodies.Bus("Nikon DSC D5300", again), clock=clock)
+    camera.prepare(CameraSetup(focus="manual", capture_target="card"))
+    with caplog.at_level("WARNING", logger="psfd.drivers.gphoto"):
+        files = camera.capture(tmp_path / "2")
+    assert [f.read_bytes() for f in files] == [b"DSC_0002.NEF of shot 2"]
+    assert list(card) == ["DSC_0001.NEF"] and camera.strays == []
+    assert any("DSC_0001.NEF" in r.getMessage() and "left on the card" in r.getMessage() for r in caplog.records)
+    assert list(camera.state_dir.iterdir()) == []
+
 def test_a_late_file_of_a_capture_that_got_none_is_not_a_later_frame(fake, bodies, tmp_path):
     from psfd.drivers.base import CameraSetup
     from psfd.errors import CameraError

@@ -622,7 +622,9 @@ class GPhotoCamera:
         card, and refuse the release while that exposure may still be going on without having written it.
 
         Its file is the lowest-numbered new one in the folders listed before its release (the body numbers on,
-        so files written later by the body carry higher numbers), with the files of the same number.
+        so files written later by the body carry higher numbers), with the files of the same number. Found
+        only after that exposure could have ended (a run resumed later), it may as well be a photograph taken
+        with the body meanwhile, when the exposure wrote none: it is named and left on the card.
         """
         lost = self._lost
         if lost is None:
@@ -630,10 +632,16 @@ class GPhotoCamera:
         if listing is not None and lost["before"] is not None:
             found = _first_exposure(listing, lost["folders"], {tuple(f) for f in lost["before"]},
                                     self.files_per_exposure)
-            for folder, name in found:
-                self._stray(folder, name, "was written by an exposure whose capture failed")
-            if found:
+            if found and time.time() >= lost["until"]:
+                log.warning("camera %s: %s, new on the card since the exposure released at %s whose capture failed, "
+                            "is left on the card: it is that exposure's file or a photograph taken since",
+                            self._model, ", ".join(f"{folder}/{name}" for folder, name in found),
+                            _clock(lost["released"]))
+            elif found:
+                for folder, name in found:
+                    self._stray(folder, name, "was written by an exposure whose capture failed")
                 self._still_open(found)  # the JPEG of a RAW found may come later
+            if found:
                 self._forget_lost()
                 return
         if time.time() < lost["until"]:
