@@ -33,6 +33,12 @@ in the order libgphoto2 reports them:
 - a RAW+JPEG exposure is announced as two GP_EVENT_FILE_ADDED, the JPEG
   after the RAW (Canon writes the RAW first; on a slow card the second comes
   seconds later);
+- file names as the body writes them on its card (DCF): the files of one exposure share
+  its number (``IMG_0002.CR2`` and ``IMG_0002.JPG``), numbered on from one exposure to the next,
+  and libgphoto2 passes the body's own name on (the ptp2 driver copies ``oi.Filename`` into the
+  event's path); a body writes its buffer to the card in order and announces each file once
+  written, so a file of an earlier exposure that a slow card writes late (``late``) comes after the
+  next release but before that exposure's own files;
 - a file the camera no longer holds: ``file_get`` and ``file_delete`` fail
   with GP_ERROR_FILE_NOT_FOUND (-108), as the virtual camera of libgphoto2
   2.5.34 answers;
@@ -44,7 +50,9 @@ in the order libgphoto2 reports them:
   back at their defaults, events not yet handed over lost); the files on its
   card are still there, listed by ``folder_list_folders`` and
   ``folder_list_files`` as python-gphoto2 returns them (a ``CameraList`` of
-  names), and the body numbers its files on from where it was.
+  names; a folder not on the card fails with GP_ERROR_DIRECTORY_NOT_FOUND, -107),
+  and the body numbers its files on from where it was, in the folder it writes to
+  (the next DCF folder once it opens one) beside the folders of earlier photographs.
 
 Widget trees are modelled on libgphoto2's ptp2 driver (widget names, types,
 choices and read-only flags as ``gphoto2 --list-config`` shows them for a Canon
@@ -77,6 +85,10 @@ class Clock:
 
     def monotonic(self) -> float:
         return self.now
+
+    def time(self) -> float:
+        """Wall-clock time on this clock (seconds since the epoch)."""
+        return 1.8e9 + self.now
 
     def sleep(self, seconds: float) -> None:
         with self._lock:
@@ -245,6 +257,13 @@ class Body:
         File names the body announces but no longer holds (a frame in RAM it let go).
     clock : Clock, optional
         The clock of the body's exposures and waits (default: the real one).
+    folder : str, optional
+        The folder the body writes its files to (default `FOLDER`).
+    card : dict, optional
+        Other folders on the card and the files they hold (earlier photographs, listed only).
+    late : dict, optional
+        Seconds a named file (``IMG_0001.JPG``: the file of that shot) is written later than the
+        others of its exposure (a slow card).
     store : dict, optional
         The files the body holds, by name. Files on the card outlive the USB session: give the
         sessions of one body the same dict (and the later one the ``shots`` taken before it).
@@ -264,7 +283,8 @@ class Body:
     def __init__(self, config: Widget, files=(("IMG_0001.CR2", 0.05),), script=None, queued=(),
                  unplug_after_trigger=False, af_locks=True, af_hunt_s=0.0,
                  card_shots=None, library_wait_s=1000.0, hangs=False, dropped=(), clock=None,
-                 flood_s=0.0, flood_every_s=0.005, event_read_s=0.01, store=None, shots=0, auto_exposure_s=0.0) -> None:
+                 flood_s=0.0, flood_every_s=0.005, event_read_s=0.01, store=None, shots=0, auto_exposure_s=0.0,
+                 late=None, folder=None, card=None) -> None:
         self.config, self.files = config, list(files)
         self.script = {k: list(v) for k, v in (script or {}).items()}
         self.calls: list[str] = []
@@ -279,13 +299,18 @@ class Body:
         self.unplugged = False
         self.unplug_after_trigger = unplug_after_trigger
         self.shots, self.auto_exposure_s = shots, auto_exposure_s
+        self.late = dict(late or {})
+        if folder is not None:
+            self.FOLDER = folder
+        self.card = {f: list(names) for f, names in (card or {}).items()}
+        self.listed: list[tuple[str, str]] = []  # (listing call, folder) in the order made
         self.bulb_log: list[tuple[int, float]] = []
         self.af_locks, self.af_hunt_s = af_locks, af_hunt_s
         self.card_shots = card_shots
         self.library_wait_s, self.hangs, self.dropped = library_wait_s, hangs, set(dropped)
         self.busy_until = -math.inf  # a Nikon answers DeviceBusy until then
 
-    FOLDER = "/store_00020001/DCIM/100CANON"
+    FOLDER = "/store_00020001/DCIM/100CANON"  # where the body writes, unless given ``folder``
 
     def _enter(self, method: str) -> None:
         self.calls.append(method)
@@ -368,7 +393,9 @@ class Body:
             shot_name = name.replace("0001", f"{self.shots:04d}")
             if shot_name not in self.dropped:
                 self.store[shot_name] = f"{shot_name} of shot {self.shots}".encode()
-            self.pending.append((ends + delay, shot_name))
+            written = ends + delay + self.late.get(shot_name, 0.0)
+            # the card is written in order: a file waits for those buffered before it
+            self.pending.append((max([written] + [t for t, _ in self.pending]), shot_name))
         if self._nikon():  # busy until the last file is written
             self.busy_until = math.inf if self.hangs else max(t for t, _ in self.pending)
 
@@ -402,16 +429,28 @@ class Body:
         if self.store.pop(name, None) is None:
             raise gp.GPhoto2Error(gp.GP_ERROR_FILE_NOT_FOUND)
 
+    def _folders(self) -> set[str]:
+        return {self.FOLDER, *self.card}
+
+    def _known(self, folder: str) -> bool:
+        """Whether ``folder`` is on the card (a folder that holds files, or one above such a folder)."""
+        top = folder.rstrip("/")
+        return any(path == top or path.startswith(top + "/") for path in self._folders())
+
     def folder_list_folders(self, folder: str) -> "CameraList":
         self._enter("folder_list_folders")
-        below = self.FOLDER[len(folder.rstrip("/")):]
-        if not self.FOLDER.startswith(folder) or not below.startswith("/") and below:
+        self.listed.append(("folders", folder))
+        if not self._known(folder):
             raise gp.GPhoto2Error(gp.GP_ERROR_DIRECTORY_NOT_FOUND)
-        return CameraList(below.split("/")[1:2])
+        top = folder.rstrip("/") + "/"
+        return CameraList(sorted({p[len(top):].split("/")[0] for p in self._folders() if p.startswith(top)}))
 
     def folder_list_files(self, folder: str) -> "CameraList":
         self._enter("folder_list_files")
-        return CameraList(sorted(self.store) if folder == self.FOLDER else [])
+        self.listed.append(("files", folder))
+        if not self._known(folder):
+            raise gp.GPhoto2Error(gp.GP_ERROR_DIRECTORY_NOT_FOUND)
+        return CameraList(sorted(self.store) if folder == self.FOLDER else self.card.get(folder, []))
 
     def exit(self) -> None:
         self._enter("exit")

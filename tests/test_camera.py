@@ -28,20 +28,23 @@ refused before any motion. It also shows the capture target and the
 autofocus switch set by `prepare`, the capture deadline following the
 shutter speed, a second file announced 2.5 s after the trigger collected with
 the first, a late file from an earlier exposure discarded instead of counted,
-a hung call ending at its deadline, and reconnecting.
+a hung call ending at its deadline, reconnecting, and the card listing of each step following the
+folder it writes to (``DCIM/nnnGPHOT``, the next one every 100 file numbers, from GPH_0099.JPG on).
 
-Stand-ins (`tests/fake_gphoto.py`, real gphoto2 error codes in the order a body
-produces them) show what the virtual camera cannot: RAW chosen on Canon and
-Nikon widget trees (sRAW/mRAW refused), single-frame drive, exposure delay,
-autofocus reported by the lens, busy (-110) then ready, busy for good, busy
-answered to reading the configuration and to deleting, an autofocus that cannot
-lock (Canon: busy after the hunt; Nikon: -1), a full card (-3), a RAW+JPEG pair
-1.5 s apart, a stale file queued behind a flood of property changes, a cable
-pulled mid-capture (reconnect, prepare again, retry once; the file the lost exposure
-left on the card collected, or deleted when it may not be all of it), a release of unknown
-exposure time that outlasts its call's deadline (reported, not reset or released again), bulb, a capture that never announces its file, a file the
-camera no longer holds (-108), and on a fake clock a Nikon busy through a 30 s
-exposure (libgphoto2 giving up on it after 5, 20 or 1000 s) or hung after it.
+Stand-ins (`tests/fake_gphoto.py`, real gphoto2 error codes in the order a body produces them) show what the
+virtual camera cannot: RAW chosen on Canon and Nikon widget trees (sRAW/mRAW refused), single-frame drive,
+exposure delay, autofocus reported by the lens, busy (-110) then ready, busy for good, busy answered to
+reading the configuration and to deleting, an autofocus that cannot lock (Canon: busy after the hunt; Nikon:
+-1), a full card (-3), a RAW+JPEG pair 1.5 s apart, the JPEG of an earlier pair written by a slow card after
+the next release, a stale file queued behind a flood of property changes, a cable pulled mid-capture
+(reconnect, prepare again, retry once; the file the lost exposure left on the card collected, or deleted when
+it may not be all of it; found in the folder the body opened for it), each step listing only the folder the
+body writes to on a card of thousands of photographs, a release of unknown exposure time that outlasts its
+call's deadline (reported, not reset or released again; its file deleted by the next capture, of this camera
+or of a resumed run's), a capture that gets no file before its deadline (the next one not released until that
+file comes, then discarded), bulb, a capture that never announces its file, a file the camera no longer holds
+(-108), and on a fake clock a Nikon busy through a 30 s exposure (libgphoto2 giving up on it after 5, 20 or
+1000 s) or hung after it.
 """
 
 from __future__ import annotations
@@ -290,6 +293,52 @@ def test_a_hung_call_ends_at_its_deadline(session):
     assert report["usb_reset_elsewhere"] is False  # nothing is reset without a still-image device there
 
 
+LISTING = r"""
+import json, sys
+from psfd.drivers.base import CameraSetup
+from psfd.drivers.gphoto import GPhotoCamera
+
+class Listed:
+    # the libgphoto2 camera, its folder listings noted
+    def __init__(self, camera):
+        self.camera, self.folders = camera, []
+    def __getattr__(self, name):
+        return getattr(self.camera, name)
+    def folder_list_files(self, folder):
+        self.folders.append(folder)
+        return self.camera.folder_list_files(folder)
+
+camera = GPhotoCamera(quiet_s=0.1, timeout=5.0)
+camera.prepare(CameraSetup(raw=False, capture_target="card"))
+camera._camera = listed = Listed(camera._camera)
+steps = []
+for step in range(3):
+    files = camera.capture(sys.argv[1])
+    steps.append({"files": [f.name for f in files], "listed": listed.folders[:]})
+    listed.folders.clear()
+print(json.dumps(steps))
+"""
+
+
+def test_on_the_virtual_camera_each_step_lists_the_folder_it_writes_to(tmp_path):
+    # earlier photographs in the card's first DCF folder; the virtual camera writes its first capture there, and
+    # the next ones in a folder it opens (101GPHOT: it moves on every 100 file numbers, starting at 99)
+    env, _ = _virtual_camera(tmp_path / "store")
+    earlier = tmp_path / "store" / "DCIM" / "100GPHOT"
+    earlier.mkdir(parents=True)
+    for i in range(50):
+        (earlier / f"IMG_{i:04d}.JPG").write_bytes((tmp_path / "store" / "frame.jpg").read_bytes())
+    proc = subprocess.run([sys.executable, "-c", LISTING, str(tmp_path / "out")], env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    steps = json.loads(proc.stdout.strip().splitlines()[-1])
+    dcim = "/store_00010001/DCIM"
+    assert [step["files"] for step in steps] == [["GPH_0099.JPG"], ["GPH_0101.JPG"], ["GPH_0103.JPG"]]
+    assert steps[0]["listed"] == ["/", "/store_00010001", dcim, f"{dcim}/100GPHOT"]  # where it writes: not known yet
+    assert steps[1]["listed"] == [f"{dcim}/100GPHOT"]  # where the first capture was written
+    assert steps[2]["listed"] == [f"{dcim}/101GPHOT"]  # the folder it opened for the second: not 100GPHOT again
+
+
 def test_cli_on_the_virtual_camera(tmp_path):
     env, _ = _virtual_camera(tmp_path / "store")
 
@@ -519,6 +568,92 @@ def test_a_release_of_unknown_exposure_time_is_not_cut_short_and_taken_again(fak
     assert body.shots + again.shots == 1 and bus.resets == [] and bus.opened == ["usb:001,004"]
 
 
+def _lost_auto_exposure(fake, bodies, tmp_path, clock, card):
+    """A D5300 on auto exposing 40 s to its card, its release outliving the capture's deadline (then set to 1 s
+    on its dial); returns the camera, the body's settings and its bus."""
+    from psfd.drivers.base import CameraSetup
+    from psfd.errors import CameraError
+
+    config = bodies.nikon_d5300(quality="NEF (Raw)", shutter="auto")
+    body = bodies.Body(config, files=(("DSC_0001.NEF", 2.0),), clock=clock, auto_exposure_s=40.0, store=card)
+    bus = bodies.Bus("Nikon DSC D5300", body)
+    camera = fake(bus, clock=clock)
+    camera.prepare(CameraSetup(focus="manual", capture_target="card"))
+    with pytest.raises(CameraError, match=r"exposure time is unknown"):
+        camera.capture(tmp_path / "1")
+    assert list(card) == ["DSC_0001.NEF"] and list((tmp_path / "1").iterdir()) == []
+    config.get_child_by_name("shutterspeed").value = "1.0000s"
+    return camera, config, bus
+
+
+# the same camera captures again (reconnecting), or the failed step paused the run, which let the camera go, and
+# the resumed run's camera captures (a new camera, a new session)
+@pytest.mark.parametrize("resumed", [False, True])
+def test_the_file_of_a_lost_exposure_is_deleted_by_the_next_capture(fake, bodies, tmp_path, resumed):
+    from psfd.drivers.base import CameraSetup
+
+    clock, card = bodies.Clock(), {}
+    camera, config, bus = _lost_auto_exposure(fake, bodies, tmp_path, clock, card)
+    note = "lost-Nikon_DSC_D5300-00000000000000000000000006909849.json"  # the body's model and serial number
+    assert [p.name for p in camera.state_dir.iterdir()] == [note]
+    again = bodies.Body(config, files=(("DSC_0001.NEF", 2.0),), clock=clock, store=card, shots=1)
+    if resumed:
+        camera.close()
+        camera = fake(bodies.Bus("Nikon DSC D5300", again), clock=clock)
+        camera.prepare(CameraSetup(focus="manual", capture_target="card"))
+    else:
+        bus.bodies.append(again)
+    files = camera.capture(tmp_path / "2")
+    assert [f.read_bytes() for f in files] == [b"DSC_0002.NEF of shot 2"]
+    assert camera.strays == [f"{again.FOLDER}/DSC_0001.NEF"] and card == {}  # nothing left to fill the card
+    assert list(camera.state_dir.iterdir()) == []  # the body's note of the lost exposure is gone with it
+    assert [f.name for f in camera.capture(tmp_path / "3")] == ["DSC_0003.NEF"] and again.shots == 3
+
+
+
+def test_a_file_found_after_the_lost_exposure_could_have_ended_is_left_on_the_card(fake, bodies, tmp_path, caplog):
+    """The run resumed the next morning: the new file on the card may be the lost exposure's, or a photograph
+    someone took with the body meanwhile (when that exposure wrote none). Nothing is deleted that may be a
+    user's photograph; the file is named, never taken as a frame, and the note is forgotten."""
+    from psfd.drivers.base import CameraSetup
+
+    clock, card = bodies.Clock(), {}
+    camera, config, bus = _lost_auto_exposure(fake, bodies, tmp_path, clock, card)
+    camera.close()
+    clock.sleep(8 * 3600.0)
+    again = bodies.Body(config, files=(("DSC_0001.NEF", 2.0),), clock=clock, store=card, shots=1)
+    camera = fake(bodies.Bus("Nikon DSC D5300", again), clock=clock)
+    camera.prepare(CameraSetup(focus="manual", capture_target="card"))
+    with caplog.at_level("WARNING", logger="psfd.drivers.gphoto"):
+        files = camera.capture(tmp_path / "2")
+    assert [f.read_bytes() for f in files] == [b"DSC_0002.NEF of shot 2"]
+    assert list(card) == ["DSC_0001.NEF"] and camera.strays == []
+    assert any("DSC_0001.NEF" in r.getMessage() and "left on the card" in r.getMessage() for r in caplog.records)
+    assert list(camera.state_dir.iterdir()) == []
+
+def test_a_late_file_of_a_capture_that_got_none_is_not_a_later_frame(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+    from psfd.errors import CameraError
+
+    # a Canon on auto exposing 40 s into its RAM: no file within the capture's deadline (30 s + nothing known)
+    clock = bodies.Clock()
+    config = bodies.canon_eos(lens_af=False, shutter="auto")
+    body = bodies.Body(config, clock=clock, auto_exposure_s=40.0)
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), clock=clock)
+    camera.prepare(CameraSetup(focus="manual"))
+    with pytest.raises(CameraError, match=r"capture produced no file within 30 s"):
+        camera.capture(tmp_path / "1")
+    camera.set("shutterspeed", "1/125")
+    # the next step comes while that exposure may still be under way: not released, said in one line
+    with pytest.raises(CameraError, match=r"^an earlier exposure .* may still be under way.*not released"):
+        camera.capture(tmp_path / "2")
+    assert body.shots == 1
+    clock.sleep(15.0)  # its file comes: discarded, and the step is taken
+    files = camera.capture(tmp_path / "3")
+    assert [f.read_bytes() for f in files] == [b"IMG_0002.CR2 of shot 2"]
+    assert camera.strays == [f"{body.FOLDER}/IMG_0001.CR2"] and body.store == {}
+
+
 def test_a_file_the_camera_no_longer_holds(fake, bodies, tmp_path, caplog):
     from psfd.errors import CameraError
 
@@ -581,6 +716,24 @@ def test_raw_and_jpeg_seconds_apart_are_one_exposure(fake, bodies, tmp_path):
     assert [f.name for f in second] == ["IMG_0002.CR2", "IMG_0002.JPG"]
     assert (tmp_path / "1" / "IMG_0001.JPG").read_bytes() == b"IMG_0001.JPG of shot 1"
     assert body.store == {}  # every file deleted from the camera once downloaded
+
+
+def test_a_late_file_of_an_earlier_exposure_is_not_this_exposures(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+
+    # RAW+JPEG on a slow card: the first exposure's JPEG is written 30 s late, after its capture gave up with
+    # the RAW alone and after the next capture's drain; the card writes it before the next exposure's files
+    clock = bodies.Clock()
+    config = bodies.canon_eos(lens_af=False, image_format="RAW + Large Fine JPEG")
+    body = bodies.Body(config, files=(("IMG_0001.CR2", 0.5), ("IMG_0001.JPG", 1.0)), late={"IMG_0001.JPG": 30.5},
+                       clock=clock)
+    camera = fake(bodies.Bus("Canon EOS 5D Mark III", body), clock=clock)
+    camera.prepare(CameraSetup(focus="manual", raw=False))
+    assert [f.name for f in camera.capture(tmp_path / "1")] == ["IMG_0001.CR2"]  # 1 of 2 files, said in the log
+    second = camera.capture(tmp_path / "2")
+    assert [f.read_bytes() for f in second] == [b"IMG_0002.CR2 of shot 2", b"IMG_0002.JPG of shot 2"]
+    assert camera.strays == [f"{body.FOLDER}/IMG_0001.JPG"] and body.store == {}
+    assert [f.name for f in camera.capture(tmp_path / "3")] == ["IMG_0003.CR2", "IMG_0003.JPG"]
 
 
 def test_a_file_queued_before_the_trigger_is_not_counted(fake, bodies, tmp_path):
@@ -650,6 +803,33 @@ def test_a_file_the_lost_exposure_left_on_the_card_is_collected_or_deleted(fake,
     files = camera.capture(tmp_path / "2")
     assert [f.read_bytes() for f in files] == [b"IMG_0002.CR2 of shot 2"]
     assert camera.strays == [f"{first.FOLDER}/IMG_0001.CR2"] and card == {}
+
+
+def test_each_step_lists_only_the_folder_the_camera_writes_to(fake, bodies, tmp_path):
+    from psfd.drivers.base import CameraSetup
+
+    # a card used for months: three full DCF folders of earlier photographs beside the one the body writes to
+    dcim = "/store_00020001/DCIM"
+    earlier = {f"{dcim}/{100 + k}CANON": [f"IMG_{i:04d}.JPG" for i in range(2000)] for k in range(3)}
+    config = bodies.canon_eos(lens_af=False)
+    body = bodies.Body(config, folder=f"{dcim}/103CANON", card=earlier)
+    bus = bodies.Bus("Canon EOS 5D Mark III", body)
+    camera = fake(bus, quiet_s=0.1)
+    camera.prepare(CameraSetup(focus="manual", capture_target="card"))
+    camera.capture(tmp_path / "1")  # where the body writes is not known before its first frame: the whole card
+    assert {folder for _, folder in body.listed} >= set(earlier)
+    body.listed.clear()
+    for step in (2, 3):
+        camera.capture(tmp_path / str(step))
+    assert body.listed == [("files", f"{dcim}/103CANON"), ("folders", dcim)] * 2
+    # the cable goes after the next release, and the body opened the next folder for that frame: found there
+    body.unplug_after_trigger = True
+    again = bodies.Body(config, folder=f"{dcim}/104CANON", card={**earlier, f"{dcim}/103CANON": []},
+                        store=body.store, shots=3)
+    bus.bodies.append(again)
+    files = camera.capture(tmp_path / "4")
+    assert [f.read_bytes() for f in files] == [b"IMG_0004.CR2 of shot 4"]
+    assert again.shots == 3 and body.store == {}  # not shot again, nothing left
 
 
 def test_a_second_loss_fails_the_capture(fake, bodies, tmp_path):

@@ -13,9 +13,15 @@ and autofocus off. `GPhotoCamera.capture` drains stale events before the
 trigger (until the camera reports none), retries a busy camera with backoff (a
 release answered busy only once the body answers again and no file came of it: the
 release may have been taken), waits as long as the exposure needs, collects every
-file of the exposure, and reconnects once (with a USB reset where the device is
-still there) when the camera was lost: the file a lost exposure left on the card is
-collected or deleted, and an exposure of unknown length is never cut short by a reset.
+file of the exposure (a file carrying the number of an earlier exposure that may not
+have been whole is discarded, whenever it comes), and reconnects once (with a USB
+reset where the device is still there) when the camera was lost: the file a lost
+exposure left on the card is collected or deleted, and an exposure of unknown length
+is never cut short by a reset. An exposure whose capture failed without its file is
+remembered (on disk too, by the body's serial number): the next capture on the body
+deletes its file once it is there, and is not released while that exposure may still
+be going on without having written it. Before a release to the card, only the folder
+the camera writes to is listed (and the folders new or numbered next beside it).
 
 Every libgphoto2 call runs in a worker thread with a deadline: python-gphoto2
 releases the GIL during libgphoto2 calls, so a camera unplugged in the middle of
@@ -24,10 +30,14 @@ a USB transfer ends in a `CameraError` instead of freezing the service.
 
 from __future__ import annotations
 
+import datetime
+import json
 import logging
 import math
 import os
+import posixpath
 import re
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -39,6 +49,7 @@ from psfd.drivers.base import CameraInfo, CameraReady, CameraSetup
 from psfd.drivers.recording import free_name, offered_choice
 from psfd.errors import CameraError
 from psfd.exif import exposure_seconds
+from psfd.vocabulary import data_dir
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +100,9 @@ _HINTS = {
 # answers "Out of Focus" (0xA002), which libgphoto2 reports as an unspecified error (-1).
 _AF_REFUSED = ("the autofocus could not lock, so the camera would not release: set the lens (or body) focus "
                "switch to M; with focus = \"off\" or \"manual\" this means the lens or body is still on AF")
+# The longest shutter speed a body's own exposure program chooses (30 s on DSLRs and mirrorless bodies):
+# how long an exposure of unknown length may go on, twice over with long-exposure noise reduction.
+_LONGEST_PROGRAM_S = 30.0
 # Failures after which the camera handle is useless: reconnect (a USB reset if the device
 # is still on the bus) and retry once. A claim by another process is not one of them.
 GONE_CODES = frozenset({gp.GP_ERROR_IO, gp.GP_ERROR_IO_READ, gp.GP_ERROR_IO_WRITE, gp.GP_ERROR_IO_USB_FIND,
@@ -122,6 +136,10 @@ class GPhotoCamera:
         How long a lost camera is waited for (re-enumeration after a USB reset or a replug).
     delete_after_download : bool
         Delete each file from the camera once downloaded (keeps the card from filling overnight).
+    state_dir : path, optional
+        Where an exposure whose capture failed without its file is remembered for the body (by model and
+        serial number) until its file is found, so that a later camera on that body finds it too
+        (default ``$XDG_DATA_HOME/psfd/cameras``).
     """
 
     def __init__(
@@ -134,6 +152,7 @@ class GPhotoCamera:
         drain_s: float = 10.0,
         reconnect_s: float = 20.0,
         delete_after_download: bool = True,
+        state_dir: str | Path | None = None,
     ) -> None:
         self.timeout = float(timeout)
         self.capture_timeout = float(capture_timeout)
@@ -142,6 +161,7 @@ class GPhotoCamera:
         self.drain_s = float(drain_s)
         self.reconnect_s = float(reconnect_s)
         self.delete_after_download = delete_after_download
+        self.state_dir = Path(state_dir) if state_dir is not None else data_dir() / "cameras"
         self.files_per_exposure: int | None = None  # set by prepare from the image format
         self.strays: list[str] = []  # files announced outside any capture, discarded
         self._setup: CameraSetup | None = None
@@ -150,6 +170,16 @@ class GPhotoCamera:
         self._released = False
         self._card_before: set[tuple[str, str]] | None = None
         self._exposure_unknown = False
+        self._released_at = 0.0  # wall-clock time of the release (a lost exposure outlives the process)
+        self._serial, self._deadline_s = "", 0.0
+        # an exposure whose capture failed without its file, which may still write one (`_note_lost`)
+        self._lost: dict[str, Any] | None = None
+        self._discarded: set[tuple[str, str]] = set()  # files discarded as strays (one may be announced later)
+        # (folder, DCF stem) of exposures filed or discarded whose files may still come: how many (None: unknown)
+        self._open: dict[tuple[str, str], int | None] = {}
+        # the card folder the camera wrote its last frame to, and the folders a listing of the whole card found
+        self._writes_to: str | None = None
+        self._folders_seen: set[str] = set()
         self._camera: Any = None
         self._model = ""
         self.port = ""
@@ -226,7 +256,7 @@ class GPhotoCamera:
             model = f"{manufacturer} {model}"
         return CameraInfo(
             model=model,
-            serial=values["serialnumber"] or values["eosserialnumber"] or "",
+            serial=_serial(config),
             lens=values["lensname"] or "",
             focal_length_mm=_leading_number(values["focallength"]),
             port=self.port,
@@ -300,7 +330,8 @@ class GPhotoCamera:
         released before the loss left on the card is this capture's frame when it is the whole
         of one exposure (`_left_on_card`), and deleted otherwise. When the exposure time is not
         known (no shutter speed setting, or ``auto``), a camera that stops answering after the
-        release may still be exposing: it is neither reset nor released again, the capture fails.
+        release may still be exposing: it is neither reset nor released again, the capture fails,
+        and the file that exposure writes is deleted by a later capture (`_settle_lost`).
         """
         dest = Path(dest)
         dest.mkdir(parents=True, exist_ok=True)
@@ -310,6 +341,7 @@ class GPhotoCamera:
             if not getattr(exc, "gone", False):
                 raise
             if self._released and self._exposure_unknown:
+                self._note_lost()
                 raise CameraError(f"{exc}; the exposure time is unknown (no shutter speed set to a time), so the "
                                   "camera may still be exposing: not reset or released again") from None
             log.warning("camera %s lost during a capture (%s): reconnecting and retrying once", self._model, exc)
@@ -426,33 +458,113 @@ class GPhotoCamera:
 
     def _capture_once(self, dest: Path) -> list[Path]:
         self._released, self._card_before = False, None
-        timeout, bulb_s = self._capture_deadline()
+        config = self._config()
+        timeout, bulb_s = self._capture_deadline(config)
+        self._serial, self._deadline_s = _serial(config), timeout
+        if self._lost is None:  # a camera on this body before may have lost an exposure
+            self._lost = self._read_lost()
         self._drain()
         if self._on_card():
             self._card_before = self._card_files()
-        return self._fetch(self._trigger_and_collect(timeout, bulb_s), dest)
+        self._settle_lost(self._card_before)
+        files = self._trigger_and_collect(timeout, bulb_s)
+        self._still_open(files)
+        return self._fetch(files, dest)
 
     def _fetch(self, paths: list[tuple[str, str]], dest: Path) -> list[Path]:
         """Download the files of one exposure into ``dest`` (and delete them from the camera)."""
         saved = []
+        if paths:
+            self._wrote_in(paths[-1][0])
         for folder, name in paths:
             saved.append(self._download(folder, name, dest))
             if self.delete_after_download:
                 self._delete(folder, name)
         return saved
 
+    def _still_open(self, files: list[tuple[str, str]]) -> None:
+        """Remember an exposure of ``files`` that may not be whole, so that a file of it coming later is no frame.
+
+        A body names the files of one exposure with one file number (DCF: ``IMG_0002.CR2``, ``IMG_0002.JPG``)
+        and libgphoto2 passes that name on; a file of this exposure written after its capture gave up (a slow
+        card) comes with the next exposure's, as the first file the body writes after the next release.
+        """
+        expected = self.files_per_exposure
+        for folder, stem in {(f, Path(n).stem) for f, n in files}:
+            owed = None if expected is None else expected - sum(Path(n).stem == stem for _, n in files)
+            if owed is None or owed > 0:
+                self._open[(folder, stem)] = owed
+        while len(self._open) > 16:  # exposures of unknown count: only the latest can still be writing
+            del self._open[next(iter(self._open))]
+
+    def _earlier(self, folder: str, name: str) -> bool:
+        """Whether a file announced now belongs to an exposure filed or discarded before (`_still_open`);
+        if so it is discarded as a stray."""
+        if (folder, name) in self._discarded:
+            log.debug("camera %s: %s/%s, discarded before, was announced now", self._model, folder, name)
+            return True
+        key = (folder, Path(name).stem)
+        if key not in self._open:
+            return False
+        owed = self._open.pop(key)
+        if owed is None or owed > 1:
+            self._open[key] = None if owed is None else owed - 1
+        self._stray(folder, name, "belongs to an earlier exposure (it carries that exposure's file number)")
+        return True
+
+    def _stray(self, folder: str, name: str, why: str) -> None:
+        """Discard a file that is no frame of this capture: noted, and deleted from the camera."""
+        self.strays.append(f"{folder}/{name}")
+        self._discarded.add((folder, name))
+        log.warning("camera %s: %s/%s %s; not counted", self._model, folder, name, why)
+        if self.delete_after_download:
+            self._delete(folder, name)
+
     def _on_card(self) -> bool:
         """Whether captures go to the card (so that they outlive a lost USB session); unprepared: may be."""
         return self._setup is None or self._setup.capture_target == "card"
 
-    def _card_files(self, folder: str = "/") -> set[tuple[str, str]]:
-        """(folder, name) of every file on the camera's storage below ``folder``."""
-        files = self._call("listing the camera's files", self._cam().folder_list_files, folder)
-        found = {(folder, files.get_name(i)) for i in range(files.count())}
-        folders = self._call("listing the camera's folders", self._cam().folder_list_folders, folder)
-        for i in range(folders.count()):
-            found |= self._card_files(f"{folder.rstrip('/')}/{folders.get_name(i)}")
+    def _card_files(self) -> set[tuple[str, str]]:
+        """(folder, name) of the files on the card wherever a new file can appear.
+
+        Listing a folder makes libgphoto2 read the information of every object in it: on a card that holds
+        months of photographs that grows with the card, each step. So once the camera has written a frame in
+        this session, only the folder it writes to is listed, with the folders beside it that are new or
+        numbered next (a body moves on to the next DCF folder when one is full, libgphoto2's virtual camera
+        every 100 file numbers, whether that folder is there already or not); before that, the whole card.
+        """
+        if self._writes_to is None:
+            return self._walk("/")
+        found = self._files_in(self._writes_to)
+        number = _folder_number(self._writes_to)
+        for folder in self._subfolders(posixpath.dirname(self._writes_to)):
+            following = number is not None and _folder_number(folder) == number + 1
+            if folder != self._writes_to and (following or folder not in self._folders_seen):
+                found |= self._walk(folder)
         return found
+
+    def _walk(self, folder: str) -> set[tuple[str, str]]:
+        """(folder, name) of every file below ``folder``; the folders found are remembered as seen."""
+        self._folders_seen.add(folder)
+        found = self._files_in(folder)
+        for sub in self._subfolders(folder):
+            found |= self._walk(sub)
+        return found
+
+    def _files_in(self, folder: str) -> set[tuple[str, str]]:
+        files = self._call("listing the camera's files", self._cam().folder_list_files, folder)
+        return {(folder, files.get_name(i)) for i in range(files.count())}
+
+    def _subfolders(self, folder: str) -> list[str]:
+        folders = self._call("listing the camera's folders", self._cam().folder_list_folders, folder)
+        return [posixpath.join(folder, folders.get_name(i)) for i in range(folders.count())]
+
+    def _wrote_in(self, folder: str) -> None:
+        """The camera wrote a frame in ``folder``: listings look there (`_card_files`)."""
+        folder = folder.rstrip("/") or "/"
+        if self._writes_to is not None and folder != self._writes_to:
+            self._folders_seen.add(self._writes_to)
+        self._writes_to = folder
 
     def _left_on_card(self, before: set[tuple[str, str]]) -> list[tuple[str, str]]:
         """The files an exposure released before the camera was lost wrote to the card, if they are one exposure.
@@ -468,16 +580,107 @@ class GPhotoCamera:
                         ", ".join(name for _, name in new))
             return new
         for folder, name in new:
-            self.strays.append(f"{folder}/{name}")
-            log.warning("camera %s: %s/%s was written before the camera was lost and is not known to be a whole "
-                        "exposure; not counted", self._model, folder, name)
-            if self.delete_after_download:
-                self._delete(folder, name)
+            self._stray(folder, name, "was written before the camera was lost and is not known to be a whole exposure")
         return []
 
-    def _capture_deadline(self) -> tuple[float, float | None]:
+    # ------------------------------------------------------------------ an exposure whose capture failed
+
+    def _note_lost(self) -> None:
+        """Remember the exposure released in this capture, which failed without its file: it may still write one.
+
+        Until that file is found (`_settle_lost`), or the exposure cannot be going on any longer, no capture on
+        this body is released: the file would come with that capture's. With a serial number the note is kept
+        on disk too, for the next camera on the body (a failed step pauses the run, which lets the camera go).
+        """
+        longest = 2.0 * _LONGEST_PROGRAM_S if self._exposure_unknown else 0.0
+        before = self._card_before
+        self._lost = {
+            "model": self._model, "serial": self._serial, "released": self._released_at,
+            "until": self._released_at + 2.0 * self._deadline_s + longest,
+            # the folders listed before the release, and their files: the file is looked for there
+            "folders": None if before is None else [self._writes_to] if self._writes_to else sorted(self._folders_seen),
+            "before": None if before is None else sorted([folder, name] for folder, name in before),
+        }
+        path = self._lost_path()
+        if path is None:
+            return
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+            try:
+                with os.fdopen(fd, "w") as stream:
+                    json.dump(self._lost, stream)
+                os.replace(tmp, path)
+            finally:
+                Path(tmp).unlink(missing_ok=True)
+        except OSError as exc:  # the capture's own error is the one to report; this camera still remembers
+            log.warning("camera %s: the exposure whose capture failed is not remembered in %s (%s)",
+                        self._model, path, exc)
+
+    def _settle_lost(self, listing: set[tuple[str, str]] | None) -> None:
+        """Before a release: delete the file of an exposure whose capture failed (`_note_lost`) once it is on the
+        card, and refuse the release while that exposure may still be going on without having written it.
+
+        Its file is the lowest-numbered new one in the folders listed before its release (the body numbers on,
+        so files written later by the body carry higher numbers), with the files of the same number. Found
+        only after that exposure could have ended (a run resumed later), it may as well be a photograph taken
+        with the body meanwhile, when the exposure wrote none: it is named and left on the card.
+        """
+        lost = self._lost
+        if lost is None:
+            return
+        if listing is not None and lost["before"] is not None:
+            found = _first_exposure(listing, lost["folders"], {tuple(f) for f in lost["before"]},
+                                    self.files_per_exposure)
+            if found and time.time() >= lost["until"]:
+                log.warning("camera %s: %s, new on the card since the exposure released at %s whose capture failed, "
+                            "is left on the card: it is that exposure's file or a photograph taken since",
+                            self._model, ", ".join(f"{folder}/{name}" for folder, name in found),
+                            _clock(lost["released"]))
+            elif found:
+                for folder, name in found:
+                    self._stray(folder, name, "was written by an exposure whose capture failed")
+                self._still_open(found)  # the JPEG of a RAW found may come later
+            if found:
+                self._forget_lost()
+                return
+        if time.time() < lost["until"]:
+            raise CameraError(
+                f"an earlier exposure (released at {_clock(lost['released'])}, its capture failed) may still be under "
+                f"way and has written no file yet: not released until it has, or until {_clock(lost['until'])}, "
+                "so that its file is not taken for this one")
+        log.warning("camera %s: no file came of the exposure released at %s whose capture failed; not looked for any "
+                    "more", self._model, _clock(lost["released"]))
+        self._forget_lost()
+
+    def _lost_path(self) -> Path | None:
+        """The note of this body's lost exposure; None without a serial number (bodies could not be told apart)."""
+        if not self._serial:
+            return None
+        return self.state_dir / re.sub(r"[^A-Za-z0-9.-]+", "_", f"lost-{self._model}-{self._serial}.json")
+
+    def _read_lost(self) -> dict[str, Any] | None:
+        path = self._lost_path()
+        if path is None or not path.exists():
+            return None
+        try:
+            lost = json.loads(path.read_text())
+            if {"released", "until", "folders", "before"} <= set(lost):
+                return lost
+        except (OSError, ValueError):
+            pass
+        log.warning("camera %s: %s is not a note of a lost exposure; ignored", self._model, path)
+        return None
+
+    def _forget_lost(self) -> None:
+        self._lost = None
+        path = self._lost_path()
+        if path is not None:
+            path.unlink(missing_ok=True)
+
+    def _capture_deadline(self, config: Any = None) -> tuple[float, float | None]:
         """Seconds allowed from the trigger to the last file, and the bulb time if the camera is on bulb."""
-        config = self._config()
+        config = self._config() if config is None else config
         shutter = next((v for n in SETTING_ALIASES["shutterspeed"] if (v := _widget_value(config, n))), None)
         seconds = exposure_seconds(shutter)
         self._exposure_unknown = seconds is None  # the capture's deadline cannot follow the exposure
@@ -507,13 +710,12 @@ class GPhotoCamera:
                                      timeout=self.timeout)
             if event == gp.GP_EVENT_TIMEOUT:
                 return
-            if event == gp.GP_EVENT_FILE_ADDED:
-                stray = f"{data.folder}/{data.name}"
-                self.strays.append(stray)
-                log.warning("camera %s: %s was announced after its capture had been collected; not counted",
-                            self._model, stray)
-                if self.delete_after_download:
-                    self._delete(data.folder, data.name)
+            if event == gp.GP_EVENT_FILE_ADDED and not self._earlier(data.folder, data.name):
+                self._stray(data.folder, data.name, "was announced after its capture had been collected"
+                            if self._lost is None else "was written by an exposure whose capture failed")
+                self._still_open([(data.folder, data.name)])
+                if self._lost is not None:  # the first file the body wrote since is the lost exposure's
+                    self._forget_lost()
             if time.monotonic() > deadline:
                 raise CameraError(f"camera {self._model} kept reporting events for {self.drain_s:g} s before the "
                                   "release (live view on, or a menu open?): not released, since a file of an "
@@ -524,7 +726,7 @@ class GPhotoCamera:
         if bulb_s is None:
             return self._collect(*self._release_once(timeout), timeout)
         start = time.monotonic()
-        self._released = True
+        self._released, self._released_at = True, time.time()
         self._bulb(bulb_s)
         return self._collect([], start, timeout)
 
@@ -560,7 +762,7 @@ class GPhotoCamera:
 
     def _release(self, timeout: float) -> list[tuple[str, str]]:
         """One release; returns the file a blocking capture names (cameras without trigger_capture)."""
-        self._released = True  # from here on, an exposure may have been taken
+        self._released, self._released_at = True, time.time()  # from here on, an exposure may have been taken
         try:
             # a release may take the autofocus's hunt (some 10 s on a Canon) before it answers
             self._once("triggering a capture", self._cam().trigger_capture, timeout=timeout)
@@ -590,6 +792,7 @@ class GPhotoCamera:
                 if getattr(exc, "code", None) != gp.GP_ERROR_CAMERA_BUSY:
                     raise
                 if time.monotonic() - start > timeout:
+                    self._note_lost()
                     raise _busy_error(f"camera {self._model} stayed busy for {timeout:g} s after the release "
                                       "(exposure, delay and writing included): it may be hung; switch it off "
                                       "and on") from None
@@ -598,7 +801,7 @@ class GPhotoCamera:
                 quiet_since = time.monotonic()
                 busy_s, window = quiet_since - entered, max(window, self.quiet_s)
                 continue
-            if event == gp.GP_EVENT_FILE_ADDED:
+            if event == gp.GP_EVENT_FILE_ADDED and not self._earlier(data.folder, data.name):
                 return [(data.folder, data.name)], busy_s
             if time.monotonic() - quiet_since >= window:
                 return [], busy_s
@@ -620,6 +823,7 @@ class GPhotoCamera:
                     log.warning("camera %s: %d of %d files of the exposure arrived within %g s",
                                 self._model, len(files), expected or len(files), timeout)
                     return files
+                self._note_lost()
                 raise CameraError(f"capture produced no file within {timeout:g} s (exposure, delay and "
                                   "writing included)")
             wait_ms = 200 if expected is not None else int(1000 * min(self.quiet_s, self.timeout))
@@ -627,7 +831,8 @@ class GPhotoCamera:
             event, data = self._call("waiting for the capture", self._cam().wait_for_event, wait_ms,
                                      timeout=wait_ms / 1000 + self.timeout,
                                      busy_s=max(self.busy_s, start + timeout - now))
-            if event == gp.GP_EVENT_FILE_ADDED and (data.folder, data.name) not in files:
+            if (event == gp.GP_EVENT_FILE_ADDED and (data.folder, data.name) not in files
+                    and not self._earlier(data.folder, data.name)):
                 files.append((data.folder, data.name))
                 last_new = time.monotonic()
             elif event == gp.GP_EVENT_TIMEOUT and time.monotonic() - now < 0.01:
@@ -769,6 +974,38 @@ class GPhotoCamera:
         if "error" in result:
             raise result["error"]
         return result.get("value")
+
+
+def _serial(config: Any) -> str:
+    """The body's serial number as its status widgets report it (Nikon and generic PTP, Canon EOS)."""
+    return _widget_value(config, "serialnumber") or _widget_value(config, "eosserialnumber") or ""
+
+
+def _clock(seconds: float) -> str:
+    return datetime.datetime.fromtimestamp(seconds).strftime("%H:%M:%S")
+
+
+def _first_exposure(listing: set[tuple[str, str]], folders: list[str], before: set[tuple[str, str]],
+                    files: int | None) -> list[tuple[str, str]]:
+    """The files of the lowest-numbered exposure new in ``folders`` since ``before`` (at most ``files`` of them)."""
+    new = [f for f in listing if f[0] in folders and f not in before]
+    if not new:
+        return []
+    stem = Path(min(new, key=lambda f: _file_number(f[1]))[1]).stem
+    same = sorted(f for f in new if Path(f[1]).stem == stem)
+    return same[:files] if files else same
+
+
+def _folder_number(folder: str) -> int | None:
+    """The number of a DCF folder (``/store_00010001/DCIM/101CANON``: 101), None for another folder."""
+    match = re.match(r"([1-9]\d\d)[0-9A-Z_]{5}$", posixpath.basename(folder), re.I)
+    return int(match.group(1)) if match else None
+
+
+def _file_number(name: str) -> tuple[int, str]:
+    """Sort key of a DCF file name by its number (``IMG_0042.CR2``: 42), then its name."""
+    digits = re.search(r"(\d+)$", Path(name).stem)
+    return (int(digits.group(1)) if digits else -1), name
 
 
 def _detect() -> list[tuple[str, str]]:
