@@ -934,6 +934,24 @@ def test_normal_equations_equal_the_former_products_bit_for_bit(photo_records):
     assert dropped[1] >= 1 and dropped[2] > 1  # the holes dropped rows of the parts they fall in
 
 
+def test_known_psf_window_equals_the_former_normal_equations_bit_for_bit(tmp_path, monkeypatch):
+    """A window of a simulated frame of known PSF (f/5.6 diffraction) solved with the normal equations built in
+    place (`_add_mean`) gives the same PSF, noise floor, residual and prediction error, bit for bit, as with
+    the former products (`_former_normal_equations`): the same sums in the same order. Both are the true PSF
+    to the tolerance of `test_recovers_known_psf`."""
+    h = PSFS["f/5.6"]()
+    v, truth, _ = _plane(tmp_path / "t.dng", h, seed=11, **GEOMETRY)
+    (got,) = bernoulli.estimate_plane(v, truth["to_pattern"]["g1"], s=S)
+    monkeypatch.setattr(bernoulli, "normal_equations", _former_normal_equations)
+    (former,) = bernoulli.estimate_plane(v, truth["to_pattern"]["g1"], s=S)
+    assert np.array_equal(got["psf"], former["psf"])
+    for key in ("noise_floor", "sigma", "residual", "prediction_error", "mass", "count"):
+        assert got[key] == former[key], key
+    assert got["prediction_error"] is not None
+    norm = np.linalg.norm(h)
+    assert np.linalg.norm(got["psf"] - h) / norm < 1.5 * got["noise_floor"] / norm + MODEL_L2
+
+
 def test_nnls_equals_the_former_exchanges_bit_for_bit(photo_systems):
     """The exchanges' bookkeeping (gathers, multipliers) changes no bit of the minimiser: it is the last exact
     solve of the free block, and every step takes the same free set as before."""

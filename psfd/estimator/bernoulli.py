@@ -563,17 +563,28 @@ def normal_equations(
         keep = np.isfinite(b) if whole else np.all(np.isfinite(a), axis=1) & np.isfinite(b)
         if not keep.all():
             a, b = a[keep], b[keep]
-        col = a.sum(axis=0, dtype=np.float64)
-        mean_terms = np.add.outer(col, col)
-        mean_terms *= c
-        mean_terms += c * c * len(b)
-        np.add(_gram(a), mean_terms, out=ata[p])  # the float32 product widened as it is added
+        _add_mean(ata[p], _gram(a), a.sum(axis=0, dtype=np.float64), c, len(b))
         atv[p] = b @ a.astype(np.float64) + c * float(b.sum())
         vtv[p] = float(b @ b)
         count[p] = len(b)
     if count.sum() <= n:
         raise EstimationError(f"noise region too small for a {support}x{support} kernel: {count.sum()} samples")
     return ata, atv, vtv, count
+
+
+def _add_mean(out: np.ndarray, gram: np.ndarray, col: np.ndarray, c: float, rows: int) -> None:
+    """A^T A = A'^T A' + c (a 1^T + 1 a^T) + c^2 M 1 1^T into ``out`` (`normal_equations`), a = A'^T 1 = ``col``.
+
+    Written in place, pass after pass, with no k^2 x k^2 temporary: a_i + a_j as a's rows plus its column
+    (numpy's outer sum is slower than the two passes), then the same products and sums in the same order as
+    the former np.add.outer(a, a) * c + c^2 M added to the widened product, so the same bits (the sums
+    commute exactly).
+    """
+    out[:] = col
+    out += col[:, None]
+    out *= c
+    out += c * c * rows
+    out += gram  # the float32 product widened as it is added
 
 
 def _gram(a: np.ndarray) -> np.ndarray:
