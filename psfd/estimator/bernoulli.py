@@ -406,7 +406,8 @@ class PatternBand:
         if cost < 4 * rows * cols * np.log2(rows * cols):
             part = resample.dct_runs_part(self.coeffs, runs, self.shape, slice(r0, r1), slice(c0, c1), self.bases,
                                           cover)
-            return crop + part  # both float32
+            part += crop  # both float32, the part a fresh array
+            return part
         same, cross = s_band(self.shape, self.factor, self.s, jacobian)
         coeffs = self.coeffs[: same.shape[0], : same.shape[1]]
         return np.ascontiguousarray(resample.dct_synthesise(coeffs, self.shape, same, cross)[r0:r1, c0:c1])
