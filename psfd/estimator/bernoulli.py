@@ -279,8 +279,8 @@ def _pattern_grid(to_pattern: Map, box: tuple[int, int, int, int], s: int, half:
     gy = resample.keys_grid(start[0], shape[0], s).astype(np.float64)
     gx = resample.keys_grid(start[1], shape[1], s).astype(np.float64)
     X, Y = to_pattern(*np.meshgrid(gx, gy))
-    return (resample.keys_upsample(np.asarray(X), s, start, shape),
-            resample.keys_upsample(np.asarray(Y), s, start, shape))
+    X, Y = resample.keys_upsample(np.stack([np.asarray(X), np.asarray(Y)]), s, start, shape)  # both on one grid
+    return X, Y
 
 
 class PatternBand:

@@ -437,32 +437,30 @@ def keys_weights(t: np.ndarray, a: float = -0.5) -> np.ndarray:
 def keys_upsample(values: np.ndarray, s: int, start: tuple[int, int], shape: tuple[int, int]) -> np.ndarray:
     """A smooth function sampled on integers, interpolated (Keys, a = -0.5) on the grid of step 1 / s.
 
-    ``values[r, c]`` is the function at (r - 1 + start[0] // s, c - 1 + start[1] // s);
-    the result holds it at (i / s, j / s) for i from ``start[0]``, j from
-    ``start[1]``, over ``shape``. ``values`` needs (shape + start % s) / s + 3
+    ``values[..., r, c]`` is the function at (r - 1 + start[0] // s, c - 1 + start[1] // s)
+    (leading axes: several functions on the same grid); the result holds it at (i / s, j / s) for i from
+    ``start[0]``, j from ``start[1]``, over ``shape``. ``values`` needs (shape + start % s) / s + 3
     samples along each axis (`keys_grid` gives the integer range). Keys' a = -0.5 kernel
     reproduces quadratics exactly (Keys, IEEE Trans. ASSP 1981, sec. III), so
     a map whose third derivatives are small over one sample (a homography,
     lens distortion) is reproduced to far below its own precision.
+
+    The interpolation is separable and linear: two products with the banded matrices of the taps' weights
+    (`_keys_matrix`), axis 0 first (a few small BLAS calls instead of eight passes over shifted views).
     """
     out = np.asarray(values, dtype=np.float64)
-    w = keys_weights(np.arange(s) / s)  # (phase, tap)
-    for axis in (0, 1):
-        n = out.shape[axis] - 3
-        # tap k of every output sample is a shifted view of the input: its products summed in place
-        if axis == 0:
-            up = out[0:n, None, :] * w[None, :, 0, None]
-            for k in range(1, 4):
-                up += out[k: k + n, None, :] * w[None, :, k, None]
-            first = start[0] % s
-            out = up.reshape(n * s, -1)[first: first + shape[0]]
-        else:
-            up = out[:, 0:n, None] * w[None, None, :, 0]
-            for k in range(1, 4):
-                up += out[:, k: k + n, None] * w[None, None, :, k]
-            first = start[1] % s
-            out = up.reshape(-1, n * s)[:, first: first + shape[1]]
-    return out
+    down = _keys_matrix(out.shape[-2], s, start[0], shape[0])
+    across = _keys_matrix(out.shape[-1], s, start[1], shape[1])
+    return (down @ out) @ across.T
+
+
+def _keys_matrix(count_in: int, s: int, start: int, count: int) -> np.ndarray:
+    """Row i: Keys' weights (`keys_weights`) of the sample (start + i) / s on the integers start // s - 1 ..
+    start // s - 1 + count_in - 1 (four of them nonzero), as `keys_upsample` reads them."""
+    at = np.arange(count) + start % s
+    matrix = np.zeros((count, count_in))
+    matrix[np.arange(count)[:, None], (at // s)[:, None] + np.arange(4)] = keys_weights((at % s) / s)
+    return matrix
 
 
 def keys_grid(start: int, count: int, s: int) -> np.ndarray:
