@@ -551,6 +551,33 @@ def test_pattern_band_window_equals_u_tilde():
     assert len(band._kept) == 1
 
 
+def test_pattern_band_with_tabulated_bases_equals_the_whole_band_synthesis():
+    """With the basis functions tabulated (more than four windows, as `estimate_frames` reads a grid), every
+    window's u~ equals `u_tilde`'s (its own band synthesised whole by `dct_synthesise`) to float32 rounding:
+    windows across a perspective target whose bands are thousands of coefficients from the reference (dense
+    tiles and scattered coefficients), and the same windows on three more Bayer planes, a few coefficients
+    from the first (every coefficient scattered, each its own term of the final product)."""
+    noise = target.default_noise()
+    s, factor = 4, 4
+    rng = np.random.default_rng(11)
+    reference = np.array([[2.7, 0.3], [-0.25, 2.75]])
+    windows = [reference * (1 + rng.uniform(-0.04, 0.04, (2, 2))) for _ in range(3)]
+    planes = [[j + rng.uniform(-4e-4, 4e-4, (2, 2)) * (p > 0) for p in range(4)] for j in windows]
+    band = bernoulli.PatternBand(noise, factor, s, [j for group in planes for j in group], reference)
+    assert band.bases is not None
+    y, x = np.mgrid[300:330, 420:452] / factor + 0.013
+    for n, group in enumerate(planes):
+        band.forget()
+        for p, jacobian in enumerate(group):
+            at_x, at_y = x + 9.0 * n + 0.1 * p, y + 6.0 * n - 0.1 * p
+            want = resample.keys_bicubic(bernoulli.u_tilde(noise, s, jacobian, factor), at_x * factor - 0.5,
+                                         at_y * factor - 0.5)
+            got = band.window(jacobian).sample(at_x, at_y)
+            # u~ of a target in [0, 1]: float32 products of thousands of coefficients, ~1e-7 each
+            assert np.abs(got - want).max() < 1e-5, (n, p)
+        assert len(band._kept) == 1  # the later planes started from the first one's part
+
+
 class _DifferenceBand(bernoulli.WindowBand):
     """The window's u~ as the band was read before parts were kept: the reference band's crop plus the image of
     every coefficient where the window's band differs from the reference (the former `PatternBand.difference`)."""

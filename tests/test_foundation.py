@@ -194,6 +194,9 @@ def test_keys_upsample_reproduces_quadratics_on_the_fine_grid(s):
     values = quad(*np.meshgrid(gx, gy))
     y, x = np.mgrid[start[0]: start[0] + shape[0], start[1]: start[1] + shape[1]] / s
     np.testing.assert_allclose(resample.keys_upsample(values, s, start, shape), quad(x, y), rtol=0, atol=1e-12)
+    # several functions on one grid (the map's X and Y, `bernoulli._pattern_grid`): each as when alone
+    both = resample.keys_upsample(np.stack([values, quad(*np.meshgrid(gx, gy)[::-1])]), s, start, shape)
+    np.testing.assert_allclose(both, [quad(x, y), quad(y, x)], rtol=0, atol=1e-12)
 
 def test_dct_lowpass_keeps_low_and_removes_high_frequencies():
     n = 64

@@ -144,31 +144,43 @@ def _idct_lines(c: np.ndarray, out: np.ndarray, start: int = 0) -> None:
     packed = np.zeros((rows, n), dtype=c.dtype)
     lo, hi = start, min(start + kept, h)  # X_m for m < N/2 + 1
     if hi > lo:
-        _add_half_spectrum(packed, lo, c[:, : hi - lo], wcos[lo:hi], wsin[lo:hi])
+        _add_half_spectrum(packed, lo, c[:, : hi - lo], wcos[lo:hi], wsin[lo:hi], fresh=True)
+    first = (lo, hi)
     lo, hi = max(1, n - start - kept + 1), min(h - 1, n - start)  # X_{N-m} for m in [lo, hi]
     if hi >= lo:
         b = c[:, n - hi - start : n - lo - start + 1][:, ::-1]
-        _add_half_spectrum(packed, lo, b, wsin[lo : hi + 1], -wcos[lo : hi + 1])
+        fresh = first[1] <= first[0] or hi < first[0] or lo >= first[1]  # the usual band: one of the two only
+        _add_half_spectrum(packed, lo, b, wsin[lo : hi + 1], -wcos[lo : hi + 1], fresh)
     v = cv2.idft(packed, flags=cv2.DFT_ROWS | cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE)
     half = (n + 1) // 2
     out[:, ::2] = v[:, :half]
     out[:, 1::2] = v[:, half:][:, ::-1]
 
 
-def _add_half_spectrum(packed: np.ndarray, lo: int, x: np.ndarray, re: np.ndarray, im: np.ndarray) -> None:
+def _add_half_spectrum(packed: np.ndarray, lo: int, x: np.ndarray, re: np.ndarray, im: np.ndarray,
+                       fresh: bool = False) -> None:
     """Add x (re + i im) to V_m, m = lo, lo + 1, ..., in OpenCV's packed rows (Re V_0 in column 0, Re V_m
-    and Im V_m in 2m - 1 and 2m, Re V_N/2 last for even N), through strided views."""
+    and Im V_m in 2m - 1 and 2m, Re V_N/2 last for even N), through strided views. ``fresh``: those V_m are
+    still zero, and the products are written in place (0 + p = p: the same values, without a temporary
+    and a second pass over the rows)."""
     n = packed.shape[1]
+
+    def add(at, factor, weight):
+        if fresh:
+            np.multiply(factor, weight, out=packed[:, at])
+        else:
+            packed[:, at] += factor * weight
+
     if lo == 0:
-        packed[:, 0] += x[:, 0] * re[0]
+        add(0, x[:, 0], re[0])
         x, re, im, lo = x[:, 1:], re[1:], im[1:], 1
     count = x.shape[1]
     if count and n % 2 == 0 and lo + count - 1 == n // 2:  # V_N/2 is real
-        packed[:, n - 1] += x[:, -1] * re[-1]
+        add(n - 1, x[:, -1], re[-1])
         x, re, im, count = x[:, :-1], re[:-1], im[:-1], count - 1
     if count:
-        packed[:, 2 * lo - 1 : 2 * (lo + count) - 1 : 2] += x * re
-        packed[:, 2 * lo : 2 * (lo + count) : 2] += x * im
+        add(slice(2 * lo - 1, 2 * (lo + count) - 1, 2), x, re)
+        add(slice(2 * lo, 2 * (lo + count), 2), x, im)
 
 
 def idct(c: np.ndarray, n: int | None = None, axis: int = -1) -> np.ndarray:

@@ -171,11 +171,12 @@ def dct_runs_part(
     # two nearly equal bands), costs less gathered: its basis functions times their weights, summed
     # per row (column) of D
     scattered = (count < 32) | ((r1 - r0) * (c1 - c0) > 40 * count)
-    # the accumulators span the rows (columns) of the tiles that reach the image through them; through the
+    # the accumulators span the rows (columns) of the dense tiles that reach the image through them; through the
     # rows: N = D B_cols^T, then B_rows[:, R] N[R]; through the columns, kept transposed: M^T = D^T B_rows^T,
     # then M^T[C]^T B_cols[:, C]^T
-    row_span = (int(r0[turned].min()), int(r1[turned].max())) if turned.any() else (0, 0)
-    col_span = (int(c0[~turned].min()), int(c1[~turned].max())) if (~turned).any() else (0, 0)
+    dense_rows, dense_cols = turned & ~scattered, ~turned & ~scattered
+    row_span = (int(r0[dense_rows].min()), int(r1[dense_rows].max())) if dense_rows.any() else (0, 0)
+    col_span = (int(c0[dense_cols].min()), int(c1[dense_cols].max())) if dense_cols.any() else (0, 0)
     through_rows = {wave: np.zeros((row_span[1] - row_span[0], n_c), dtype=np.float32) for wave in weights}
     through_cols = {wave: np.zeros((col_span[1] - col_span[0], n_r), dtype=np.float32) for wave in weights}
     used_rows = np.zeros(row_span[1] - row_span[0], dtype=bool)
@@ -207,30 +208,15 @@ def dct_runs_part(
             used_rows[a0 - row_span[0]: a1 - row_span[0]] = True
         else:
             used_cols[b0 - col_span[0]: b1 - col_span[0]] = True
+    left, right = [], []
     tile_of = np.repeat(np.arange(lo.size), hi - lo)  # the tile of each run
     for way in (False, True):
         run = np.flatnonzero((scattered & (turned == way))[tile_of])
         if run.size:
-            # the runs of the scattered tiles, coefficient by coefficient
-            length = stop[run] - start[run]
-            which = np.repeat(run, length)
-            j = np.arange(which.size) + np.repeat(start[run] - (np.cumsum(length) - length), length)
-            i = row[which]
-            kept, summed = (i, j) if way else (j, i)  # D's index kept (columns by columns), the one summed over
-            offset = row_span[0] if way else col_span[0]
-            index, order, position = _group_order(kept)
-            (used_rows if way else used_cols)[index - offset] = True
-            value = coeffs[i[order], j[order]].astype(np.float32)
-            for wave, w in weights.items():
-                scale = value * w[which[order]]
-                if wave == "sin":
-                    scale[j[order] == 0] = 0.0
-                terms = tables[wave][1 if way else 0][summed[order]]
-                terms *= scale[:, None]
-                _add_positions((through_rows if way else through_cols)[wave], index - offset, terms, position)
+            dense = (through_rows, used_rows, row_span[0]) if way else (through_cols, used_cols, col_span[0])
+            _scattered_terms(coeffs, (row, start, stop), weights, tables, run, way, dense, (left, right))
     # both parts through both covers as one product: B_rows[:, R] N[R] + M[:, C] B_cols[:, C]^T stacked along
     # the summed index (the same multiply-adds as four products, at the cost of one call)
-    left, right = [], []
     for wave in weights:
         table_r, table_c = tables[wave]
         if used_cols.any():
@@ -244,8 +230,44 @@ def dct_runs_part(
     return np.concatenate(left).T @ np.concatenate(right)
 
 
+def _scattered_terms(coeffs: np.ndarray, runs: tuple[np.ndarray, ...], weights: dict, tables: dict, run: np.ndarray,
+                     way: bool, dense: tuple, factors: tuple[list, list]) -> None:
+    """The runs ``run`` of `dct_runs_part`'s scattered tiles, coefficient by coefficient, through their rows of
+    D (``way``: N[R] = D_R B_cols^T) or their columns (M^T[C] = D_C^T B_rows^T).
+
+    A row (column) of D that the dense tiles reach already (``dense``: their sums per wave, which rows of them
+    are used, the first row's index) takes the sum of its terms there. Any other is a term of the final
+    product of its own, appended to its ``factors`` (left, right) as it is: B_rows[:, r] and N[r], or M[:, c]
+    and B_cols[:, c]. No accumulator over the span of D's rows and no gathers back from it: between two close
+    bands every coefficient is scattered, and those were a fifth of the cost of the corrections.
+    """
+    row, start, stop = runs
+    length = stop[run] - start[run]
+    which = np.repeat(run, length)
+    j = np.arange(which.size) + np.repeat(start[run] - (np.cumsum(length) - length), length)
+    i = row[which]
+    kept, summed = (i, j) if way else (j, i)  # D's index kept (columns by columns), the one summed over
+    index, order, position = _group_order(kept)
+    value = coeffs[i[order], j[order]].astype(np.float32)
+    sums_of, used, offset = dense
+    at = index - offset
+    shared = (at >= 0) & (at < used.size)
+    shared[shared] = used[at[shared]]
+    alone = ~shared
+    for wave, w in weights.items():
+        terms = tables[wave][1 if way else 0][summed[order]]
+        terms *= (value * w[which[order]])[:, None]  # the sine table's frequency 0 is 0: sin(0) = 0
+        sums = _group_sums(terms, position)
+        if shared.any():
+            sums_of[wave][at[shared]] += sums[shared]
+            sums = sums[alone]
+        basis = tables[wave][0 if way else 1][index[alone]]
+        factors[0].append(basis if way else sums)
+        factors[1].append(sums if way else basis)
+
+
 def _group_order(kept: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The entries of `dct_runs_part`'s scattered coefficients ordered for `_add_positions`: the distinct values of
+    """The entries of `dct_runs_part`'s scattered coefficients ordered for `_group_sums`: the distinct values of
     ``kept`` (its groups), most entries first, and the order of the entries: the first entry of every group, then
     the second of every group that has one, ... (so that each pass adds a block of consecutive rows to the first
     groups); ``position`` holds where each pass begins, and ends."""
@@ -264,19 +286,20 @@ def _group_order(kept: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return value[first][by_count], order, position
 
 
-def _add_positions(out: np.ndarray, index: np.ndarray, terms: np.ndarray, position: np.ndarray) -> None:
-    """out[index[g]] += the sum of the terms of group g, with ``terms`` in `_group_order`'s order.
+def _group_sums(terms: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """The sum of the terms of each group, with ``terms`` in `_group_order`'s order (rows of the result in the
+    order of its groups).
 
     Between two close bands most groups hold one or two entries: the groups' sums are built by a few
     additions of consecutive rows (pass p adds the p-th entry of the groups that have one, which are the
-    first groups), then added to ``out`` at once; np.add.at or np.add.reduceat along axis 0 pay per entry or
-    per group, 5-10x more. ``terms`` is overwritten.
+    first groups); np.add.at or np.add.reduceat along axis 0 pay per entry or per group, 5-10x more.
+    ``terms`` is overwritten, and the result is a view of it.
     """
     sums = terms[position[0]: position[1]]
     for p in range(1, position.size - 1):
         block = terms[position[p]: position[p + 1]]
         sums[: block.shape[0]] += block
-    out[index] += sums
+    return sums
 
 
 def _tiles(row: np.ndarray, start: np.ndarray, stop: np.ndarray, by_row: np.ndarray,
@@ -379,9 +402,13 @@ def _bases(n: int, k: int, at: np.ndarray | None = None) -> tuple[np.ndarray, np
     """`dct_bases`'s cosine and sine tables (frequency, sample) of one axis of length ``n``, on its samples
     ``at`` (all by default)."""
     at = np.arange(n) if at is None else np.asarray(at)
-    phase = np.outer(np.arange(k, dtype=np.int64), 2 * at.astype(np.int64) + 1)
+    # the integer phases k (2 n + 1) in 32 bits where they fit (any raster psfd makes): exact, and half the
+    # memory and time of int64 (the table's transient peak: a 3200-sample grid's phases are 19 MB, not 37)
+    whole = np.int32 if k * (2 * n + 1) < 2**31 else np.int64
+    phase = np.outer(np.arange(k, dtype=whole), 2 * at.astype(whole) + 1)
     phase %= 4 * n
     angle = phase.astype(np.float32)
+    del phase
     angle *= np.float32(np.pi / (2 * n))
     scale = np.float32(np.sqrt(2.0 / n))
     cos = np.cos(angle)
@@ -414,32 +441,30 @@ def keys_weights(t: np.ndarray, a: float = -0.5) -> np.ndarray:
 def keys_upsample(values: np.ndarray, s: int, start: tuple[int, int], shape: tuple[int, int]) -> np.ndarray:
     """A smooth function sampled on integers, interpolated (Keys, a = -0.5) on the grid of step 1 / s.
 
-    ``values[r, c]`` is the function at (r - 1 + start[0] // s, c - 1 + start[1] // s);
-    the result holds it at (i / s, j / s) for i from ``start[0]``, j from
-    ``start[1]``, over ``shape``. ``values`` needs (shape + start % s) / s + 3
+    ``values[..., r, c]`` is the function at (r - 1 + start[0] // s, c - 1 + start[1] // s)
+    (leading axes: several functions on the same grid); the result holds it at (i / s, j / s) for i from
+    ``start[0]``, j from ``start[1]``, over ``shape``. ``values`` needs (shape + start % s) / s + 3
     samples along each axis (`keys_grid` gives the integer range). Keys' a = -0.5 kernel
     reproduces quadratics exactly (Keys, IEEE Trans. ASSP 1981, sec. III), so
     a map whose third derivatives are small over one sample (a homography,
     lens distortion) is reproduced to far below its own precision.
+
+    The interpolation is separable and linear: two products with the banded matrices of the taps' weights
+    (`_keys_matrix`), axis 0 first (a few small BLAS calls instead of eight passes over shifted views).
     """
     out = np.asarray(values, dtype=np.float64)
-    w = keys_weights(np.arange(s) / s)  # (phase, tap)
-    for axis in (0, 1):
-        n = out.shape[axis] - 3
-        # tap k of every output sample is a shifted view of the input: its products summed in place
-        if axis == 0:
-            up = out[0:n, None, :] * w[None, :, 0, None]
-            for k in range(1, 4):
-                up += out[k: k + n, None, :] * w[None, :, k, None]
-            first = start[0] % s
-            out = up.reshape(n * s, -1)[first: first + shape[0]]
-        else:
-            up = out[:, 0:n, None] * w[None, None, :, 0]
-            for k in range(1, 4):
-                up += out[:, k: k + n, None] * w[None, None, :, k]
-            first = start[1] % s
-            out = up.reshape(-1, n * s)[:, first: first + shape[1]]
-    return out
+    down = _keys_matrix(out.shape[-2], s, start[0], shape[0])
+    across = _keys_matrix(out.shape[-1], s, start[1], shape[1])
+    return (down @ out) @ across.T
+
+
+def _keys_matrix(count_in: int, s: int, start: int, count: int) -> np.ndarray:
+    """Row i: Keys' weights (`keys_weights`) of the sample (start + i) / s on the integers start // s - 1 ..
+    start // s - 1 + count_in - 1 (four of them nonzero), as `keys_upsample` reads them."""
+    at = np.arange(count) + start % s
+    matrix = np.zeros((count, count_in))
+    matrix[np.arange(count)[:, None], (at // s)[:, None] + np.arange(4)] = keys_weights((at % s) / s)
+    return matrix
 
 
 def keys_grid(start: int, count: int, s: int) -> np.ndarray:
