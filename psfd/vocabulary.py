@@ -193,6 +193,35 @@ def camera_fnumber(value: Any) -> float | None:
         return None
 
 
+def same_setting(a: Any, b: Any) -> bool:
+    """Two values of a setting mean the same: equal text, the same f-number (``5.6``, ``f/5.6``, ``F5.6``) or
+    the same number (an exposure compensation of ``-1`` and ``-1.0``)."""
+    if str(a) == str(b):
+        return True
+    fa, fb = _setting_number(a), _setting_number(b)
+    return fa is not None and fb is not None and abs(fa - fb) < 1e-6
+
+
+def offered_choice(value: str, offered: list[str]) -> str | None:
+    """The camera's own choice among ``offered`` that is ``value``: the same text, else the same setting
+    (`same_setting`: ``f/8`` for ``8`` or ``F8``); None when it offers none."""
+    if value in offered:
+        return value
+    return next((choice for choice in offered if same_setting(choice, value)), None)
+
+
+def _setting_number(value: Any) -> float | None:
+    """The number a setting's value is: an f-number however spelt (`camera_fnumber`), else its finite number."""
+    number = camera_fnumber(value)
+    if number is not None:
+        return number
+    try:
+        number = float(str(value))
+    except ValueError:
+        return None
+    return number if math.isfinite(number) else None
+
+
 def data_dir() -> Path:
     """The user's psfd data folder: ``$XDG_DATA_HOME/psfd``, else ``~/.local/share/psfd``.
 

@@ -166,6 +166,23 @@ def test_plan_check_refuses_the_apertures_the_run_refuses(tmp_path, private_data
     assert not (private_data_home / "psfd" / "sim-rig.json").exists()
 
 
+
+def test_camera_settings_the_camera_does_not_offer_are_refused_before_the_run(tmp_path, private_data_home):
+    """A setting no choice of the camera matches (ISO 150, shutter 0.008 where it offers "1/125") was refused only
+    once the run had opened: the run paused at its start, and a corrected plan is another plan, so the catalogue
+    kept a run that could never go on. Now `psfd run` and `psfd plan check` refuse it at once, as apertures."""
+    plan = tmp_path / "plan.toml"
+    plan.write_text(one_channel_plan('simulate = true\nsettings = { iso = 150, shutterspeed = "1/125" }'))
+    db = tmp_path / "no" / "cat.sqlite"
+    message = f"{plan}: camera setting iso 150 is not offered by the camera (offered: 100, 200, 400, 800)"
+    proc = psfd("run", plan, "--catalogue", db, "--socket", tmp_path / "none.sock", "--workers", "1")
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [f"psfd: error: {message}"]
+    assert not db.parent.exists()  # no catalogue, no folder for it, no frame store
+    check = psfd("plan", "check", plan)
+    assert check.returncode == 2 and check.stderr.splitlines()[0] == message
+    assert not (private_data_home / "psfd" / "sim-rig.json").exists()  # nothing moved, set or shot
+
 def test_frame_settings_are_stored_as_the_metadata_describes_them(tmp_path, capsys):
     """frames.settings keeps the plan's settings as the camera spells them ("1/250"); its description said
     "shutter speed in s", which a reader of the catalogue (Datasette) would take for a number of seconds."""

@@ -458,8 +458,8 @@ def _ask_rail(plan) -> tuple[list[str], str | None]:
     Returns the problems and what was asked; a rail that cannot be asked now (unplugged, in use by a
     run) is noted on stderr and the plan is judged on its own limits, but a recording that cannot be read
     (a mistyped folder) is a problem, as `psfd run` refuses it. The simulated rig is the one the plan
-    describes (its rail_limits name its axes); its camera's apertures are asked as `psfd run` asks them
-    (`runner.aperture_problems`), so that a plan check passes only what the run accepts; a recording's
+    describes (its rail_limits name its axes); its camera's apertures and settings are asked as `psfd run`
+    asks them (`runner.camera_problems`), so that a plan check passes only what the run accepts; a recording's
     captures are held to the plan's (`plan.recording_problems`), as `psfd run` holds them.
     """
     from psfd.daemon.plan import check_rail, recording_problems
@@ -468,9 +468,9 @@ def _ask_rail(plan) -> tuple[list[str], str | None]:
 
     problems: list[str] = []
     if plan.rig.get("simulate") is True:
-        from psfd.daemon.runner import aperture_problems
+        from psfd.daemon.runner import camera_problems
 
-        problems = aperture_problems(plan, open_camera(plan.rig_config()))
+        problems = camera_problems(plan, open_camera(plan.rig_config()))
     try:
         rail = open_rail(plan.rig_config())
     except PsfdError as exc:

@@ -59,7 +59,7 @@ from psfd.drivers.base import CameraSetup, RailInfo, target_distance
 from psfd.errors import BadInputError, PsfdError
 from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, DEFAULT_SOLVER, PLAN_BYTES_MAX,
                              SOLVERS, TWO_PHOTO, canonical, check_grid, check_s, check_solver, check_steps,
-                             check_support, default_support, plan_content, setting_text)
+                             check_support, default_support, plan_content, same_setting, setting_text)
 
 # [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys), our
 # camera settings, applied once before the first step, and the camera's setup for PSF work
@@ -756,7 +756,7 @@ def _shot_differences(step: Step, x: float, settings: dict[str, str],
                       shot: tuple[dict[str, str], dict[str, float]]) -> list[str]:
     """What differs between a recorded capture and the plan's capture at rail ``x`` of ``step``: ``aperture 8
     (the plan: 5.6)``, ``rail y -40 (the plan: 0)``; compared as the replay compares them."""
-    from psfd.drivers.recording import AXIS_TOLERANCE, same_setting
+    from psfd.drivers.recording import AXIS_TOLERANCE
 
     recorded, at = shot
     wanted = {"aperture": fmt(step.aperture), **settings}

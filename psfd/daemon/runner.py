@@ -73,7 +73,7 @@ from psfd.errors import (BadInputError, CameraError, EstimationError, HardwareEr
                          StorageError)
 from psfd.estimator.raw import RAW_SUFFIXES
 from psfd.exif import check_settings, read_metadata
-from psfd.vocabulary import BACKLOG_MAX, WORKERS_MAX, camera_fnumber, check_count, setting_text
+from psfd.vocabulary import BACKLOG_MAX, WORKERS_MAX, camera_fnumber, check_count, offered_choice, setting_text
 
 # Below this much free space, a failed download is put down to the storage: no RAW file is smaller.
 FRAME_BYTES_MIN = 1 << 20
@@ -680,9 +680,9 @@ def check_rig(plan: Plan, camera: Camera, rail: Rail) -> None:
     Raises
     ------
     BadInputError
-        The problems of `rail_problems`, `aperture_problems` and `recording_problems`, on one line.
+        The problems of `rail_problems`, `camera_problems` and `recording_problems`, on one line.
     """
-    problems = rail_problems(plan, rail) + aperture_problems(plan, camera) + recording_problems(plan)
+    problems = rail_problems(plan, rail) + camera_problems(plan, camera) + recording_problems(plan)
     if problems:
         raise BadInputError(f"{plan.path}: {'; '.join(problems)}")
 
@@ -698,6 +698,32 @@ def rail_problems(plan: Plan, rail: Rail) -> list[str]:
         log.debug("rail not asked for its travel: %s", exc)
         return []
     return check_rail(plan, info)
+
+
+def camera_problems(plan: Plan, camera: Camera) -> list[str]:
+    """The plan's apertures and camera settings that the camera does not offer (`aperture_problems`,
+    `setting_problems`)."""
+    return aperture_problems(plan, camera) + setting_problems(plan, camera)
+
+
+def setting_problems(plan: Plan, camera: Camera) -> list[str]:
+    """The plan's camera settings whose value no choice of the camera matches, one problem each.
+
+    Asked before the run opens, as `aperture_problems`: the settings are applied as the run starts, and a
+    corrected plan is another plan, so the run refused then could never go on. A setting the camera cannot
+    list (free-form, unknown to it, a recording that never asked) is left to refuse itself when applied.
+    """
+    problems = []
+    for name, value in plan.rig.get("settings", {}).items():
+        try:
+            choices = camera.choices(name)
+        except PsfdError as exc:
+            log.debug("camera not asked for its %s choices: %s", name, exc)
+            continue
+        text = setting_text(value)
+        if choices and offered_choice(text, choices) is None:
+            problems.append(f"camera setting {name} {text} is not offered by the camera (offered: {', '.join(choices)})")
+    return problems
 
 
 def aperture_problems(plan: Plan, camera: Camera) -> list[str]:

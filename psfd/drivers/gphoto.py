@@ -46,10 +46,10 @@ from typing import Any, Callable
 import gphoto2 as gp
 
 from psfd.drivers.base import CameraInfo, CameraReady, CameraSetup
-from psfd.drivers.recording import free_name, offered_choice
+from psfd.drivers.recording import free_name
 from psfd.errors import CameraError
 from psfd.exif import exposure_seconds
-from psfd.vocabulary import data_dir
+from psfd.vocabulary import data_dir, offered_choice
 
 log = logging.getLogger(__name__)
 

@@ -34,7 +34,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 import os
 import shutil
 from pathlib import Path
@@ -43,7 +42,7 @@ from typing import Any, Callable
 from psfd import errors
 from psfd.drivers.base import Camera, CameraInfo, CameraReady, CameraSetup, Position, Rail, RailInfo
 from psfd.errors import HardwareError, PsfdError
-from psfd.vocabulary import camera_fnumber
+from psfd.vocabulary import same_setting
 
 MANIFEST = "manifest.json"
 FRAMES = "frames"
@@ -222,35 +221,6 @@ class _RecordedRail:
 
 QUERIES = {("camera", "info"), ("camera", "get"), ("camera", "choices"), ("rail", "info"), ("rail", "position")}
 AXIS_TOLERANCE = 1e-6  # mm: the same requested coordinate, as a float read back from JSON
-
-
-def same_setting(a: Any, b: Any) -> bool:
-    """Two values of a setting mean the same: equal text, the same f-number (``5.6``, ``f/5.6``, ``F5.6``) or
-    the same number (an exposure compensation of ``-1`` and ``-1.0``)."""
-    if str(a) == str(b):
-        return True
-    fa, fb = _setting_number(a), _setting_number(b)
-    return fa is not None and fb is not None and abs(fa - fb) < 1e-6
-
-
-def offered_choice(value: str, offered: list[str]) -> str | None:
-    """The camera's own choice among ``offered`` that is ``value``: the same text, else the same setting
-    (`same_setting`: ``f/8`` for ``8`` or ``F8``); None when it offers none."""
-    if value in offered:
-        return value
-    return next((choice for choice in offered if same_setting(choice, value)), None)
-
-
-def _setting_number(value: Any) -> float | None:
-    """The number a setting's value is: an f-number however spelt (`camera_fnumber`), else its finite number."""
-    number = camera_fnumber(value)
-    if number is not None:
-        return number
-    try:
-        number = float(str(value))
-    except ValueError:
-        return None
-    return number if math.isfinite(number) else None
 
 
 def _same_request(entry: dict, device: str, call: str, args: dict) -> bool:

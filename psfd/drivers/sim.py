@@ -43,11 +43,11 @@ import numpy as np
 from scipy import fft
 
 from psfd.drivers.base import CameraInfo, CameraReady, CameraSetup, Position, RailInfo, target_distance
-from psfd.drivers.recording import free_name, offered_choice
+from psfd.drivers.recording import free_name
 from psfd.errors import BadInputError, CameraError, PsfdError, RailError
 from psfd.estimator import simulate
 from psfd.exif import exposure_seconds
-from psfd.vocabulary import MAX_PIXELS, check_s, check_support, data_dir
+from psfd.vocabulary import MAX_PIXELS, check_s, check_support, data_dir, offered_choice
 
 APERTURES = ("2.8", "4", "5.6", "8", "11", "16", "22")
 SHUTTERSPEEDS = ("1/30", "1/60", "1/125", "1/250", "1/500")
