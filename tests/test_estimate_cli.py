@@ -828,3 +828,33 @@ def test_estimate_out_makes_the_folder_but_no_missing_parent(tmp_path, data_dir)
     assert list(tmp_path.iterdir()) == []
     made = psfd(tmp_path, "estimate", "bernoulli", frame, "--out", "psfs", "--no-figures")
     assert made.returncode == 0 and (tmp_path / "psfs" / "metrics.csv").is_file(), made.stderr
+
+
+def test_targets_searched_while_the_planes_are_decoded_are_the_estimators_own(tmp_path, capsys, monkeypatch):
+    """`psfd estimate target` searches each file's first plane (g1) on a second thread while the other planes
+    and files are decoded, and hands the detections to `estimate_frames`: they are the ones it finds itself,
+    and the PSFs bit for bit its own, for several files, a file named twice (searched once, as the estimator
+    does) and a single channel."""
+    from psfd.cli import estimate
+    from psfd.estimator import bernoulli, simulate
+
+    monkeypatch.setattr("psfd.workers.usable_cores", lambda: 2)  # the search aside even on one core
+    truth = simulate.gaussian_psf(0.55, 0.75, s=4, support=17)
+    a, b = tmp_path / "a.dng", tmp_path / "b.dng"
+    simulate.simulate_target(a, psf=truth, s=4, pixels_per_cell=0.35, rotation_deg=8.0, seed=3)
+    simulate.simulate_target(b, psf=truth, s=4, pixels_per_cell=0.4, rotation_deg=-5.0, seed=4)
+    for files, channel in (([a, b, a], "all"), ([b], "r")):  # r, g1, g2, b of a, of b, of a again; r of b
+        frames, searched = estimate._load_searched([str(f) for f in files], channel)
+        wanted = "g1" if channel == "all" else channel  # the plane of a file the estimator searches
+        firsts = [i for i, f in enumerate(frames) if f.channel == wanted
+                  and f.source not in {g.source for g in frames[:i] if g.channel == wanted}]
+        assert [i for i, d in enumerate(searched) if d is not None] == firsts == ([1, 5] if channel == "all" else [0])
+        own = [d for _, d in bernoulli._detections(frames)]
+        for i in firsts:
+            np.testing.assert_array_equal(searched[i].corners, own[i].corners)
+        code, stdout, stderr = run(capsys, "estimate", "target", *files, "--channel", channel, "--json")
+        assert code == 0, stderr
+        got = [np.array(json.loads(line)["psf"]) for line in stdout.splitlines()]
+        want = bernoulli.estimate_frames([f for path in files for f in raw.load_frames(path, channel)])
+        assert len(got) == len(want) == len(frames)
+        assert all(np.array_equal(g, w.psf) for g, w in zip(got, want))

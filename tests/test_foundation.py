@@ -45,6 +45,34 @@ def test_other_cfa_phases_keep_their_names(tmp_path):
     assert planes == {"g2": (0, 0), "b": (0, 1), "r": (1, 0), "g1": (1, 1)}  # g1 on the red rows, as LibRaw's 1
 
 
+@pytest.mark.parametrize("pattern", ["RGGB", "GBRG"])
+def test_planes_are_handed_over_g1_first_as_they_are_built(tmp_path, pattern):
+    """``built`` receives each requested plane once made, g1 (where a target is searched) first, and the
+    very planes returned; the names stay in raster order and the planes are those read without it."""
+    mosaic = np.random.default_rng(2).integers(600, 4000, (40, 60)).astype(np.uint16)
+    path = tmp_path / "x.dng"
+    raw.write_dng(path, mosaic, pattern=pattern, black=512, white=4095)
+    handed: list = []
+    frames = raw.load_frames(path, "all", handed.append)
+    assert handed[0].channel == "g1" and sorted(f.channel for f in handed) == sorted(raw.CHANNELS)
+    assert {id(f) for f in handed} == {id(f) for f in frames}
+    assert [f.channel for f in frames] == list(raw.CHANNELS)
+    for with_callback, plain in zip(frames, raw.load_frames(path)):
+        np.testing.assert_array_equal(with_callback.data, plain.data)
+        np.testing.assert_array_equal(with_callback.saturated, plain.saturated)
+        assert with_callback.offset == plain.offset
+    handed.clear()
+    assert raw.load_frames(path, "b", handed.append) == handed and handed[0].channel == "b"
+    with pytest.raises(BadInputError, match=f"has {', '.join(_raster_names(pattern))}"):
+        raw.load_frames(path, "mono")
+
+
+def _raster_names(pattern: str) -> list[str]:
+    """The plane names of a 2 x 2 pattern in raster order (the greens named by the rows they share)."""
+    red_row = pattern.index("R") // 2
+    return [c.lower() if c != "G" else ("g1" if i // 2 == red_row else "g2") for i, c in enumerate(pattern)]
+
+
 @pytest.mark.parametrize("pattern", ["RGGB", "BGGR", "GRBG", "GBRG"])
 def test_a_green_keeps_its_name_in_every_phase_of_the_mosaic(tmp_path, pattern):
     """g1 is the green on the rows of red and g2 the one on the rows of blue, as LibRaw numbers them (colour

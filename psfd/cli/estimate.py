@@ -112,6 +112,53 @@ def _load_all(paths: list[str], channel: str) -> list:
     return [frame for path in paths for frame in raw.load_frames(path, channel)]
 
 
+def _load_searched(paths: list[str], channel: str) -> tuple[list, list | None]:
+    """`_load_all`, and per plane the target found on it aside, or None: the ``detections`` of
+    `bernoulli.estimate_frames`.
+
+    `estimate_frames` searches the target once per photograph, on the first plane `raw.load_frames` builds
+    (g1 when there), and refines it on the others. That search (0.2-0.5 s on a 24-megapixel RAW, much of it
+    page faults of fresh buffers) needs that plane only, so here it runs on a second thread while the
+    file's other planes, and the next files, are decoded. It is the call `estimate_frames` would make on
+    the same plane, so the PSFs are the same. A search that fails is left None: `estimate_frames` makes it
+    again and raises its own error, naming the plane.
+    """
+    from concurrent.futures import Future, ThreadPoolExecutor
+
+    from psfd.workers import usable_cores
+
+    if usable_cores() < 2:  # nothing to overlap with: `estimate_frames` searches as it always does
+        return _load_all(paths, channel), None
+    searches: dict[int, Future] = {}  # id of a file's first plane -> the search on it
+    sources: set[str] = set()  # a file named twice is searched once, as `estimate_frames` does
+
+    def built(frame) -> None:
+        if frame.source not in sources:
+            sources.add(frame.source)
+            searches[id(frame)] = aside.submit(_search_quietly, frame)
+
+    with ThreadPoolExecutor(1, thread_name_prefix="search") as aside:
+        try:
+            from psfd.estimator import raw
+
+            frames = [frame for path in paths for frame in raw.load_frames(path, channel, built)]
+        except BaseException:
+            aside.shutdown(cancel_futures=True)  # the error is raised once a running search has ended
+            raise
+        found = {key: search.result() for key, search in searches.items()}
+    return frames, [found.get(id(frame)) for frame in frames]
+
+
+def _search_quietly(frame):
+    """`detect.find_target` on a plane, None where it fails (`_load_searched`)."""
+    from psfd.estimator import detect
+
+    try:
+        return detect.find_target(frame.data, frame.saturated)
+    except Exception:  # made again by `estimate_frames`, which names the plane in its error
+        return None
+
+
 def _import_aside(module: str) -> threading.Thread:
     """Start importing ``module`` on a second thread, to overlap with the decoding of the frames.
 
@@ -157,13 +204,14 @@ def run_bernoulli(args: argparse.Namespace) -> int:
     noise = target.load_noise(args.pattern) if args.pattern else None
     importing = _import_aside("psfd.estimator.bernoulli")
     try:
-        frames = _load_all(args.frames, args.channel)
+        frames, detections = _load_searched(args.frames, args.channel)
     finally:  # also on a bad frame: no import left running while the interpreter shuts down
         importing.join()
     from psfd.estimator import bernoulli
 
     # all planes at once: the target is searched once per file and the windows share the cores
-    estimates = bernoulli.estimate_frames(frames, noise=noise, solver=args.solver, tps=tps, **settings)
+    estimates = bernoulli.estimate_frames(frames, noise=noise, solver=args.solver, tps=tps, detections=detections,
+                                          **settings)
     return _report(args, estimates)
 
 

@@ -15,7 +15,7 @@ import os
 import re
 import struct
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
@@ -71,7 +71,8 @@ class Frame:
         return self.data.shape  # type: ignore[return-value]
 
 
-def load_frames(path: str | os.PathLike, channel: str = "all") -> list[Frame]:
+def load_frames(path: str | os.PathLike, channel: str = "all",
+                built: Callable[[Frame], None] | None = None) -> list[Frame]:
     """Load the requested channel planes of a RAW file or single-channel image.
 
     Parameters
@@ -82,6 +83,10 @@ def load_frames(path: str | os.PathLike, channel: str = "all") -> list[Frame]:
     channel : str
         ``all``, or one of ``r``, ``g1``, ``g2``, ``b`` of a RAW file, or ``mono``, the one
         plane of a single-channel image (which ``all`` gives too).
+    built : callable, optional
+        Called with each requested plane as soon as it is built, ``g1`` first (the plane a target is
+        searched on), before its size is checked: work on it can start on another thread while the
+        file's other planes are built. It must not modify the plane.
 
     Returns
     -------
@@ -104,8 +109,11 @@ def load_frames(path: str | os.PathLike, channel: str = "all") -> list[Frame]:
         # never relabelled: a Bayer name would make its pitch twice the photosite's (mtf.channel_pitch_mm)
         if channel not in ("all", MONO):
             raise BadInputError(f"{path}: has no {channel} channel (a single-channel image: its one plane is mono)")
-        return _large_enough(path, [_load_single_channel(path)])
-    planes = _load_raw(path, None if channel == "all" else channel)
+        frame = _load_single_channel(path)
+        if built is not None:
+            built(frame)
+        return _large_enough(path, [frame])
+    planes = _load_raw(path, None if channel == "all" else channel, built)
     if channel == "all":
         return _large_enough(path, [planes[c] for c in CHANNELS if c in planes])
     if channel not in planes:
@@ -151,8 +159,10 @@ def _quiet_stderr() -> Iterator[None]:
         os.close(saved)
 
 
-def _load_raw(path: Path, wanted: str | None = None) -> dict[str, Frame]:
-    """The Bayer planes of a RAW file, or only the ``wanted`` one (the others are named, not built)."""
+def _load_raw(path: Path, wanted: str | None = None,
+              built: Callable[[Frame], None] | None = None) -> dict[str, Frame]:
+    """The Bayer planes of a RAW file, or only the ``wanted`` one (the others are named, not built); ``built``
+    as `load_frames` says."""
     import rawpy  # imported here: LibRaw is only needed for RAW input
 
     with rawpy.RawPy() as raw:
@@ -187,7 +197,7 @@ def _load_raw(path: Path, wanted: str | None = None) -> dict[str, Frame]:
             shape = "no" if pattern is None else "x".join(str(n) for n in pattern.shape)
             raise BadInputError(f"{path}: a {shape} colour filter pattern, not a 2 x 2 Bayer mosaic (psfd reads "
                                 "Bayer sensors only)")
-        return _bayer_planes(path, mosaic, colors, desc, blacks, white, wanted)
+        return _bayer_planes(path, mosaic, colors, desc, blacks, white, wanted, built)
 
 
 def _check_camera_raw(path: Path) -> None:
@@ -208,15 +218,40 @@ def _check_camera_raw(path: Path) -> None:
 
 
 def _bayer_planes(path: Path, mosaic: np.ndarray, colors: np.ndarray, desc: str, blacks: list, white: float,
-                  wanted: str | None) -> dict[str, Frame]:
-    """The named planes of a mosaic (``colors``: the 2 x 2 indices into ``desc``), only ``wanted`` built.
+                  wanted: str | None, built: Callable[[Frame], None] | None = None) -> dict[str, Frame]:
+    """The named planes of a mosaic (``colors``: the 2 x 2 indices into ``desc``), only ``wanted`` built,
+    ``g1`` first and each passed to ``built`` (`load_frames`) once made; the names in raster order.
 
     The greens are named as LibRaw numbers them: index 1 (``g1``) is the green on the rows of red, index 3
     (``g2``) the one on the rows of blue, whatever the pattern's phase, so ``g1`` is the same photosites of
     every Bayer sensor and of every crop of one. A file whose two greens share one index has them in raster
     order.
     """
-    planes: dict[str, Frame] = {}
+    names = _plane_names(path, colors, desc)
+    planes: dict[str, Frame] = dict.fromkeys(name for name, *_ in names)  # type: ignore[arg-type]  # raster order
+    for name, dy, dx, index in sorted(names, key=lambda plane: plane[0] != "g1"):
+        if wanted is not None and name != wanted:
+            continue
+        plane = mosaic[dy::2, dx::2]  # a view: the two arrays below are the plane's only copies
+        black = float(blacks[index]) if index < len(blacks) else 0.0
+        planes[name] = Frame(
+            data=plane - black,
+            channel=name,
+            white=white - black,
+            saturated=plane >= white,
+            source=str(path),
+            offset=(dy, dx),
+            sensor_shape=mosaic.shape,
+            from_mosaic=True,
+        )
+        if built is not None:
+            built(planes[name])
+    return planes
+
+
+def _plane_names(path: Path, colors: np.ndarray, desc: str) -> list[tuple[str, int, int, int]]:
+    """(name, row, column, index into ``desc``) of the four positions of the 2 x 2 pattern, in raster order."""
+    names = []
     greens = 0
     by_index = sorted(int(i) for i in colors.ravel() if int(i) < len(desc) and desc[int(i)].lower() == "g") == [1, 3]
     for dy in (0, 1):
@@ -230,22 +265,8 @@ def _bayer_planes(path: Path, mosaic: np.ndarray, colors: np.ndarray, desc: str,
                 name = letter
             else:
                 raise BadInputError(f"{path}: unsupported colour filter {desc!r}")
-            if wanted is not None and name != wanted:
-                planes[name] = None  # type: ignore[assignment]
-                continue
-            plane = mosaic[dy::2, dx::2]  # a view: the two arrays below are the plane's only copies
-            black = float(blacks[index]) if index < len(blacks) else 0.0
-            planes[name] = Frame(
-                data=plane - black,
-                channel=name,
-                white=white - black,
-                saturated=plane >= white,
-                source=str(path),
-                offset=(dy, dx),
-                sensor_shape=mosaic.shape,
-                from_mosaic=True,
-            )
-    return planes
+            names.append((name, dy, dx, index))
+    return names
 
 
 def _libraw_reason(exc: Exception) -> str:
