@@ -113,7 +113,8 @@ def test_socket_is_0660_and_bad_requests_leave_the_service_running(served, tmp_p
                          capture_output=True, text=True)
     status = json.loads(cli.stdout)  # the same shape as without the service (docs/formats.md)
     assert set(status) == {"service", "catalogue", "runs"} and status["runs"] == []
-    assert set(status["service"]) == {"socket", "state", "queued", "current", "last", "paused_plan", "unfinished"}
+    assert set(status["service"]) == {"socket", "state", "queued", "held", "current", "last", "paused_plan",
+                                      "unfinished"}
     assert status["service"]["state"] == "idle" and status["service"]["socket"] == str(sock)
     assert proc.poll() is None
     proc.send_signal(signal.SIGTERM)
@@ -426,3 +427,38 @@ def test_resume_takes_the_newest_unfinished_run_says_so_and_skips_a_live_one(tmp
     assert ask("status")["state"] == "idle"
     answer = ask("resume")
     assert not answer["ok"] and answer["error"] == "no paused run to resume", answer
+
+
+def test_a_pause_holds_the_queue_until_resume_which_continues_the_paused_run_first(served, tmp_path):
+    """The service went straight on to the next queued plan when a pause stopped the run (the rail moving off
+    to the next plan's first position while the operator, who had asked for the pause, had hands in the
+    rig). A pause holds the queue: nothing starts until `resume`, which continues the paused run before the
+    queued plan; status says the queue is held."""
+    proc, sock, db, notes = served
+    first, second = tmp_path / "first.toml", tmp_path / "second.toml"
+    first.write_text(small_plan())
+    second.write_text(small_plan().replace("apertures = [4, 11]", "apertures = [8]"))
+    client.submit(sock, first.read_text(), str(first))
+    wait_status(sock, lambda s: s["current"] and s["current"]["step"])
+    assert client.submit(sock, second.read_text(), str(second))["queued"] == 1
+    assert client.request(sock, {"cmd": "pause"})["requested"] == "pause"
+    wait_status(sock, lambda s: s["current"] is None or s["current"]["plan"] != str(first))
+    time.sleep(1.0)  # time for the runner to take the next job, were it not held
+    status = client.request(sock, {"cmd": "status"})
+    with Catalogue(db, readonly=True) as cat:
+        runs = [(r["plan_path"], r["state"]) for r in sorted(cat.runs(), key=lambda r: r["id"])]
+    if runs == [(str(first), "done")]:
+        pytest.skip("the pause came after the last step")
+    assert runs == [(str(first), "paused")], runs  # the second plan has not started: nothing moved
+    assert (status["state"], status["current"], status["queued"], status["held"]) == ("paused", None, 1, True), status
+    cli = subprocess.run([sys.executable, "-m", "psfd", "status", "--socket", str(sock)], capture_output=True,
+                         text=True)
+    assert "1 queued, held by a pause until `resume`" in cli.stdout, cli.stdout
+    answer = client.request(sock, {"cmd": "resume"})
+    assert answer["plan"] == str(first), answer
+    wait_status(sock, lambda s: s["current"] is None and s["queued"] == 0 and not s["held"], timeout=300)
+    with Catalogue(db, readonly=True) as cat:
+        runs = [(r["plan_path"], r["state"]) for r in sorted(cat.runs(), key=lambda r: r["id"])]
+    assert runs == [(str(first), "done"), (str(second), "done")], runs
+    log = (tmp_path / "serve.log").read_text()
+    assert log.index(f"starting {first} (resuming)") < log.index(f"starting {second}"), log
