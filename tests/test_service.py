@@ -213,10 +213,13 @@ def wait_until(ready, proc: subprocess.Popen, what: str, timeout: float = 120.0)
         time.sleep(0.01)
 
 
-def test_sigterm_to_the_whole_group_mid_estimate_commits_it_and_pauses(tmp_path):
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_to_the_whole_group_mid_estimate_commits_it_and_pauses(tmp_path, signum):
     """`systemctl stop` sends SIGTERM to every process of the unit (KillMode=control-group), the estimation
     workers too: the service still finishes the estimate in flight, commits it, pauses the run and exits 0,
-    with no failed step and no traceback in its log."""
+    with no failed step and no traceback in its log. A hang-up (`psfd serve` started in an ssh session that
+    dropped) does the same; before, it ended the service at once: the estimate lost, the run left
+    interrupted, and the socket left behind, which every psfd command then took for a service restarting."""
     sock, db, log_path = tmp_path / "run" / "control.sock", tmp_path / "cat.sqlite", tmp_path / "serve.log"
     plan_path = tmp_path / "plan.toml"
     plan_path.write_text(small_plan())
@@ -225,12 +228,13 @@ def test_sigterm_to_the_whole_group_mid_estimate_commits_it_and_pauses(tmp_path)
     with open(log_path, "w") as log:
         proc = subprocess.Popen([sys.executable, str(ROOT / "tests" / "held_estimate.py"), "serve", "--socket",
                                  str(sock), "--catalogue", str(db), "--workers", "1"],
-                                env={**os.environ, "PSFD_HOLD": str(tmp_path)}, stderr=log, start_new_session=True)
+                                env={**os.environ, "PSFD_HOLD": str(tmp_path)}, stderr=log, start_new_session=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL))  # not nohup
         try:
             wait_until(lambda: sock.exists() and client.service_up(sock), proc, "listening")
             client.request(sock, {"cmd": "submit", "plan": plan.text, "path": str(plan_path)})
             wait_until((tmp_path / "estimating").exists, proc, "estimating")
-            os.killpg(proc.pid, signal.SIGTERM)
+            os.killpg(proc.pid, signum)
             (tmp_path / "hold").unlink()
             assert proc.wait(timeout=120) == 0
         finally:
@@ -239,6 +243,8 @@ def test_sigterm_to_the_whole_group_mid_estimate_commits_it_and_pauses(tmp_path)
                 proc.wait()
     text = log_path.read_text()
     assert "Traceback" not in text and "failed" not in text, text
+    assert f"{signal.Signals(signum).name}: stopping the service after the current frame" in text, text
+    assert not sock.exists()
     with Catalogue(db) as cat:
         (run,) = cat.runs()
         states = {row["key"]: row["state"] for row in cat.steps(run["id"])}

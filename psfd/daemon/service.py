@@ -43,11 +43,13 @@ everyone: anyone who can write the folder could put their own socket in its plac
 systemd: READY=1, STATUS=... and WATCHDOG=1 datagrams go to $NOTIFY_SOCKET
 through the standard library's socket module (the protocol is one datagram of
 ``KEY=value`` lines, so no extra dependency is worth it). SIGTERM lets the
-current frame finish, commits the estimates under way, pauses the run and exits 0.
+current frame finish, commits the estimates under way, pauses the run and exits 0; so does a hang-up
+(SIGHUP, unless ignored: ``nohup``), after which output to the terminal goes to /dev/null.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -55,6 +57,7 @@ import queue
 import re
 import signal
 import socket
+import stat
 import threading
 import time
 from dataclasses import dataclass, field
@@ -167,6 +170,8 @@ class Service:
             raise
         signal.signal(signal.SIGTERM, self._on_signal)
         signal.signal(signal.SIGINT, self._on_signal)
+        if signal.getsignal(signal.SIGHUP) == signal.SIG_DFL:  # not under nohup, which asked to ignore it
+            signal.signal(signal.SIGHUP, self._on_signal)
         runner = threading.Thread(target=self._run_jobs, name="runner")
         runner.start()
         interval = watchdog_interval()
@@ -233,6 +238,8 @@ class Service:
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         # finish the current frame, commit what is being estimated, pause the run, exit
+        if signum == signal.SIGHUP:  # the terminal or ssh session that started the service is gone
+            _leave_terminal()
         log.info("%s: stopping the service after the current frame", signal.Signals(signum).name)
         self.control.request("pause")
         self.stopping.set()
@@ -517,6 +524,18 @@ def nesting(line: bytes) -> int:
         elif byte in b"]}":
             depth -= 1
     return deepest
+
+
+def _leave_terminal() -> None:
+    """Point standard output and error at /dev/null where they were the terminal: after a hang-up every write
+    to it fails (EIO), and the service must still pause its run and remove its socket. A log file or the
+    journal (a regular file, a pipe or a socket) keeps the lines that follow."""
+    null = os.open(os.devnull, os.O_WRONLY)
+    for fd in (1, 2):
+        with contextlib.suppress(OSError):
+            if stat.S_ISCHR(os.fstat(fd).st_mode):  # a hung-up terminal no longer says it is one (isatty: EIO)
+                os.dup2(null, fd)
+    os.close(null)
 
 
 def _answers(path: Path) -> bool:
