@@ -113,7 +113,8 @@ def test_socket_is_0660_and_bad_requests_leave_the_service_running(served, tmp_p
                          capture_output=True, text=True)
     status = json.loads(cli.stdout)  # the same shape as without the service (docs/formats.md)
     assert set(status) == {"service", "catalogue", "runs"} and status["runs"] == []
-    assert set(status["service"]) == {"socket", "state", "queued", "current", "last", "paused_plan", "unfinished"}
+    assert set(status["service"]) == {"socket", "state", "queued", "held", "current", "last", "paused_plan",
+                                      "unfinished"}
     assert status["service"]["state"] == "idle" and status["service"]["socket"] == str(sock)
     assert proc.poll() is None
     proc.send_signal(signal.SIGTERM)
@@ -212,10 +213,13 @@ def wait_until(ready, proc: subprocess.Popen, what: str, timeout: float = 120.0)
         time.sleep(0.01)
 
 
-def test_sigterm_to_the_whole_group_mid_estimate_commits_it_and_pauses(tmp_path):
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_to_the_whole_group_mid_estimate_commits_it_and_pauses(tmp_path, signum):
     """`systemctl stop` sends SIGTERM to every process of the unit (KillMode=control-group), the estimation
     workers too: the service still finishes the estimate in flight, commits it, pauses the run and exits 0,
-    with no failed step and no traceback in its log."""
+    with no failed step and no traceback in its log. A hang-up (`psfd serve` started in an ssh session that
+    dropped) does the same; before, it ended the service at once: the estimate lost, the run left
+    interrupted, and the socket left behind, which every psfd command then took for a service restarting."""
     sock, db, log_path = tmp_path / "run" / "control.sock", tmp_path / "cat.sqlite", tmp_path / "serve.log"
     plan_path = tmp_path / "plan.toml"
     plan_path.write_text(small_plan())
@@ -224,12 +228,13 @@ def test_sigterm_to_the_whole_group_mid_estimate_commits_it_and_pauses(tmp_path)
     with open(log_path, "w") as log:
         proc = subprocess.Popen([sys.executable, str(ROOT / "tests" / "held_estimate.py"), "serve", "--socket",
                                  str(sock), "--catalogue", str(db), "--workers", "1"],
-                                env={**os.environ, "PSFD_HOLD": str(tmp_path)}, stderr=log, start_new_session=True)
+                                env={**os.environ, "PSFD_HOLD": str(tmp_path)}, stderr=log, start_new_session=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL))  # not nohup
         try:
             wait_until(lambda: sock.exists() and client.service_up(sock), proc, "listening")
             client.request(sock, {"cmd": "submit", "plan": plan.text, "path": str(plan_path)})
             wait_until((tmp_path / "estimating").exists, proc, "estimating")
-            os.killpg(proc.pid, signal.SIGTERM)
+            os.killpg(proc.pid, signum)
             (tmp_path / "hold").unlink()
             assert proc.wait(timeout=120) == 0
         finally:
@@ -238,6 +243,8 @@ def test_sigterm_to_the_whole_group_mid_estimate_commits_it_and_pauses(tmp_path)
                 proc.wait()
     text = log_path.read_text()
     assert "Traceback" not in text and "failed" not in text, text
+    assert f"{signal.Signals(signum).name}: stopping the service after the current frame" in text, text
+    assert not sock.exists()
     with Catalogue(db) as cat:
         (run,) = cat.runs()
         states = {row["key"]: row["state"] for row in cat.steps(run["id"])}
@@ -426,3 +433,38 @@ def test_resume_takes_the_newest_unfinished_run_says_so_and_skips_a_live_one(tmp
     assert ask("status")["state"] == "idle"
     answer = ask("resume")
     assert not answer["ok"] and answer["error"] == "no paused run to resume", answer
+
+
+def test_a_pause_holds_the_queue_until_resume_which_continues_the_paused_run_first(served, tmp_path):
+    """The service went straight on to the next queued plan when a pause stopped the run (the rail moving off
+    to the next plan's first position while the operator, who had asked for the pause, had hands in the
+    rig). A pause holds the queue: nothing starts until `resume`, which continues the paused run before the
+    queued plan; status says the queue is held."""
+    proc, sock, db, notes = served
+    first, second = tmp_path / "first.toml", tmp_path / "second.toml"
+    first.write_text(small_plan())
+    second.write_text(small_plan().replace("apertures = [4, 11]", "apertures = [8]"))
+    client.submit(sock, first.read_text(), str(first))
+    wait_status(sock, lambda s: s["current"] and s["current"]["step"])
+    assert client.submit(sock, second.read_text(), str(second))["queued"] == 1
+    assert client.request(sock, {"cmd": "pause"})["requested"] == "pause"
+    wait_status(sock, lambda s: s["current"] is None or s["current"]["plan"] != str(first))
+    time.sleep(1.0)  # time for the runner to take the next job, were it not held
+    status = client.request(sock, {"cmd": "status"})
+    with Catalogue(db, readonly=True) as cat:
+        runs = [(r["plan_path"], r["state"]) for r in sorted(cat.runs(), key=lambda r: r["id"])]
+    if runs == [(str(first), "done")]:
+        pytest.skip("the pause came after the last step")
+    assert runs == [(str(first), "paused")], runs  # the second plan has not started: nothing moved
+    assert (status["state"], status["current"], status["queued"], status["held"]) == ("paused", None, 1, True), status
+    cli = subprocess.run([sys.executable, "-m", "psfd", "status", "--socket", str(sock)], capture_output=True,
+                         text=True)
+    assert "1 queued, held by a pause until `resume`" in cli.stdout, cli.stdout
+    answer = client.request(sock, {"cmd": "resume"})
+    assert answer["plan"] == str(first), answer
+    wait_status(sock, lambda s: s["current"] is None and s["queued"] == 0 and not s["held"], timeout=300)
+    with Catalogue(db, readonly=True) as cat:
+        runs = [(r["plan_path"], r["state"]) for r in sorted(cat.runs(), key=lambda r: r["id"])]
+    assert runs == [(str(first), "done"), (str(second), "done")], runs
+    log = (tmp_path / "serve.log").read_text()
+    assert log.index(f"starting {first} (resuming)") < log.index(f"starting {second}"), log

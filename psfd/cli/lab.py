@@ -350,7 +350,7 @@ def _with_units(catalogue: Path, rows: list[dict]) -> list[dict]:
 
 
 STATUS_KEYS = ("service", "catalogue", "runs")  # `psfd status --json`, with or without the service (docs/formats.md)
-SERVICE_KEYS = ("socket", "state", "queued", "current", "last", "paused_plan", "unfinished")
+SERVICE_KEYS = ("socket", "state", "queued", "held", "current", "last", "paused_plan", "unfinished")
 
 
 def status(args: argparse.Namespace) -> dict:
@@ -390,7 +390,8 @@ def run_status(args: argparse.Namespace) -> int:
         return 0
     service = info["service"]
     if service is not None:
-        print(f"service at {service['socket']}: {service['state']}, {service['queued']} queued")
+        held = ", held by a pause until `resume`" if service["held"] else ""
+        print(f"service at {service['socket']}: {service['state']}, {service['queued']} queued{held}")
         if service["current"]:
             c = service["current"]
             print(f"  running {c['plan']}: {c['done']}/{c['total']} steps, at {c['step']}")

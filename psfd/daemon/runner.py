@@ -53,12 +53,14 @@ import logging
 import multiprocessing
 import os
 import shutil
+import signal
 import sys
 import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from multiprocessing import resource_tracker
 from pathlib import Path
 from typing import IO, Any, Callable
 
@@ -238,6 +240,7 @@ class Estimators:
 
     def _start(self) -> cf.ProcessPoolExecutor:
         ctx = multiprocessing.get_context("spawn")  # no fork of a threaded service
+        _start_resource_tracker()
         pool = cf.ProcessPoolExecutor(self.count, mp_context=ctx, initializer=work.init_worker,
                                       initargs=(os.getpid(),))
         for _ in range(self.count):  # start every worker now, not on the first estimate
@@ -609,6 +612,18 @@ class Runner:
         self._fail(result, run_id, step.key, error)
         self._discard(records)
         bar.show(step.key, f"failed: {error}")
+
+
+def _start_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker (the spawned pool's semaphores are registered with it) with
+    SIGHUP blocked, as Python starts it with SIGINT and SIGTERM blocked: it is in the terminal's process
+    group, and a hang-up killed it, so that the next semaphore started a new tracker, which logged a
+    traceback for each semaphore released after. The tracker unblocks only its own two signals."""
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGHUP})
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
 
 
 def check_not_stopped(control: Control | None, stop_before_journal: bool) -> None:

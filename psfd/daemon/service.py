@@ -6,8 +6,8 @@ JSON object back::
 
     {"cmd": "submit", "plan": "<TOML text>", "path": "plan.toml", "resume": false, "new": false}
     {"cmd": "status"}
-    {"cmd": "pause"}            # stop after the current frame; the run stays resumable
-    {"cmd": "resume"}           # resume the catalogue's newest paused or interrupted run
+    {"cmd": "pause"}            # stop after the current frame; the run stays resumable, the queue waits
+    {"cmd": "resume"}           # resume the catalogue's newest paused or interrupted run, then the queue
     {"cmd": "cancel"}           # stop after the current frame and close the run as cancelled
     {"cmd": "submit", ..., "wait": true}   # answer only when the job has ended (used by `psfd capture`)
     {"cmd": "submit", ..., "oneshot": true}  # never left resumable: closed as failed where it would pause
@@ -24,6 +24,11 @@ never one another process is shooting), with the plan text stored with it. Its a
 run (``run_id``, ``plan``) and, when other runs are unfinished, says so in ``note``. ``status``
 says ``paused`` whenever no job runs and ``resume`` has such a run, ``paused_plan`` its plan.
 
+A ``pause`` holds the queue (``held`` in ``status``): the operator who asked for it may be at the rig, and
+the next plan would move the rail at once. The queue goes on with the next ``resume``, whose run is
+continued first, or the next submit (the operator is back); a run that pauses on its own (a failed step)
+or a ``cancel`` does not hold it.
+
 Answers carry ``"ok": true`` or ``"ok": false`` with ``"error"``, ``"error_type"`` and
 ``"exit_code"`` (the `psfd.errors` type, so the client raises the same error and the
 command exits with the same code as a local run) and ``"problems"`` for a bad plan. A
@@ -38,11 +43,13 @@ everyone: anyone who can write the folder could put their own socket in its plac
 systemd: READY=1, STATUS=... and WATCHDOG=1 datagrams go to $NOTIFY_SOCKET
 through the standard library's socket module (the protocol is one datagram of
 ``KEY=value`` lines, so no extra dependency is worth it). SIGTERM lets the
-current frame finish, commits the estimates under way, pauses the run and exits 0.
+current frame finish, commits the estimates under way, pauses the run and exits 0; so does a hang-up
+(SIGHUP, unless ignored: ``nohup``), after which output to the terminal goes to /dev/null.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -50,6 +57,7 @@ import queue
 import re
 import signal
 import socket
+import stat
 import threading
 import time
 from dataclasses import dataclass, field
@@ -102,8 +110,19 @@ class Job:
     wait: bool = False  # somebody waits for the answer: add the PSF rows to it
     new: bool = False
     oneshot: bool = False
+    first: bool = False  # ahead of the queue: the resume that ends a pause's hold
     done: threading.Event = field(default_factory=threading.Event)
     result: dict | None = None
+
+
+class JobQueue(queue.Queue):
+    """First in, first out, except a `Job` marked ``first``: it goes ahead of the others."""
+
+    def _put(self, item: Job | None) -> None:
+        if item is not None and item.first:
+            self.queue.appendleft(item)
+        else:
+            self.queue.append(item)
 
 
 class Service:
@@ -126,13 +145,16 @@ class Service:
         self.frames_dir = Path(os.path.abspath(frames_dir))
         self.socket_path = Path(socket_path)
         self.runner_options = runner_options or {}
-        self.jobs: queue.Queue[Job | None] = queue.Queue()
+        self.jobs: JobQueue = JobQueue()
         self.control = Control()
         self.stopping = threading.Event()
         self.lock = threading.Lock()
         self.current: dict[str, Any] | None = None
         self.last: dict[str, Any] | None = None
         self.queued = 0
+        self.held = False  # a pause holds the queue until a resume or a submit
+        self.released = threading.Event()
+        self.released.set()
         self.waiting: list[Job] = []  # submitted, not ended: another plain submit of one of their plans is refused
 
     # -- lifecycle ---------------------------------------------------------------------------
@@ -148,6 +170,8 @@ class Service:
             raise
         signal.signal(signal.SIGTERM, self._on_signal)
         signal.signal(signal.SIGINT, self._on_signal)
+        if signal.getsignal(signal.SIGHUP) == signal.SIG_DFL:  # not under nohup, which asked to ignore it
+            signal.signal(signal.SIGHUP, self._on_signal)
         runner = threading.Thread(target=self._run_jobs, name="runner")
         runner.start()
         interval = watchdog_interval()
@@ -170,6 +194,7 @@ class Service:
                 threading.Thread(target=self._serve_client, args=(conn,), daemon=True).start()
         finally:
             notify("STOPPING=1\nSTATUS=stopping: finishing the current frame")
+            self.released.set()  # the jobs a pause held are answered "not started"
             listener.close()
             self.socket_path.unlink(missing_ok=True)
             self.control.request("pause")
@@ -213,6 +238,8 @@ class Service:
 
     def _on_signal(self, signum: int, frame: Any) -> None:
         # finish the current frame, commit what is being estimated, pause the run, exit
+        if signum == signal.SIGHUP:  # the terminal or ssh session that started the service is gone
+            _leave_terminal()
         log.info("%s: stopping the service after the current frame", signal.Signals(signum).name)
         self.control.request("pause")
         self.stopping.set()
@@ -221,9 +248,12 @@ class Service:
 
     def _run_jobs(self) -> None:
         while True:
+            self.released.wait()
             job = self.jobs.get()
             if job is None:
                 return
+            if self._held_back(job):
+                continue
             if self.stopping.is_set():
                 job.result = {"state": "not started", "reason": "the service is stopping"}
                 with self.lock:
@@ -255,6 +285,23 @@ class Service:
             with self.lock:
                 self.waiting.remove(job)
             job.done.set()
+
+    def _held_back(self, job: Job) -> bool:
+        """Put ``job`` back at the head of the queue when a pause came while it was being taken."""
+        with self.lock:
+            if not self.held or self.stopping.is_set():
+                return False
+            job.first = True
+            self.jobs.put(job)
+            return True
+
+    def _hold(self, held: bool) -> None:
+        """Hold the queue (a pause) or let it go on; under ``self.lock``."""
+        self.held = held
+        if held:
+            self.released.clear()
+        else:
+            self.released.set()
 
     def _done_before(self, job: Job) -> int:
         """The steps a resumed job's run has done already, so that `status` counts them as `psfd run --resume`
@@ -341,7 +388,11 @@ class Service:
             self.waiting.append(job)
             self.queued += 1
             queued = self.queued  # as submitted: the runner thread may take the job at once
-        self.jobs.put(job)
+            held, job.first = self.held, self.held and resume  # a resume ends a hold first, then the queue
+            self.jobs.put(job)  # queued before the hold ends: the runner takes it in its place
+            self._hold(False)
+        if held:
+            log.info("the queue held by the pause goes on")
         log.info("plan %s submitted%s, %d queued", plan.path,
                  " to resume" if resume else " as a new run" if new else "", queued)
         if not wait:
@@ -368,16 +419,20 @@ class Service:
             # "paused" from the catalogue, not from memory: a restarted service has the runs the last one paused
             state = "running" if self.current else ("paused" if unfinished else "idle")
             answer = {"state": state, "current": self.current, "last": self.last, "queued": self.queued,
+                      "held": self.held,
                       "paused_plan": unfinished[0]["plan_path"] if unfinished else None,
                       "catalogue": str(self.catalogue_path), "frames": str(self.frames_dir)}
         answer["unfinished"] = unfinished
         return answer
 
     def _cmd_pause(self, req: dict) -> dict:
-        if self.current is None:
-            raise ServiceError("no run is in progress")
-        log.info("pause asked on the control socket")
-        self.control.request("pause")
+        with self.lock:
+            if self.current is None and not self.queued:
+                raise ServiceError("no run is in progress")
+            log.info("pause asked on the control socket%s", f": {self.queued} queued held until `resume`"
+                     if self.queued else "")
+            self._hold(True)
+            self.control.request("pause")
         return {"requested": "pause"}
 
     def _cmd_cancel(self, req: dict) -> dict:
@@ -392,7 +447,12 @@ class Service:
             raise ServiceError("a run is in progress")
         unfinished = self._resumable()
         if not unfinished:
-            raise ServiceError("no paused run to resume")
+            with self.lock:
+                if not self.held:
+                    raise ServiceError("no paused run to resume")
+                self._hold(False)
+            log.info("resume asked on the control socket: no paused run; the queue held by the pause goes on")
+            return {"queued": self.queued, "note": "no paused run: the queued plans go on"}
         run, others = unfinished[0], unfinished[1:]
         with Catalogue(self.catalogue_path, readonly=True) as catalogue:
             text = catalogue.run(run["id"])["plan_text"]
@@ -464,6 +524,18 @@ def nesting(line: bytes) -> int:
         elif byte in b"]}":
             depth -= 1
     return deepest
+
+
+def _leave_terminal() -> None:
+    """Point standard output and error at /dev/null where they were the terminal: after a hang-up every write
+    to it fails (EIO), and the service must still pause its run and remove its socket. A log file or the
+    journal (a regular file, a pipe or a socket) keeps the lines that follow."""
+    null = os.open(os.devnull, os.O_WRONLY)
+    for fd in (1, 2):
+        with contextlib.suppress(OSError):
+            if stat.S_ISCHR(os.fstat(fd).st_mode):  # a hung-up terminal no longer says it is one (isatty: EIO)
+                os.dup2(null, fd)
+    os.close(null)
 
 
 def _answers(path: Path) -> bool:
