@@ -273,6 +273,49 @@ def test_cancel_closes_the_run(served, tmp_path):
     assert proc.poll() is None
 
 
+
+def psfd_cli(*argv) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "psfd", *map(str, argv)], capture_output=True, text=True, timeout=60)
+
+
+def test_pause_resume_and_cancel_from_the_command_line(served, tmp_path):
+    """An operator had no command to pause the service's run (to get to the rig), to continue it or to cancel
+    it: only JSON written to the control socket by hand. `psfd pause`, `resume` and `cancel` send them."""
+    proc, sock, db, notes = served
+    plan_path = tmp_path / "plan.toml"
+    plan_path.write_text(small_plan())
+    client.submit(sock, plan_path.read_text(), str(plan_path))
+    wait_status(sock, lambda s: s["current"] and s["current"]["step"])
+    paused = psfd_cli("pause", "--socket", sock)
+    assert paused.returncode == 0, paused.stderr
+    assert paused.stdout == (f"pause asked: the service at {sock} pauses its run after the current frame and holds "
+                             f"its queue; continue with: psfd resume --socket {sock}\n")
+    status = wait_status(sock, lambda s: s["current"] is None)
+    if status["last"]["state"] == "done":
+        pytest.skip("the pause came after the last step")
+    assert status["state"] == "paused" and status["held"]
+    resumed = psfd_cli("resume", "--socket", sock)
+    assert resumed.returncode == 0, resumed.stderr
+    assert resumed.stdout.startswith(f"resuming run {status['last']['run_id']} of {plan_path}"), resumed.stdout
+    wait_status(sock, lambda s: s["current"] is not None or s["last"]["state"] == "done")
+    cancelled = psfd_cli("cancel", "--socket", sock)
+    status = wait_status(sock, lambda s: s["current"] is None)
+    if status["last"]["state"] == "done":
+        pytest.skip("the cancel came after the last step")
+    assert cancelled.returncode == 0 and cancelled.stdout.startswith("cancel asked"), cancelled.stderr
+    assert status["last"]["state"] == "cancelled"
+    again = psfd_cli("cancel", "--socket", sock)
+    assert (again.returncode, again.stderr) == (5, "psfd: error: no run is in progress\n")
+
+
+@pytest.mark.parametrize("word, hint", [("pause", "Ctrl-C"), ("cancel", "Ctrl-C"), ("resume", "--resume")])
+def test_pause_resume_and_cancel_without_a_service_say_what_does_it(tmp_path, word, hint):
+    sock = tmp_path / "none.sock"
+    proc = psfd_cli(word, "--socket", sock)
+    assert proc.returncode == 5 and proc.stdout == ""
+    (line,) = proc.stderr.splitlines()
+    assert line.startswith(f"psfd: error: no service at {sock}") and hint in line, line
+
 def test_client_error_when_no_service(tmp_path):
     with pytest.raises(ServiceError, match="cannot reach the service"):
         client.request(tmp_path / "nothing.sock", {"cmd": "status"})

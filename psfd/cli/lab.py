@@ -1,4 +1,4 @@
-"""Lab commands: capture, run, status, plan check, serve, demo.
+"""Lab commands: capture, run, status, pause, resume, cancel, plan check, serve, demo.
 
 Thin: parse, call the daemon, print. A command that drives the rig goes
 through the service when its control socket answers (the service owns the
@@ -55,6 +55,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the status as JSON")
     options.add_service_options(p)
     p.set_defaults(func=run_status)
+
+    for word in CONTROLS:
+        p = subparsers.add_parser(word, help=summary(word), description=f"{summary(word).capitalize()}.")
+        options.add_socket_option(p)
+        p.set_defaults(func=run_control, request=word)
 
     p = subparsers.add_parser("plan", help=summary("plan"))
     sub = p.add_subparsers(dest="plan_command", metavar="ACTION")
@@ -412,6 +417,32 @@ def run_status(args: argparse.Namespace) -> int:
     for s in info["runs"]:
         print(f"{s['id']:>5} {s['state']:<11} {s['done']:>4}/{s['total']:<4} {s['failed']:>6} {s['psfs']:>6}  "
               f"{s['plan_path']}")
+    return 0
+
+
+# the service's control requests a command sends as they are, and what does it when no service is up
+CONTROLS = {
+    "pause": "a run in a terminal pauses after its current frame with Ctrl-C",
+    "resume": "continue a paused run with `psfd run PLAN --resume`",
+    "cancel": "a run in a terminal stops after its current frame with Ctrl-C (then start it afresh with --new)",
+}
+
+
+def run_control(args: argparse.Namespace) -> int:
+    """`psfd pause`, `resume`, `cancel`: the request of that name to the service (`psfd.daemon.service`)."""
+    sock = Path(args.socket) if args.socket else client.default_socket_path()
+    if not client.service_up(sock):
+        raise ServiceError(f"no service at {sock}: {CONTROLS[args.request]}")
+    answer = client.request(sock, {"cmd": args.request})
+    if args.request == "pause":
+        print(f"pause asked: the service at {sock} pauses its run after the current frame and holds its queue; "
+              "continue with: psfd resume" + (f" --socket {args.socket}" if args.socket else ""))
+    elif args.request == "cancel":
+        print(f"cancel asked: the service at {sock} closes its run as cancelled after the current frame")
+    elif "run_id" in answer:
+        print(f"resuming run {answer['run_id']} of {answer['plan']} ({answer['queued']} queued)")
+    for note in filter(None, [answer.get("note")]):
+        print(note)
     return 0
 
 

@@ -212,10 +212,15 @@ def add_catalogue_option(p: argparse.ArgumentParser, default: str = "$XDG_DATA_H
 def add_service_options(p: argparse.ArgumentParser) -> None:
     """``--catalogue``, ``--socket`` and ``--frames``: where a command finds the service or works without it."""
     add_catalogue_option(p)
+    add_socket_option(p)
+    p.add_argument("--frames", metavar="DIR", help="frame store (default: beside the catalogue)")
+
+
+def add_socket_option(p: argparse.ArgumentParser) -> None:
+    """``--socket``: where a command finds the service."""
     from psfd.daemon.client import default_socket_path  # standard library only
 
     p.add_argument("--socket", metavar="PATH", help=f"service control socket (default {default_socket_path()})")
-    p.add_argument("--frames", metavar="DIR", help="frame store (default: beside the catalogue)")
 
 
 def add_runner_options(p: argparse.ArgumentParser) -> None:
