@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import socket
+import stat
 import subprocess
 import sys
 import tempfile
@@ -29,7 +30,7 @@ from psfd.errors import BadInputError, ServiceError
 from psfd.vocabulary import REQUEST_DEPTH_MAX
 
 from test_runner import small_plan
-from test_service import Notifications, raw_request, served  # noqa: F401 - fixture
+from test_service import Notifications, killed_service, raw_request, served  # noqa: F401 - fixture
 
 ROOT = os.geteuid() == 0
 NOBODY = 65534
@@ -59,7 +60,7 @@ def shared(tmp_path):
 def test_a_socket_nobody_listens_on_is_an_error_not_a_local_run(tmp_path, capsys):
     sock = tmp_path / "control.sock"
     stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    stale.bind(str(sock))  # exists, never listens: connect is refused
+    stale.bind(str(sock))  # exists, never listens: connect is refused; no service's lock beside it to ask
     plan = tmp_path / "plan.toml"
     plan.write_text(ONE_STEP)
     db = tmp_path / "cat.sqlite"
@@ -70,6 +71,31 @@ def test_a_socket_nobody_listens_on_is_an_error_not_a_local_run(tmp_path, capsys
     assert time.monotonic() - t0 < 30  # retried briefly, not for ever
     assert not db.exists()  # the plan was not run here behind the service's back
     stale.close()
+
+
+def test_the_socket_of_a_killed_service_that_the_user_may_not_remove_is_named_and_passed_by(shared):
+    """A user who may use the service but not write its socket folder (group psfd, /run/psfd is 0750) finds the
+    socket a killed service left: the command says so in one line, that it could not remove it, and goes on
+    without the service. The service's own user then removes it by starting the service again, or any command."""
+    if not ROOT:
+        pytest.skip("needs root to act as another user")
+    sock, db = shared / "run" / "control.sock", shared / "cat.sqlite"
+    sock.parent.mkdir(mode=0o755)
+    with open(os.devnull, "w") as log:
+        killed_service(sock, db, log)
+    sock.chmod(0o666)  # nobody stands for a member of the socket's group: may connect, may not write the folder
+    lock = client.lock_path(sock)
+    assert stat.S_IMODE(lock.stat().st_mode) == 0o640
+    lock.chmod(0o644)  # and may read the lock, as the group may
+    status = _as_nobody(["status", "--socket", str(sock), "--catalogue", str(db)],
+                        warm=["status", "--socket", str(shared / "none.sock"), "--catalogue", str(db)])
+    assert status.returncode == 0 and status.stdout.startswith(f"no service at {sock}"), status.stderr
+    assert status.stderr.splitlines() == [f"psfd: warning: {sock}: the socket of a psfd serve that ended without "
+                                          "removing it; not removed (Permission denied), going on without the service"]
+    assert stat.S_ISSOCK(os.lstat(sock).st_mode)
+    mine = subprocess.run([sys.executable, "-m", "psfd", "status", "--socket", str(sock), "--catalogue", str(db)],
+                          capture_output=True, text=True, timeout=60)
+    assert mine.returncode == 0 and "ended without removing it; removed," in mine.stderr and not sock.exists()
 
 
 def test_a_full_backlog_is_retried_then_an_error(tmp_path, capsys):

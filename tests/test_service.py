@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -20,11 +21,12 @@ import pytest
 from psfd.catalogue import Catalogue
 from psfd.daemon import client
 from psfd.daemon.plan import parse_plan
-from psfd.daemon.service import Service
+from psfd.daemon.service import Service, hold_lock
 from psfd.daemon.store import store_lock
 from psfd.drivers.base import CameraInfo
 from psfd.errors import BadInputError, ServiceError
 
+from plans import one_channel_plan
 from test_runner import check_complete, small_plan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -511,3 +513,108 @@ def test_a_pause_holds_the_queue_until_resume_which_continues_the_paused_run_fir
     assert runs == [(str(first), "done"), (str(second), "done")], runs
     log = (tmp_path / "serve.log").read_text()
     assert log.index(f"starting {first} (resuming)") < log.index(f"starting {second}"), log
+
+
+# -- a service killed hard leaves its socket behind ---------------------------------------------------------
+
+
+def psfd_cli(*argv) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "psfd", *map(str, argv)], capture_output=True, text=True,
+                          timeout=300)
+
+
+def killed_service(sock: Path, db: Path, log) -> None:
+    """A real `psfd serve` on ``sock``, up and answering, then SIGKILLed (the OOM killer, `kill -9`): it
+    can neither remove its socket nor do anything else."""
+    proc = subprocess.Popen([sys.executable, "-m", "psfd", "serve", "--socket", str(sock), "--catalogue", str(db),
+                             "--workers", "1"], stderr=log, start_new_session=True)
+    try:
+        wait_until(lambda: sock.exists() and client.service_up(sock), proc, "listening")
+        os.kill(proc.pid, signal.SIGKILL)
+        assert proc.wait(timeout=60) == -signal.SIGKILL
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert stat.S_ISSOCK(os.lstat(sock).st_mode)  # left behind, as a power loss or the OOM killer leaves it
+
+
+def test_commands_after_a_killed_service_go_on_without_it(tmp_path):
+    """A service killed hard (SIGKILL, out of memory) leaves its socket; every later command took it for a
+    service restarting, waited for it ('connection was refused for 5 s') and refused, until someone removed
+    the socket by hand. The lock the service held beside it was released by the kernel: the command says in
+    one line that it found and removed the socket of a service that ended, and goes on as with no service."""
+    sock, db = tmp_path / "run" / "control.sock", tmp_path / "cat.sqlite"
+    plan = tmp_path / "plan.toml"
+    plan.write_text(one_channel_plan("simulate = true"))
+    with open(tmp_path / "serve.log", "w") as log:
+        killed_service(sock, db, log)
+        status = psfd_cli("status", "--socket", sock, "--catalogue", db)
+        assert status.returncode == 0, status.stderr
+        assert status.stdout.startswith(f"no service at {sock}"), status.stdout
+        assert "refused" not in status.stderr and len(status.stderr.splitlines()) == 1, status.stderr
+        assert f"{sock}: the socket of a psfd serve that ended without removing it; removed" in status.stderr
+        assert not sock.exists()
+        killed_service(sock, db, log)
+        run = psfd_cli("run", plan, "--socket", sock, "--catalogue", db, "--workers", "1")
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.startswith("run 1 done: 1 step, 1 frame, 1 PSF"), run.stdout  # here, not submitted
+    assert "refused" not in run.stderr and "ended without removing it; removed" in run.stderr, run.stderr
+    check_complete(db, db.with_name("cat-frames"), parse_plan(plan.read_text(), str(plan)))
+
+
+def test_serve_over_the_socket_of_a_killed_service_comes_up(tmp_path):
+    sock, db = tmp_path / "run" / "control.sock", tmp_path / "cat.sqlite"
+    with open(tmp_path / "serve.log", "w") as log:
+        killed_service(sock, db, log)
+        proc = subprocess.Popen([sys.executable, "-m", "psfd", "serve", "--socket", str(sock), "--catalogue", str(db),
+                                 "--workers", "1"], stderr=log, start_new_session=True)
+        try:
+            wait_until(lambda: sock.exists() and client.service_up(sock), proc, "listening over the stale socket")
+            status = psfd_cli("status", "--socket", sock)
+            assert status.returncode == 0 and status.stdout.startswith(f"service at {sock}: idle"), status
+            assert status.stderr == ""
+            second = psfd_cli("serve", "--socket", sock, "--catalogue", db)  # this one is alive: left alone
+            assert second.returncode == ServiceError.exit_code, second.stderr
+            assert second.stderr.endswith(f"psfd: error: a service is already listening on {sock}\n"), second.stderr
+            assert client.service_up(sock) and proc.poll() is None
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(timeout=60) == 0
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+    assert not sock.exists()
+
+
+def test_a_service_still_starting_is_waited_for_and_never_removed(tmp_path):
+    """Between taking its lock and listening, a starting service's socket refuses connections: the commands
+    wait for it and refuse as before (exit 5), and leave it in place; a second `psfd serve` leaves it too
+    (it removed any socket that refused, the starting service's as well). Once the lock is free, it is the
+    socket of a service that ended."""
+    sock, db = tmp_path / "run" / "control.sock", tmp_path / "cat.sqlite"
+    sock.parent.mkdir(mode=0o750)
+    plan = tmp_path / "plan.toml"
+    plan.write_text(one_channel_plan("simulate = true"))
+    lock = hold_lock(sock)  # what `psfd serve` holds from before it binds until it has ended
+    starting = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    starting.bind(str(sock))  # bound, not listening yet
+    inode = os.lstat(sock).st_ino
+    try:
+        for argv in (["status"], ["run", plan, "--workers", "1"]):
+            cli = psfd_cli(*argv, "--socket", sock, "--catalogue", db)
+            assert cli.returncode == ServiceError.exit_code, cli.stdout + cli.stderr
+            assert (f"the control socket {sock} exists but its connection was refused for 5 s while its service "
+                    f"holds {sock}.lock: it is starting or stopping; try again") in cli.stderr, cli.stderr
+            assert len(cli.stderr.splitlines()) == 1 and cli.stdout == "", cli.stderr
+            assert os.lstat(sock).st_ino == inode and not db.exists()  # left in place, nothing run here
+        second = psfd_cli("serve", "--socket", sock, "--catalogue", db)
+        assert second.returncode == ServiceError.exit_code and len(second.stderr.splitlines()) == 1, second.stderr
+        assert f"another psfd serve holds {sock}" in second.stderr, second.stderr
+        assert os.lstat(sock).st_ino == inode
+    finally:
+        os.close(lock)  # the starting service died before it listened
+        starting.close()
+    status = psfd_cli("status", "--socket", sock, "--catalogue", db)
+    assert status.returncode == 0 and "ended without removing it; removed" in status.stderr, status.stderr
+    assert not sock.exists()

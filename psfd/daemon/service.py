@@ -39,6 +39,14 @@ retries a full one briefly, so a burst of clients all get answers.
 
 The service's socket folder must belong to the service's user and not be writable by
 everyone: anyone who can write the folder could put their own socket in its place.
+From before it binds its socket until it has ended, the service holds an exclusive
+flock on ``control.sock.lock`` beside it (`client.lock_path`, mode 0640, never removed:
+a lock file removed and made again could be held by two services). The kernel releases
+it however the process ends, so a socket that refuses connections while its lock is
+free is one a killed service left (SIGKILL, out of memory, power lost): clients then
+go on without the service, and a service started again replaces it. A second service
+on the same socket is refused while the first holds the lock, starting as well as
+listening.
 
 systemd: READY=1, STATUS=... and WATCHDOG=1 datagrams go to $NOTIFY_SOCKET
 through the standard library's socket module (the protocol is one datagram of
@@ -50,6 +58,7 @@ current frame finish, commits the estimates under way, pauses the run and exits 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import logging
 import os
@@ -65,13 +74,15 @@ from pathlib import Path
 from typing import Any
 
 from psfd.catalogue import Catalogue
-from psfd.daemon.client import MAX_REQUEST
+from psfd.daemon.client import MAX_REQUEST, lock_path
 from psfd.daemon.plan import Plan, check_text, parse_plan, plan_key
 from psfd.daemon.runner import Control, preflight, run_plan, unfinished_runs
 from psfd.errors import BadInputError, PsfdError, ServiceError, path_reason, user_name
 from psfd.vocabulary import REQUEST_DEPTH_MAX
 
 SOCKET_MODE = 0o660
+LOCK_MODE = 0o640  # the socket's group reads it, to ask whether the service is still there
+LOCK_PATIENCE = 2.0  # seconds a lock held by clients asking about a refused socket (a moment each) is waited for
 log = logging.getLogger(__name__)
 
 
@@ -156,6 +167,7 @@ class Service:
         self.released = threading.Event()
         self.released.set()
         self.waiting: list[Job] = []  # submitted, not ended: another plain submit of one of their plans is refused
+        self.lock_fd: int | None = None  # the service's lock (`hold_lock`), held while it runs
 
     # -- lifecycle ---------------------------------------------------------------------------
 
@@ -167,6 +179,7 @@ class Service:
         except BaseException:
             listener.close()
             self.socket_path.unlink(missing_ok=True)
+            self._release()
             raise
         signal.signal(signal.SIGTERM, self._on_signal)
         signal.signal(signal.SIGINT, self._on_signal)
@@ -204,7 +217,13 @@ class Service:
                 if interval:
                     notify("WATCHDOG=1")
             log.info("psfd service stopped")
+            self._release()  # after the socket is gone and the run paused: the service has ended
         return 0
+
+    def _release(self) -> None:
+        if self.lock_fd is not None:
+            os.close(self.lock_fd)
+            self.lock_fd = None
 
     def _open_catalogue(self) -> None:
         """Create or migrate the catalogue now, as the service's user: readers then find it at the current
@@ -219,8 +238,17 @@ class Service:
             reason = path_reason(path.parent, exc)
             raise ServiceError(f"cannot create the socket folder {path.parent}: {reason}") from None
         _check_socket_folder(path.parent)
+        self.lock_fd = hold_lock(path)
+        try:
+            return self._bind(path)
+        except BaseException:
+            self._release()
+            raise
+
+    def _bind(self, path: Path) -> socket.socket:
+        """The listening socket at ``path``; under the service's lock, so that a socket there is a dead service's."""
         if path.exists() or path.is_symlink():
-            if _answers(path):
+            if _answers(path):  # a service of a psfd that took no lock
                 raise ServiceError(f"a service is already listening on {path}")
             path.unlink()  # stale socket of a service that died
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
@@ -536,6 +564,42 @@ def _leave_terminal() -> None:
             if stat.S_ISCHR(os.fstat(fd).st_mode):  # a hung-up terminal no longer says it is one (isatty: EIO)
                 os.dup2(null, fd)
     os.close(null)
+
+
+def hold_lock(socket_path: Path) -> int:
+    """Take the lock a service holds from before it binds ``socket_path`` until it has ended (`client.lock_path`);
+    returns its file descriptor: closing it, or the process ending however it ends, releases the lock.
+
+    Raises
+    ------
+    ServiceError
+        Another service holds it (listening, starting or stopping), or the lock file cannot be made.
+    """
+    path = lock_path(socket_path)
+    try:  # O_RDWR refuses a folder, and a FIFO does not block it; never through a link someone put there
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, LOCK_MODE)
+    except OSError as exc:
+        raise ServiceError(f"cannot make the service's lock file {path}: {path_reason(path, exc)}") from None
+    try:
+        os.fchmod(fd, LOCK_MODE)  # whatever the umask, as the socket: its group may ask whether we run
+        deadline = time.monotonic() + LOCK_PATIENCE
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return fd
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    if _answers(Path(socket_path)):
+                        raise ServiceError(f"a service is already listening on {socket_path}") from None
+                    raise ServiceError(f"another psfd serve holds {socket_path} (its lock {path}): it is starting "
+                                       "or stopping") from None
+            time.sleep(0.02)
+    except OSError as exc:
+        os.close(fd)
+        raise ServiceError(f"cannot use the service's lock file {path}: {exc.strerror}") from None
+    except BaseException:
+        os.close(fd)
+        raise
 
 
 def _answers(path: Path) -> bool:
