@@ -185,6 +185,11 @@ def parse_fnumber(value: Any, name: str = "aperture") -> float | None:
     return number
 
 
+# Channel pixels per target cell from which the Bernoulli target is found in a frame (psfd.estimator.detect,
+# measured): smaller, every frame of a step fails with "no calibration target found".
+TARGET_MIN_PX_PER_CELL = 0.2
+
+
 def camera_fnumber(value: Any) -> float | None:
     """f-number of a camera's own setting, None when it is not one (``"implicit auto"``)."""
     try:

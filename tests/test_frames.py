@@ -165,7 +165,7 @@ def _old_path(frames, grid, s, solver):
                            field=kernels.field_of_window(window, frame.shape), window=window,
                            noise_floor=r["noise_floor"], residual=r["residual"],
                            prediction_error=r["prediction_error"], params=params,
-                           warnings=bernoulli._warnings(scale, alpha, r["mass"])))
+                           warnings=bernoulli._warnings(scale, alpha, r["mass"], s)))
     return out
 
 

@@ -58,8 +58,8 @@ from psfd.drivers import RAIL_DRIVERS, REAL_KEYS, SIM_KEYS
 from psfd.drivers.base import CameraSetup, RailInfo, target_distance
 from psfd.errors import BadInputError, PsfdError
 from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, DEFAULT_SOLVER, PLAN_BYTES_MAX,
-                             SOLVERS, TWO_PHOTO, canonical, check_grid, check_s, check_solver, check_steps,
-                             check_support, default_support, plan_content, same_setting, setting_text)
+                             SOLVERS, TARGET_MIN_PX_PER_CELL, TWO_PHOTO, canonical, check_grid, check_s, check_solver,
+                             check_steps, check_support, default_support, plan_content, same_setting, setting_text)
 
 # [rig] holds what psfd.drivers.open_rig reads (its simulated-rig and hardware keys), our
 # camera settings, applied once before the first step, and the camera's setup for PSF work
@@ -360,6 +360,7 @@ def check_text(text: str) -> list[str]:
     problems += _check_optics(tables["rig"], tables["target"], tables["capture"])
     problems += _check_limits(tables["rig"], tables["target"], tables["capture"], kind)
     problems += _check_simulated(tables["rig"], tables["target"], tables["capture"], kind)
+    problems += _check_detectable(tables["rig"], tables["target"], tables["capture"], kind)
     problems += _check_estimator(tables["estimator"], kind)
     problems += _check_ratio(tables["target"], tables["estimator"], kind)
     return problems
@@ -689,6 +690,29 @@ def _check_optics(rig: dict, target: dict, capture: dict) -> list[str]:
         except BadInputError as exc:
             problems.append(f"[capture] {exc}")
     return problems
+
+
+def _check_detectable(rig: dict, target: dict, capture: dict, kind: Any) -> list[str]:
+    """Scales, or rail X with the plan's optics, at which a target cell images smaller than the target is found
+    from (`TARGET_MIN_PX_PER_CELL`): every frame there would fail with "no calibration target found"."""
+    if kind != BERNOULLI:
+        return []
+    try:
+        o = optics(rig, target)
+        x0, sign = float(rig.get("x_at_lens", 0.0)), int(rig.get("x_away", 1))
+    except (BadInputError, TypeError, ValueError):
+        return []  # no optics (a real rig's plan of rail X), or their own problem (_check_optics, _check_rig)
+    if "scale" in capture:
+        key, sizes = "scale", {v: v for v in capture["scale"] if _is_number(v)}
+    else:
+        # a cell of c mm at lens distance d images to c f / ((d - f) 2 pitch) channel pixels (`target_distance`)
+        key, sizes = "x", {x: o["cell_mm"] * o["focal_mm"] / ((d - o["focal_mm"]) * 2e-3 * o["pitch_um"])
+                           for x in capture.get("x") or [] if _is_number(x)
+                           and (d := sign * (float(x) - x0)) > o["focal_mm"]}
+    return [f"[capture] {key} = {fmt(value)}: a target cell images to {size:.2g} channel pixel, smaller than the "
+            f"{TARGET_MIN_PX_PER_CELL:g} the target is found from (bring it closer: scale "
+            f"{TARGET_MIN_PX_PER_CELL:g} or more)"
+            for value, size in sizes.items() if 0 < size < TARGET_MIN_PX_PER_CELL]
 
 
 def check_rail(plan: Plan, info: RailInfo) -> list[str]:

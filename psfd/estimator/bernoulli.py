@@ -33,7 +33,8 @@ from psfd.estimator import detect, geometry, kernels, quantiles, radiometry, res
 from psfd.estimator.kernels import PSF
 from psfd.estimator.nnls import _cholesky_solve, nnls_normal
 from psfd.estimator.raw import Frame
-from psfd.vocabulary import BERNOULLI, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, check_sizes, check_solver, default_support
+from psfd.vocabulary import (BERNOULLI, DEFAULT_S, DEFAULT_SOLVER, SOLVERS, TARGET_MIN_PX_PER_CELL, check_sizes,
+                             check_solver, default_support)
 from psfd.workers import concurrently, forked_map, usable_cores
 
 __all__ = [
@@ -1353,7 +1354,8 @@ def _psf(plane: _TargetPlane, r: dict, s: int, support: int, solver: str, grid: 
         prediction_error=r["prediction_error"],
         params={**params, "mass": r["mass"], "samples": r["count"],
                 "kernel_shift": [round(shift[0], 4), round(shift[1], 4)]},
-        warnings=_warnings(plane.scale, plane.alpha, r["mass"]) + kernels.kernel_warnings(kernel, r["noise_floor"]),
+        warnings=(_warnings(plane.scale, plane.alpha, r["mass"], s)
+                  + kernels.kernel_warnings(kernel, r["noise_floor"])),
     )
 
 
@@ -1451,12 +1453,16 @@ def _target_box(to_image: Map, shape: tuple[int, int], margin: int) -> tuple[int
     return x0, y0, x1, y1
 
 
-def _warnings(scale: float, alpha: float, mass: float) -> list[str]:
+def _warnings(scale: float, alpha: float, mass: float, s: int) -> list[str]:
     notes = []
     if not SCALE_RANGE[0] <= scale <= SCALE_RANGE[1]:
+        # s/t = 1 (a cell at 1/s pixel), unless the target would then be too small to be found (s > 5)
+        cell = max(1.0 / s, TARGET_MIN_PX_PER_CELL)
+        found = (f" (the target is found from {TARGET_MIN_PX_PER_CELL:g} pixel per cell: s/t = "
+                 f"{s * TARGET_MIN_PX_PER_CELL:.2g} at s = {s})" if cell > 1.0 / s else "")
         notes.append(
             f"imaging scale s/t = {scale:.2f} is outside [{SCALE_RANGE[0]}, {SCALE_RANGE[1]}] "
-            "(IJCV 2012 sec. 3.3): move the target so a cell images to about 1/s pixel"
+            f"(IJCV 2012 sec. 3.3): move the target so a cell images to about {cell:.2g} pixel{found}"
         )
     if abs(alpha) > 1:
         notes.append(f"response-curve coefficient {alpha:.2f} makes the correction non-monotone")
