@@ -430,7 +430,7 @@ CONTROLS = {
 
 def run_control(args: argparse.Namespace) -> int:
     """`psfd pause`, `resume`, `cancel`: the request of that name to the service (`psfd.daemon.service`)."""
-    sock = Path(args.socket) if args.socket else client.default_socket_path()
+    sock = options.socket_path(args)
     if not client.service_up(sock):
         raise ServiceError(f"no service at {sock}: {CONTROLS[args.request]}")
     answer = client.request(sock, {"cmd": args.request})
@@ -441,8 +441,8 @@ def run_control(args: argparse.Namespace) -> int:
         print(f"cancel asked: the service at {sock} closes its run as cancelled after the current frame")
     elif "run_id" in answer:
         print(f"resuming run {answer['run_id']} of {answer['plan']} ({answer['queued']} queued)")
-    for note in filter(None, [answer.get("note")]):
-        print(note)
+    if answer.get("note"):
+        print(answer["note"])
     return 0
 
 

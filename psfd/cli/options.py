@@ -241,10 +241,16 @@ def runner_options(args: argparse.Namespace) -> dict[str, int]:
 def paths(args: argparse.Namespace) -> tuple[Path, Path, Path]:
     """Catalogue file, frame store and control socket the service options name (their defaults otherwise)."""
     from psfd.catalogue import default_path
-    from psfd.daemon import client, store
+    from psfd.daemon import store
 
     catalogue = Path(args.catalogue) if args.catalogue else default_path()
     frames = Path(args.frames) if getattr(args, "frames", None) else store.frames_dir_for(catalogue)
-    sock = Path(args.socket) if getattr(args, "socket", None) else client.default_socket_path()
-    return catalogue, frames, sock
+    return catalogue, frames, socket_path(args)
+
+
+def socket_path(args: argparse.Namespace) -> Path:
+    """The control socket ``--socket`` names, else the default one."""
+    from psfd.daemon import client
+
+    return Path(args.socket) if getattr(args, "socket", None) else client.default_socket_path()
 
