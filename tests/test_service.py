@@ -277,7 +277,9 @@ def test_cancel_closes_the_run(served, tmp_path):
 
 
 def psfd_cli(*argv) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "psfd", *map(str, argv)], capture_output=True, text=True, timeout=60)
+    """The whole ``psfd ARGV...`` process."""
+    return subprocess.run([sys.executable, "-m", "psfd", *map(str, argv)], capture_output=True, text=True,
+                          timeout=300)
 
 
 def test_pause_resume_and_cancel_from_the_command_line(served, tmp_path):
@@ -516,11 +518,6 @@ def test_a_pause_holds_the_queue_until_resume_which_continues_the_paused_run_fir
 
 
 # -- a service killed hard leaves its socket behind ---------------------------------------------------------
-
-
-def psfd_cli(*argv) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "psfd", *map(str, argv)], capture_output=True, text=True,
-                          timeout=300)
 
 
 def killed_service(sock: Path, db: Path, log) -> None:
