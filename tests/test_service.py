@@ -80,6 +80,12 @@ def served(tmp_path):
         log.close()
 
 
+def end_group(proc: subprocess.Popen) -> None:
+    """Kill a service a test started (in a session of its own) with its whole group, if it still runs."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
 def raw_request(sock: Path, line: bytes) -> dict:
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
         s.settimeout(10)
@@ -240,9 +246,7 @@ def test_sigterm_to_the_whole_group_mid_estimate_commits_it_and_pauses(tmp_path,
             (tmp_path / "hold").unlink()
             assert proc.wait(timeout=120) == 0
         finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+            end_group(proc)
     text = log_path.read_text()
     assert "Traceback" not in text and "failed" not in text, text
     assert f"{signal.Signals(signum).name}: stopping the service after the current frame" in text, text
@@ -428,9 +432,7 @@ def test_resume_after_a_restart_continues_the_catalogues_paused_run(tmp_path):
             proc.send_signal(signal.SIGTERM)
             assert proc.wait(timeout=60) == 0
         finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+            end_group(proc)
     text = log_path.read_text()
     assert f"resume asked on the control socket: run 1 of {plan_path} (paused, " in text, text
     with Catalogue(db, readonly=True) as cat:
@@ -578,9 +580,7 @@ def test_serve_over_the_socket_of_a_killed_service_comes_up(tmp_path):
             proc.send_signal(signal.SIGTERM)
             assert proc.wait(timeout=60) == 0
         finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+            end_group(proc)
     assert not sock.exists()
 
 
