@@ -126,7 +126,7 @@ def run_here(plan, catalogue: Path, frames: Path, quiet: int = 0, again: str | N
     def stop(signum, frame):  # first Ctrl-C, SIGTERM or hang-up: finish the current frame and pause
         signal.signal(signum, previous[signum])  # the second one stops the command where it is
         if signum == signal.SIGHUP:
-            _terminal_gone()
+            leave_terminal()
         print("\npsfd: stopping after the current frame (again to abort)", file=sys.stderr)
         stopped.append(signum)
         control.request("pause")
@@ -135,7 +135,7 @@ def run_here(plan, catalogue: Path, frames: Path, quiet: int = 0, again: str | N
         flags["progress"] = None
     with unstarted(note):  # main's SIGTERM handler and Python's SIGINT one, until ours
         from psfd.cli import Terminated
-        from psfd.daemon.runner import Control, StoppedBeforeStart, run_plan
+        from psfd.daemon.runner import Control, StoppedBeforeStart, leave_terminal, run_plan
 
         control = Control()
         # a hang-up only where it would end the process: `nohup psfd run` asked to go on without a terminal
@@ -154,16 +154,6 @@ def run_here(plan, catalogue: Path, frames: Path, quiet: int = 0, again: str | N
         result.reason = f"interrupted by {signal.Signals(stopped[0]).name}"
         result.error = Interrupted(result.reason, stopped[0])
     return result
-
-
-def _terminal_gone() -> None:
-    """Point standard output and error at /dev/null: after a hang-up (an ssh session dropped, a terminal
-    closed) every write to the terminal fails (EIO), and the run must still pause cleanly, not end in the
-    first progress line it prints. The run's own record, and `psfd status`, say how it ended."""
-    null = os.open(os.devnull, os.O_WRONLY)
-    for fd in (1, 2):
-        os.dup2(null, fd)
-    os.close(null)
 
 
 def plural(n: int, word: str) -> str:

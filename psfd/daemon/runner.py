@@ -54,6 +54,7 @@ import multiprocessing
 import os
 import shutil
 import signal
+import stat
 import sys
 import tempfile
 import threading
@@ -624,6 +625,20 @@ def _start_resource_tracker() -> None:
         resource_tracker.ensure_running()
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+
+
+def leave_terminal() -> None:
+    """After a hang-up (an ssh session dropped, a terminal closed): point standard output and error at /dev/null
+    where they were the terminal, or a pipe whose reader went with it. Every write there fails (EIO, EPIPE),
+    and a run must still pause cleanly and a service remove its socket; a log file or the journal (a regular
+    file or a socket) keeps the lines that follow. The run's own record, and `psfd status`, say how it ended."""
+    null = os.open(os.devnull, os.O_WRONLY)
+    for fd in (1, 2):
+        with contextlib.suppress(OSError):
+            mode = os.fstat(fd).st_mode  # a hung-up terminal no longer says it is one (isatty: EIO)
+            if not (stat.S_ISREG(mode) or stat.S_ISSOCK(mode)):
+                os.dup2(null, fd)
+    os.close(null)
 
 
 def check_not_stopped(control: Control | None, stop_before_journal: bool) -> None:

@@ -57,7 +57,6 @@ current frame finish, commits the estimates under way, pauses the run and exits 
 
 from __future__ import annotations
 
-import contextlib
 import fcntl
 import json
 import logging
@@ -66,7 +65,6 @@ import queue
 import re
 import signal
 import socket
-import stat
 import threading
 import time
 from dataclasses import dataclass, field
@@ -76,7 +74,7 @@ from typing import Any
 from psfd.catalogue import Catalogue
 from psfd.daemon.client import MAX_REQUEST, lock_path
 from psfd.daemon.plan import Plan, check_text, parse_plan, plan_key
-from psfd.daemon.runner import Control, preflight, run_plan, unfinished_runs
+from psfd.daemon.runner import Control, leave_terminal, preflight, run_plan, unfinished_runs
 from psfd.errors import BadInputError, PsfdError, ServiceError, path_reason, user_name
 from psfd.vocabulary import REQUEST_DEPTH_MAX
 
@@ -267,7 +265,7 @@ class Service:
     def _on_signal(self, signum: int, frame: Any) -> None:
         # finish the current frame, commit what is being estimated, pause the run, exit
         if signum == signal.SIGHUP:  # the terminal or ssh session that started the service is gone
-            _leave_terminal()
+            leave_terminal()
         log.info("%s: stopping the service after the current frame", signal.Signals(signum).name)
         self.control.request("pause")
         self.stopping.set()
@@ -552,18 +550,6 @@ def nesting(line: bytes) -> int:
         elif byte in b"]}":
             depth -= 1
     return deepest
-
-
-def _leave_terminal() -> None:
-    """Point standard output and error at /dev/null where they were the terminal: after a hang-up every write
-    to it fails (EIO), and the service must still pause its run and remove its socket. A log file or the
-    journal (a regular file, a pipe or a socket) keeps the lines that follow."""
-    null = os.open(os.devnull, os.O_WRONLY)
-    for fd in (1, 2):
-        with contextlib.suppress(OSError):
-            if stat.S_ISCHR(os.fstat(fd).st_mode):  # a hung-up terminal no longer says it is one (isatty: EIO)
-                os.dup2(null, fd)
-    os.close(null)
 
 
 def hold_lock(socket_path: Path) -> int:
