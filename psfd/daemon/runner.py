@@ -76,7 +76,7 @@ from psfd.errors import (BadInputError, CameraError, EstimationError, HardwareEr
                          StorageError)
 from psfd.estimator.raw import RAW_SUFFIXES
 from psfd.exif import check_settings, read_metadata
-from psfd.vocabulary import BACKLOG_MAX, WORKERS_MAX, camera_fnumber, check_count, offered_choice, setting_text
+from psfd.vocabulary import BACKLOG_MAX, WORKERS_MAX, check_count, offered_choice, setting_text
 
 # Below this much free space, a failed download is put down to the storage: no RAW file is smaller.
 FRAME_BYTES_MIN = 1 << 20
@@ -768,7 +768,7 @@ def aperture_problems(plan: Plan, camera: Camera) -> list[str]:
     except PsfdError as exc:
         log.debug("camera not asked for its apertures: %s", exc)
         return []
-    missing = [a for a in plan.apertures if _offered(choices, a) is None]
+    missing = [a for a in plan.apertures if offered_choice(str(a), choices) is None]
     if not choices or not missing:
         return []
     named = ", ".join(f"f/{a:g}" for a in missing)
@@ -1010,22 +1010,13 @@ def _aperture_choice(camera: Camera, aperture: float) -> str:
         choices = camera.choices("aperture")
     except CameraError:
         choices = []
-    choice = _offered(choices, aperture)
+    choice = offered_choice(str(aperture), choices)
     if choice is not None:
         return choice
     offered = ", ".join(choices)
     if choices:
         raise CameraError(f"aperture f/{aperture:g} is not offered by the camera (offered: {offered})")
     return f"{aperture:g}"
-
-
-def _offered(choices: list[str], aperture: float) -> str | None:
-    """The choice among a camera's ``choices`` that is f-number ``aperture``, or None."""
-    for choice in choices:
-        number = camera_fnumber(choice)
-        if number is not None and abs(number - aperture) < 1e-6:
-            return choice
-    return None
 
 
 def release_rig(camera: Camera, rail: Rail) -> None:
