@@ -135,6 +135,11 @@ class Plan:
     far: float | None = None
     estimator: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def camera_settings(self) -> dict[str, str]:
+        """[rig] settings as the text each is sent to the camera (`setting_text`)."""
+        return {name: setting_text(value) for name, value in self.rig.get("settings", {}).items()}
+
     def steps(self) -> list[Step]:
         """Steps in execution order: rail distance, then a serpentine walk of the field grid
         (the shortest lateral moves), then apertures and repeats at each position."""
@@ -766,9 +771,8 @@ def recording_problems(plan: Plan) -> list[str]:
     shots = replay.shots()
     if len(shots) < len(captures):
         problems.append(f"{where} holds {len(shots)} capture(s), the plan takes {len(captures)}")
-    settings = {k: setting_text(v) for k, v in plan.rig.get("settings", {}).items()}
     differ = [(n, step, wrong) for n, ((step, x), shot) in enumerate(zip(captures, shots), 1)
-              if (wrong := _shot_differences(step, x, settings, shot))]
+              if (wrong := _shot_differences(step, x, plan.camera_settings, shot))]
     if differ:
         n, step, wrong = differ[0]
         more = f"; {len(differ) - 1} more capture(s) differ" if len(differ) > 1 else ""

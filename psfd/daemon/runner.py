@@ -76,7 +76,7 @@ from psfd.errors import (BadInputError, CameraError, EstimationError, HardwareEr
                          StorageError)
 from psfd.estimator.raw import RAW_SUFFIXES
 from psfd.exif import check_settings, read_metadata
-from psfd.vocabulary import BACKLOG_MAX, WORKERS_MAX, check_count, offered_choice, setting_text
+from psfd.vocabulary import BACKLOG_MAX, WORKERS_MAX, check_count, offered_choice
 
 # Below this much free space, a failed download is put down to the storage: no RAW file is smaller.
 FRAME_BYTES_MIN = 1 << 20
@@ -417,7 +417,7 @@ class Runner:
         with contextlib.closing(self._estimators):
             try:
                 try:
-                    self._apply_settings(camera, plan.rig.get("settings", {}))
+                    self._apply_settings(camera, plan.camera_settings)
                 except PsfdError as exc:
                     result.error, result.reason = exc, f"camera settings: {exc}"
                     todo = []
@@ -486,15 +486,15 @@ class Runner:
             pass
 
     @staticmethod
-    def _apply_settings(camera: Camera, settings: dict) -> None:
+    def _apply_settings(camera: Camera, settings: dict[str, str]) -> None:
         for name, value in settings.items():
-            camera.set(name, setting_text(value))
+            camera.set(name, value)
 
     def _capture(self, plan: Plan, step: Step, camera: Camera, rail: Rail) -> list[FrameRecord]:
         """Move, set the aperture, expose; returns the FrameRecords of the stored RAW files."""
         camera.set("aperture", _aperture_choice(camera, step.aperture))
         distances = step.x if isinstance(step.x, tuple) else (step.x,)
-        settings = {"aperture": step.aperture, **{k: setting_text(v) for k, v in plan.rig.get("settings", {}).items()}}
+        settings = {"aperture": step.aperture, **plan.camera_settings}
         records: list[FrameRecord] = []
         try:
             for x in distances:
@@ -744,13 +744,12 @@ def setting_problems(plan: Plan, camera: Camera) -> list[str]:
     list (free-form, unknown to it, a recording that never asked) is left to refuse itself when applied.
     """
     problems = []
-    for name, value in plan.rig.get("settings", {}).items():
+    for name, text in plan.camera_settings.items():
         try:
             choices = camera.choices(name)
         except PsfdError as exc:
             log.debug("camera not asked for its %s choices: %s", name, exc)
             continue
-        text = setting_text(value)
         if choices and offered_choice(text, choices) is None:
             problems.append(f"camera setting {name} {text} is not offered by the camera (offered: {', '.join(choices)})")
     return problems
