@@ -233,14 +233,14 @@ def _record_plan(args: argparse.Namespace) -> Session:
 def _record_session(recorder, session: Session, downloads: Path) -> int:
     """The camera and the rail described (so a replay can answer `plan check`), set up, then the shots."""
     from psfd.drivers.base import CameraSetup
-    from psfd.vocabulary import camera_fnumber, setting_text
+    from psfd.vocabulary import offered_choice, setting_text
 
     camera, rail = recorder.camera, recorder.rail
     camera.info()
     rail.info()
     offered = camera.choices("aperture")
     for aperture, _ in session.shots:  # refused before any motion; the camera's own spelling is recorded
-        if aperture is not None and not any(camera_fnumber(c) == camera_fnumber(aperture) for c in offered):
+        if aperture is not None and offered_choice(aperture, offered) is None:
             raise CameraError(f"aperture {aperture} is not offered by the camera (offered: {', '.join(offered)})")
     for name, value in session.settings.items():
         camera.set(name, setting_text(value))
@@ -250,7 +250,7 @@ def _record_session(recorder, session: Session, downloads: Path) -> int:
     frames, at = 0, None
     for aperture, positions in session.shots:
         if aperture is not None:
-            camera.set("aperture", next(c for c in offered if camera_fnumber(c) == camera_fnumber(aperture)))
+            camera.set("aperture", offered_choice(aperture, offered))  # offered: checked before any motion
         for position in positions:
             if position != at:
                 rail.move(**position)
