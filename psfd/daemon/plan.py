@@ -55,7 +55,7 @@ from pathlib import Path
 from typing import Any
 
 from psfd.drivers import RAIL_DRIVERS, REAL_KEYS, SIM_KEYS
-from psfd.drivers.base import CameraSetup, RailInfo, target_distance
+from psfd.drivers.base import CameraSetup, RailInfo, cell_pixels, target_distance
 from psfd.errors import BadInputError, PsfdError
 from psfd.vocabulary import (AXES, BERNOULLI, CAPTURE_KINDS, CHANNELS, DEFAULT_S, DEFAULT_SOLVER, PLAN_BYTES_MAX,
                              SOLVERS, TARGET_MIN_PX_PER_CELL, TWO_PHOTO, canonical, check_grid, check_s, check_solver,
@@ -710,8 +710,7 @@ def _check_detectable(rig: dict, target: dict, capture: dict, kind: Any) -> list
     if "scale" in capture:
         key, sizes = "scale", {v: v for v in capture["scale"] if _is_number(v)}
     else:
-        # a cell of c mm at lens distance d images to c f / ((d - f) 2 pitch) channel pixels (`target_distance`)
-        key, sizes = "x", {x: o["cell_mm"] * o["focal_mm"] / ((d - o["focal_mm"]) * 2e-3 * o["pitch_um"])
+        key, sizes = "x", {x: cell_pixels(d, o["focal_mm"], o["pitch_um"], o["cell_mm"])
                            for x in capture.get("x") or [] if _is_number(x)
                            and (d := sign * (float(x) - x0)) > o["focal_mm"]}
     return [f"[capture] {key} = {fmt(value)}: a target cell images to {size:.2g} channel pixel, smaller than the "

@@ -146,6 +146,12 @@ def target_distance(pixels_per_cell: float, focal_mm: float, pitch_um: float, ce
     return focal_mm * (1.0 + cell_mm / (pixels_per_cell * 2.0 * pitch_um / 1000.0))
 
 
+def cell_pixels(distance_mm: float, focal_mm: float, pitch_um: float, cell_mm: float) -> float:
+    """Bayer-channel pixels one printed cell images to at lens-to-target distance ``distance_mm`` (beyond the
+    focal length): the inverse of `target_distance`, m * cell / (2 pitch) with m = f / (d - f)."""
+    return focal_mm / (distance_mm - focal_mm) * cell_mm / (2.0 * pitch_um / 1000.0)
+
+
 @dataclass(frozen=True)
 class Position:
     """Rail position in millimetres (None for an axis the rail does not have)."""
