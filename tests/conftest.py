@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import pytest
@@ -22,3 +23,15 @@ def private_data_home(tmp_path_factory, monkeypatch) -> Path:
 def data_dir() -> Path:
     """Folder of real photographs: img_example.pgm (target) and the near/far pair."""
     return DATA
+
+
+@pytest.fixture(autouse=True)
+def psfd_logger_restored():
+    """A command run in-process (`psfd.cli.main`) points the "psfd" logger at that moment's stderr and stops it
+    propagating (`psfd.cli.logs.setup`): left so, a later test's ``caplog`` saw none of psfd's records (its
+    asserts on a record failed, its asserts that none came passed whatever happened) and the records went to a
+    stream pytest had closed. Each test starts from the logger as the test session found it."""
+    logger = logging.getLogger("psfd")
+    saved = logger.handlers[:], logger.level, logger.propagate
+    yield
+    logger.handlers[:], logger.level, logger.propagate = saved
