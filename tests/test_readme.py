@@ -169,6 +169,7 @@ def test_ci_runs_what_the_readme_says():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(2 * 3600 + 300)  # each set-up block has its own hour (run_block below)
 def test_the_set_up_blocks_work_in_a_fresh_copy(tmp_path):
     """The slow blocks (new virtual environment, install from the package index, demo, tests) in a copy of the
     repository, outside any virtual environment."""

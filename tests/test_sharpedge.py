@@ -618,6 +618,7 @@ def test_the_heap_is_returned_only_where_glibc_has_malloc_trim():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1500)  # the command has its own 1200 s below
 def test_edges_of_a_24_megapixel_raw_stay_under_500_mb(tmp_path):
     """`psfd estimate edges` on a 6000 x 4000 RGGB DNG whose planes are the real wall photo (issue 11: <= 500 MB).
 
