@@ -35,3 +35,11 @@ def psfd_logger_restored():
     saved = logger.handlers[:], logger.level, logger.propagate
     yield
     logger.handlers[:], logger.level, logger.propagate = saved
+
+
+def pytest_collection_modifyitems(config, items):
+    """A slow test (`-m slow`: whole 24-megapixel frames, renders, fresh installs) may take longer than the default
+    suite's limit per test (pyproject.toml's ``timeout``): 30 minutes, unless it sets its own."""
+    for item in items:
+        if item.get_closest_marker("slow") and not item.get_closest_marker("timeout"):
+            item.add_marker(pytest.mark.timeout(1800))
