@@ -122,3 +122,45 @@ def test_a_warning_during_a_bar_lands_on_its_own_line():
     lines = [re.sub(r"\x1b\[[0-9;]*[A-Za-z]", "", line).strip() for line in re.split(r"[\r\n]", shown())]
     assert "psfd: warning: run 1 step a8 failed: camera gone" in lines  # a line of its own, not inside the bar
     stream.close()
+
+
+FORKED_WORKER_KILLED_WHILE_LOGGING = r"""
+import logging, os, signal, sys, time
+from psfd.cli import logs
+import tqdm  # loaded as when a bar is drawn (`estimate edges`, `compare`, `run` on a terminal)
+
+log = logging.getLogger("psfd.test")
+stuck_r, stuck_w = os.pipe()  # a stream nobody reads, full: a write to it blocks
+os.set_blocking(stuck_w, False)
+try:
+    while True:
+        os.write(stuck_w, b"x" * 65536)
+except BlockingIOError:
+    os.set_blocking(stuck_w, True)
+logs.setup(stream=sys.stderr)
+log.warning("before the workers")  # the first line sets up what every later one takes
+pid = os.fork()
+if pid == 0:  # a forked worker: its line blocks half-written, then the worker is killed (Ctrl-C, a task failed)
+    sys.stderr = os.fdopen(stuck_w, "w")
+    logging.getLogger("psfd").handlers[0].setStream(sys.stderr)
+    log.warning("from the worker")
+    os._exit(0)
+time.sleep(0.5)
+os.kill(pid, signal.SIGKILL)
+os.waitpid(pid, 0)
+log.warning("the parent goes on")
+print("done")
+"""
+
+
+def test_a_worker_killed_while_it_logs_leaves_the_parents_log_working():
+    """A forked worker's log line took the progress bar's lock (tqdm's, shared by every forked process); a worker
+    killed while writing it (its stderr slow or full, then ended by Ctrl-C or a failed task) left it held, and the
+    parent's next log line waited for it for ever. A worker has no bar of its own to lift out of the way."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", FORKED_WORKER_KILLED_WHILE_LOGGING], capture_output=True, text=True,
+                          timeout=60)
+    assert done.stdout == "done\n", done.stderr
+    assert done.stderr.splitlines() == ["psfd: warning: before the workers", "psfd: warning: the parent goes on"]

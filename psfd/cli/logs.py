@@ -82,9 +82,15 @@ class PlainFormatter(logging.Formatter):
 class Handler(logging.StreamHandler):
     """A stream handler that lifts a progress bar out of the way (tqdm, when one is drawn) to write a line."""
 
+    def __init__(self, stream: TextIO) -> None:
+        super().__init__(stream)
+        self.pid = os.getpid()  # the process whose bars it lifts
+
     def emit(self, record: logging.LogRecord) -> None:
         tqdm = sys.modules.get("tqdm")
-        if tqdm is None:
+        # A forked worker writes its line as it is: the bars are its parent's, and tqdm's lock is one for every
+        # forked process, so a worker killed while holding it (Ctrl-C, a failed task) left the parent's log stuck.
+        if tqdm is None or os.getpid() != self.pid:
             super().emit(record)
             return
         with tqdm.tqdm.external_write_mode(file=self.stream):
