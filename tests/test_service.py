@@ -313,7 +313,7 @@ def test_pause_resume_and_cancel_from_the_command_line(served, tmp_path):
     assert cancelled.returncode == 0 and cancelled.stdout.startswith("cancel asked"), cancelled.stderr
     assert status["last"]["state"] == "cancelled"
     again = psfd_cli("cancel", "--socket", sock)
-    assert (again.returncode, again.stderr) == (5, "psfd: error: no run is in progress\n")
+    assert (again.returncode, again.stderr) == (5, "psfd: error: no run is in progress or paused\n")
 
 
 @pytest.mark.parametrize("word, hint", [("pause", "Ctrl-C"), ("cancel", "Ctrl-C"), ("resume", "--resume")])
@@ -517,6 +517,37 @@ def test_a_pause_holds_the_queue_until_resume_which_continues_the_paused_run_fir
     assert runs == [(str(first), "done"), (str(second), "done")], runs
     log = (tmp_path / "serve.log").read_text()
     assert log.index(f"starting {first} (resuming)") < log.index(f"starting {second}"), log
+
+
+def test_cancel_of_the_paused_run_closes_it_and_lets_the_held_queue_go_on(served, tmp_path):
+    """An operator who paused the run (hands in the rig) and then gave it up had no way to say so: `cancel`
+    answered "no run is in progress", and the queue stayed held until `resume` (which shoots the run given up)
+    or another submit. `cancel` now closes the paused run as cancelled and lets the queue go on."""
+    proc, sock, db, notes = served
+    first, second = tmp_path / "first.toml", tmp_path / "second.toml"
+    first.write_text(small_plan())
+    second.write_text(small_plan().replace("apertures = [4, 11]", "apertures = [8]"))
+    client.submit(sock, first.read_text(), str(first))
+    wait_status(sock, lambda s: s["current"] and s["current"]["step"])
+    assert client.submit(sock, second.read_text(), str(second))["queued"] == 1
+    assert client.request(sock, {"cmd": "pause"})["requested"] == "pause"
+    status = wait_status(sock, lambda s: s["current"] is None or s["current"]["plan"] != str(first))
+    with Catalogue(db, readonly=True) as cat:
+        (run,) = [r for r in cat.runs() if r["plan_path"] == str(first)]
+    if run["state"] == "done":
+        pytest.skip("the pause came after the last step")
+    assert status["held"] and status["queued"] == 1, status
+    cancelled = psfd_cli("cancel", "--socket", sock)
+    assert cancelled.returncode == 0, cancelled.stderr
+    assert cancelled.stdout.startswith(f"cancelled run {run['id']} of {first} (paused, "), cancelled.stdout
+    assert "the queue held by the pause goes on" in cancelled.stdout, cancelled.stdout
+    wait_status(sock, lambda s: s["current"] is None and s["queued"] == 0 and not s["held"], timeout=300)
+    with Catalogue(db, readonly=True) as cat:
+        runs = [(r["plan_path"], r["state"]) for r in sorted(cat.runs(), key=lambda r: r["id"])]
+    assert runs == [(str(first), "cancelled"), (str(second), "done")], runs
+    again = psfd_cli("cancel", "--socket", sock)
+    assert (again.returncode, again.stderr) == (5, "psfd: error: no run is in progress or paused\n")
+    assert proc.poll() is None
 
 
 # -- a service killed hard leaves its socket behind ---------------------------------------------------------

@@ -427,6 +427,9 @@ def run_control(args: argparse.Namespace) -> int:
     if args.request == "pause":
         print(f"pause asked: the service at {sock} pauses its run after the current frame and holds its queue; "
               "continue with: psfd resume" + (f" --socket {args.socket}" if args.socket else ""))
+    elif "progress" in answer:  # a cancel with no run in progress: the paused run was closed
+        print(f"cancelled run {answer['run_id']} of {answer['plan']} ({answer['progress']})"
+              + ("; the queue held by the pause goes on" if answer["held"] else ""))
     elif args.request == "cancel":
         print(f"cancel asked: the service at {sock} closes its run as cancelled after the current frame")
     elif "run_id" in answer:

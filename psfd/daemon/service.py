@@ -8,7 +8,8 @@ JSON object back::
     {"cmd": "status"}
     {"cmd": "pause"}            # stop after the current frame; the run stays resumable, the queue waits
     {"cmd": "resume"}           # resume the catalogue's newest paused or interrupted run, then the queue
-    {"cmd": "cancel"}           # stop after the current frame and close the run as cancelled
+    {"cmd": "cancel"}           # stop after the current frame and close the run as cancelled; with no run
+                                # in progress, close the newest paused one so, and the queue goes on
     {"cmd": "submit", ..., "wait": true}   # answer only when the job has ended (used by `psfd capture`)
     {"cmd": "submit", ..., "oneshot": true}  # never left resumable: closed as failed where it would pause
 
@@ -26,8 +27,9 @@ says ``paused`` whenever no job runs and ``resume`` has such a run, ``paused_pla
 
 A ``pause`` holds the queue (``held`` in ``status``): the operator who asked for it may be at the rig, and
 the next plan would move the rail at once. The queue goes on with the next ``resume``, whose run is
-continued first, or the next submit (the operator is back); a run that pauses on its own (a failed step)
-or a ``cancel`` does not hold it.
+continued first, the next submit (the operator is back), or a ``cancel``, which closes the paused run as
+cancelled when the operator gives it up; a run that pauses on its own (a failed step) or a ``cancel``
+does not hold it.
 
 Answers carry ``"ok": true`` or ``"ok": false`` with ``"error"``, ``"error_type"`` and
 ``"exit_code"`` (the `psfd.errors` type, so the client raises the same error and the
@@ -75,6 +77,7 @@ from psfd.catalogue import Catalogue
 from psfd.daemon.client import MAX_REQUEST, lock_path
 from psfd.daemon.plan import Plan, check_text, parse_plan, plan_key
 from psfd.daemon.runner import Control, leave_terminal, preflight, run_plan, unfinished_runs
+from psfd.daemon.store import catalogue_lock
 from psfd.errors import BadInputError, PsfdError, ServiceError, path_reason, user_name
 from psfd.vocabulary import REQUEST_DEPTH_MAX
 
@@ -462,11 +465,31 @@ class Service:
         return {"requested": "pause"}
 
     def _cmd_cancel(self, req: dict) -> dict:
-        if self.current is None:
-            raise ServiceError("no run is in progress")
-        log.info("cancel asked on the control socket")
-        self.control.request("cancel")
-        return {"requested": "cancel"}
+        """Cancel the run in progress after its current frame; with none, close the newest paused run (the
+        one `resume` would continue) as cancelled and let a queue its pause held go on."""
+        with self.lock:
+            if self.current is not None:
+                self.control.request("cancel")
+                log.info("cancel asked on the control socket")
+                return {"requested": "cancel"}
+        paused = [r for r in self._resumable() if r["state"] == "paused"]  # read first, as status does
+        if not paused:
+            raise ServiceError("no run is in progress or paused")
+        run = paused[0]
+        # the runner starts no job meanwhile (it takes one under self.lock), nor does another process write
+        with self.lock, catalogue_lock(self.catalogue_path), Catalogue(self.catalogue_path) as catalogue:
+            stored = catalogue.run(run["id"])
+            if self.current is not None or stored["state"] != "paused":
+                raise ServiceError(f"run {run['id']} started again meanwhile: cancel again to cancel it")
+            if any(job.resume and same_plan(job.plan.text, stored["plan_text"]) for job in self.waiting):
+                raise ServiceError(f"run {run['id']} is queued to resume: cancel it once it runs")
+            catalogue.finish_run(run["id"], "cancelled")
+            held = self.held
+            self._hold(False)
+        log.info("cancel asked on the control socket: run %d of %s (%s) closed as cancelled%s", run["id"],
+                 run["plan_path"], _progress(run), "; the queue held by the pause goes on" if held else "")
+        return {"requested": "cancel", "run_id": run["id"], "plan": run["plan_path"], "progress": _progress(run),
+                "held": held}
 
     def _cmd_resume(self, req: dict) -> dict:
         if self.current is not None:
