@@ -484,6 +484,37 @@ def test_resume_takes_the_newest_unfinished_run_says_so_and_skips_a_live_one(tmp
     assert not answer["ok"] and answer["error"] == "no paused run to resume", answer
 
 
+def test_cancel_with_no_run_in_progress_closes_only_a_paused_run_nobody_is_resuming(tmp_path):
+    """`cancel` closes the run `resume` would continue, and only when it paused cleanly: an interrupted one
+    (killed, maybe with frames stored and not committed) is refused, as is one queued to resume."""
+    db, frames = tmp_path / "cat.sqlite", tmp_path / "cat-frames"
+    texts = {name: small_plan().replace("apertures = [4, 11]", f"apertures = [{a}]")
+             for name, a in (("a.toml", 4), ("b.toml", 8))}
+    paused = journal(db, texts["a.toml"], "a.toml", "paused")
+    service = Service(db, frames, tmp_path / "control.sock")
+
+    def ask(cmd: str) -> dict:
+        return service.handle_line(json.dumps({"cmd": cmd}).encode() + b"\n")
+
+    assert ask("resume")["run_id"] == paused  # queued (the runner thread is not started here)
+    answer = ask("cancel")
+    assert not answer["ok"] and answer["error"] == f"run {paused} is queued to resume: cancel it once it runs"
+    service.jobs.get_nowait()
+    service.waiting.clear()
+    service.queued = 0
+    interrupted = journal(db, texts["b.toml"], "b.toml", "running")  # killed: the newest unfinished run
+    answer = ask("cancel")
+    assert not answer["ok"] and answer["error"].startswith(f"run {interrupted} of b.toml was interrupted"), answer
+    with Catalogue(db) as cat:
+        cat.finish_run(interrupted, "failed")
+    answer = ask("cancel")
+    assert answer["ok"] and (answer["run_id"], answer["plan"], answer["held"]) == (paused, "a.toml", False), answer
+    with Catalogue(db, readonly=True) as cat:
+        assert cat.run(paused)["state"] == "cancelled"
+    answer = ask("cancel")
+    assert not answer["ok"] and answer["error"] == "no run is in progress or paused", answer
+
+
 def test_a_pause_holds_the_queue_until_resume_which_continues_the_paused_run_first(served, tmp_path):
     """The service went straight on to the next queued plan when a pause stopped the run (the rail moving off
     to the next plan's first position while the operator, who had asked for the pause, had hands in the

@@ -472,10 +472,13 @@ class Service:
                 self.control.request("cancel")
                 log.info("cancel asked on the control socket")
                 return {"requested": "cancel"}
-        paused = [r for r in self._resumable() if r["state"] == "paused"]  # read first, as status does
-        if not paused:
+        unfinished = self._resumable()  # read first, as status does
+        if not unfinished:
             raise ServiceError("no run is in progress or paused")
-        run = paused[0]
+        run = unfinished[0]
+        if run["state"] != "paused":  # its frame store may hold frames it stored and did not commit
+            raise ServiceError(f"run {run['id']} of {run['plan_path']} was interrupted, not paused: `psfd resume` "
+                               "continues it; cancel it once it runs")
         # the runner starts no job meanwhile (it takes one under self.lock), nor does another process write
         with self.lock, catalogue_lock(self.catalogue_path), Catalogue(self.catalogue_path) as catalogue:
             stored = catalogue.run(run["id"])
