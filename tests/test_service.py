@@ -515,12 +515,9 @@ def test_cancel_with_no_run_in_progress_closes_only_a_paused_run_nobody_is_resum
     assert not answer["ok"] and answer["error"] == "no run is in progress or paused", answer
 
 
-def test_a_pause_holds_the_queue_until_resume_which_continues_the_paused_run_first(served, tmp_path):
-    """The service went straight on to the next queued plan when a pause stopped the run (the rail moving off
-    to the next plan's first position while the operator, who had asked for the pause, had hands in the
-    rig). A pause holds the queue: nothing starts until `resume`, which continues the paused run before the
-    queued plan; status says the queue is held."""
-    proc, sock, db, notes = served
+def paused_with_one_queued(sock: Path, tmp_path: Path) -> tuple[Path, Path, dict]:
+    """Plans ``first`` and ``second`` submitted to the service at ``sock``, and a pause asked once ``first``
+    shoots (``second`` queued): the two plans and the status once ``first`` no longer runs."""
     first, second = tmp_path / "first.toml", tmp_path / "second.toml"
     first.write_text(small_plan())
     second.write_text(small_plan().replace("apertures = [4, 11]", "apertures = [8]"))
@@ -528,7 +525,17 @@ def test_a_pause_holds_the_queue_until_resume_which_continues_the_paused_run_fir
     wait_status(sock, lambda s: s["current"] and s["current"]["step"])
     assert client.submit(sock, second.read_text(), str(second))["queued"] == 1
     assert client.request(sock, {"cmd": "pause"})["requested"] == "pause"
-    wait_status(sock, lambda s: s["current"] is None or s["current"]["plan"] != str(first))
+    status = wait_status(sock, lambda s: s["current"] is None or s["current"]["plan"] != str(first))
+    return first, second, status
+
+
+def test_a_pause_holds_the_queue_until_resume_which_continues_the_paused_run_first(served, tmp_path):
+    """The service went straight on to the next queued plan when a pause stopped the run (the rail moving off
+    to the next plan's first position while the operator, who had asked for the pause, had hands in the
+    rig). A pause holds the queue: nothing starts until `resume`, which continues the paused run before the
+    queued plan; status says the queue is held."""
+    proc, sock, db, notes = served
+    first, second, _ = paused_with_one_queued(sock, tmp_path)
     time.sleep(1.0)  # time for the runner to take the next job, were it not held
     status = client.request(sock, {"cmd": "status"})
     with Catalogue(db, readonly=True) as cat:
@@ -555,14 +562,7 @@ def test_cancel_of_the_paused_run_closes_it_and_lets_the_held_queue_go_on(served
     answered "no run is in progress", and the queue stayed held until `resume` (which shoots the run given up)
     or another submit. `cancel` now closes the paused run as cancelled and lets the queue go on."""
     proc, sock, db, notes = served
-    first, second = tmp_path / "first.toml", tmp_path / "second.toml"
-    first.write_text(small_plan())
-    second.write_text(small_plan().replace("apertures = [4, 11]", "apertures = [8]"))
-    client.submit(sock, first.read_text(), str(first))
-    wait_status(sock, lambda s: s["current"] and s["current"]["step"])
-    assert client.submit(sock, second.read_text(), str(second))["queued"] == 1
-    assert client.request(sock, {"cmd": "pause"})["requested"] == "pause"
-    status = wait_status(sock, lambda s: s["current"] is None or s["current"]["plan"] != str(first))
+    first, second, status = paused_with_one_queued(sock, tmp_path)
     with Catalogue(db, readonly=True) as cat:
         (run,) = [r for r in cat.runs() if r["plan_path"] == str(first)]
     if run["state"] == "done":
