@@ -415,6 +415,8 @@ def held_run(tmp_path: Path, plan_path: Path, db: Path, **popen) -> subprocess.P
     (tmp_path / "hold").touch()
     argv = [sys.executable, str(HERE / "held_estimate.py"), "run", str(plan_path), "--catalogue", str(db),
             "--socket", str(tmp_path / "none.sock"), "--workers", "1"]
+    # a hang-up ends it, as when a terminal starts it, also when the tests themselves run under nohup
+    popen.setdefault("preexec_fn", lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL))
     return subprocess.Popen(argv, env={**os.environ, "PSFD_HOLD": str(tmp_path)}, start_new_session=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
 
