@@ -64,7 +64,7 @@ COMMANDS = {
     "status": ("lab", "what the service is doing, or the latest runs in the catalogue"),
     "pause": ("lab", "pause the service's run after its current frame (resumable) and hold its queue"),
     "resume": ("lab", "continue the service's newest paused run, then its queue"),
-    "cancel": ("lab", "stop the service's run after its current frame and close it as cancelled"),
+    "cancel": ("lab", "stop the service's run after its current frame and close it as cancelled (or its paused run)"),
     "plan": ("lab", "work with measurement plans"),
     "serve": ("lab", "run the service: control socket, job queue, systemd notify"),
     "demo": ("lab", "a complete plan on the simulated rig, then the query table and report"),

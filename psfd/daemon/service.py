@@ -9,7 +9,7 @@ JSON object back::
     {"cmd": "pause"}            # stop after the current frame; the run stays resumable, the queue waits
     {"cmd": "resume"}           # resume the catalogue's newest paused or interrupted run, then the queue
     {"cmd": "cancel"}           # stop after the current frame and close the run as cancelled; with no run
-                                # in progress, close the newest paused one so, and the queue goes on
+                                # in progress, close the newest paused run as cancelled; the queue goes on
     {"cmd": "submit", ..., "wait": true}   # answer only when the job has ended (used by `psfd capture`)
     {"cmd": "submit", ..., "oneshot": true}  # never left resumable: closed as failed where it would pause
 
