@@ -1,4 +1,5 @@
-"""Shared fixtures: the real photographs shipped with the tests, and a private data folder per test."""
+"""Shared fixtures: the real photographs shipped with the tests, a private data folder and a fresh "psfd" logger per
+test; slow tests' time limit."""
 
 from __future__ import annotations
 
