@@ -73,9 +73,7 @@ def served(tmp_path):
         notes.wait_for("READY=1")
         yield proc, sock, db, notes
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
+        end_group(proc)
         notes.sock.close()
         log.close()
 
@@ -85,6 +83,7 @@ def end_group(proc: subprocess.Popen) -> None:
     if proc.poll() is None:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
+
 
 def raw_request(sock: Path, line: bytes) -> dict:
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:

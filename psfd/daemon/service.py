@@ -28,8 +28,8 @@ says ``paused`` whenever no job runs and ``resume`` has such a run, ``paused_pla
 A ``pause`` holds the queue (``held`` in ``status``): the operator who asked for it may be at the rig, and
 the next plan would move the rail at once. The queue goes on with the next ``resume``, whose run is
 continued first, the next submit (the operator is back), or a ``cancel``, which closes the paused run as
-cancelled when the operator gives it up; a run that pauses on its own (a failed step) or a ``cancel``
-does not hold it.
+cancelled when the operator gives it up; a run that pauses on its own (a failed step) or is cancelled
+while it runs does not hold it.
 
 Answers carry ``"ok": true`` or ``"ok": false`` with ``"error"``, ``"error_type"`` and
 ``"exit_code"`` (the `psfd.errors` type, so the client raises the same error and the
