@@ -21,13 +21,13 @@ import pytest
 from psfd.catalogue import Catalogue
 from psfd.daemon import client
 from psfd.daemon.plan import parse_plan
-from psfd.daemon.service import Service, hold_lock
+from psfd.daemon.service import Service, hold_lock, queue_path
 from psfd.daemon.store import store_lock
 from psfd.drivers.base import CameraInfo
 from psfd.errors import BadInputError, ServiceError
 
 from plans import one_channel_plan
-from test_runner import check_complete, small_plan
+from test_runner import check_complete, small_plan, stored_files
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -120,8 +120,8 @@ def test_socket_is_0660_and_bad_requests_leave_the_service_running(served, tmp_p
                          capture_output=True, text=True)
     status = json.loads(cli.stdout)  # the same shape as without the service (docs/formats.md)
     assert set(status) == {"service", "catalogue", "runs"} and status["runs"] == []
-    assert set(status["service"]) == {"socket", "state", "queued", "held", "current", "last", "paused_plan",
-                                      "unfinished"}
+    assert set(status["service"]) == {"socket", "state", "queued", "held", "held_by", "current", "last",
+                                      "paused_plan", "unfinished"}
     assert status["service"]["state"] == "idle" and status["service"]["socket"] == str(sock)
     assert proc.poll() is None
     proc.send_signal(signal.SIGTERM)
@@ -570,7 +570,7 @@ def test_cancel_of_the_paused_run_closes_it_and_lets_the_held_queue_go_on(served
     cancelled = psfd_cli("cancel", "--socket", sock)
     assert cancelled.returncode == 0, cancelled.stderr
     assert cancelled.stdout.startswith(f"cancelled run {run['id']} of {first} (paused, "), cancelled.stdout
-    assert "the queue held by the pause goes on" in cancelled.stdout, cancelled.stdout
+    assert "the held queue goes on" in cancelled.stdout, cancelled.stdout
     wait_status(sock, lambda s: s["current"] is None and s["queued"] == 0 and not s["held"], timeout=300)
     with Catalogue(db, readonly=True) as cat:
         runs = [(r["plan_path"], r["state"]) for r in sorted(cat.runs(), key=lambda r: r["id"])]
@@ -676,3 +676,100 @@ def test_a_service_still_starting_is_waited_for_and_never_removed(tmp_path):
     status = psfd_cli("status", "--socket", sock, "--catalogue", db)
     assert status.returncode == 0 and "ended without removing it; removed" in status.stderr, status.stderr
     assert not sock.exists()
+
+
+# -- the queue outlives the service ----------------------------------------------------------------------
+
+
+def started_service(sock: Path, db: Path, log) -> subprocess.Popen:
+    """A real `psfd serve` on ``sock`` and ``db``, in a session of its own, once it answers."""
+    proc = subprocess.Popen([sys.executable, "-m", "psfd", "serve", "--socket", str(sock), "--catalogue", str(db),
+                             "--workers", "1"], stderr=log, start_new_session=True)
+    wait_until(lambda: sock.exists() and client.service_up(sock), proc, "listening")
+    return proc
+
+
+@pytest.mark.parametrize("how", ["stopped", "killed"])
+def test_plans_queued_when_the_service_ends_are_queued_again_and_held_until_resume(tmp_path, how):
+    """A service stopped (`systemctl restart`: SIGTERM) or killed (a power cut, the OOM killer: SIGKILL to its
+    whole group) while plans waited in its queue forgot them: the run it was shooting could be resumed, the
+    overnight list behind it was gone without a word. The queued plans are now kept beside the catalogue and
+    queued again by the next service, held until `resume` (nothing moves the rail before an operator says so),
+    which continues the stopped run first; each plan is measured once."""
+    sock, db = tmp_path / "run" / "control.sock", tmp_path / "cat.sqlite"
+    plans = [tmp_path / f"{name}.toml" for name in ("first", "second", "third")]
+    for path, apertures in zip(plans, ("[4, 11]", "[8]", "[5.6]")):
+        path.write_text(small_plan().replace("apertures = [4, 11]", f"apertures = {apertures}"))
+    first, second, third = plans
+    with open(tmp_path / "serve.log", "w") as log:
+        proc = started_service(sock, db, log)
+        try:
+            client.submit(sock, first.read_text(), str(first))
+            wait_status(sock, lambda s: s["current"] and s["current"]["step"])
+            for path in (second, third):
+                client.submit(sock, path.read_text(), str(path))
+            kept = json.loads(queue_path(db).read_text())
+            assert [(e["path"], e["resume"], e["new"]) for e in kept] == [(str(second), False, False),
+                                                                          (str(third), False, False)], kept
+            if how == "stopped":
+                proc.send_signal(signal.SIGTERM)
+                assert proc.wait(timeout=120) == 0
+            else:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+        finally:
+            end_group(proc)
+        proc = started_service(sock, db, log)
+        try:
+            time.sleep(1.0)  # time for the runner to take a job, were the queue not held
+            status = client.request(sock, {"cmd": "status"})
+            assert (status["current"], status["queued"], status["held"], status["held_by"]) == (
+                None, 2, True, "restart"), status
+            with Catalogue(db, readonly=True) as cat:
+                assert [r["plan_path"] for r in cat.runs()] == [str(first)]  # nothing else started
+            shown = psfd_cli("status", "--socket", sock)
+            assert "2 queued, held by the service's restart until `resume`" in shown.stdout, shown.stdout
+            resumed = client.request(sock, {"cmd": "resume"})
+            wait_status(sock, lambda s: s["current"] is None and s["queued"] == 0 and not s["held"], timeout=300)
+        finally:
+            end_group(proc)
+    with Catalogue(db, readonly=True) as cat:
+        runs = [(r["plan_path"], r["state"]) for r in sorted(cat.runs(), key=lambda r: r["id"])]
+    assert runs == [(str(first), "done"), (str(second), "done"), (str(third), "done")], runs
+    frames = db.with_name("cat-frames")
+    for path in plans:
+        check_complete_run(db, parse_plan(path.read_text(), str(path)))
+    with Catalogue(db, readonly=True) as cat:
+        assert stored_files(frames) == cat.frame_hashes()  # no frame lost or left over by the kill
+    assert not queue_path(db).exists()  # all started: nothing kept
+    text = (tmp_path / "serve.log").read_text()
+    assert f"2 plans queued before the service stopped are queued again ({second}, {third})" in text, text
+    if "plan" in resumed:  # the stop left the first run unfinished: `resume` continued it before the queue
+        assert resumed["plan"] == str(first), resumed
+        assert text.index(f"starting {first} (resuming)") < text.index(f"starting {second}"), text
+
+
+def check_complete_run(db: Path, plan) -> None:
+    """Every step of ``plan`` done once with its PSF (the catalogue holds other plans' PSFs too)."""
+    with Catalogue(db, readonly=True) as cat:
+        assert cat.integrity_check() == []
+        run_ids = [r["id"] for r in cat.runs() if r["plan_path"] == plan.path]
+        steps = sorted(r["step"] for r in cat.query().rows if r["run_id"] in run_ids)
+    assert steps == sorted(step.key for step in plan.steps())
+
+
+def test_a_queue_file_that_cannot_be_read_is_set_aside_and_the_service_starts(tmp_path):
+    """A kept queue damaged (a disk error, an edit by hand) must not keep the service down: it starts with an
+    empty queue, says so in its log and sets the file aside for the operator."""
+    sock, db = tmp_path / "run" / "control.sock", tmp_path / "cat.sqlite"
+    queue_path(db).write_text('[{"plan": "[rig]\n", "path": "cut.toml"')  # cut short
+    with open(tmp_path / "serve.log", "w") as log:
+        proc = started_service(sock, db, log)
+        try:
+            status = client.request(sock, {"cmd": "status"})
+            assert (status["queued"], status["held"], status["held_by"]) == (0, False, None), status
+        finally:
+            end_group(proc)
+    aside = queue_path(db).with_name(queue_path(db).name + ".unreadable")
+    assert aside.read_text().startswith('[{"plan"') and not queue_path(db).exists()
+    assert f"the queue kept in {queue_path(db)} cannot be read" in (tmp_path / "serve.log").read_text()

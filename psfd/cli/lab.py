@@ -345,7 +345,7 @@ def _with_units(catalogue: Path, rows: list[dict]) -> list[dict]:
 
 
 STATUS_KEYS = ("service", "catalogue", "runs")  # `psfd status --json`, with or without the service (docs/formats.md)
-SERVICE_KEYS = ("socket", "state", "queued", "held", "current", "last", "paused_plan", "unfinished")
+SERVICE_KEYS = ("socket", "state", "queued", "held", "held_by", "current", "last", "paused_plan", "unfinished")
 
 
 def status(args: argparse.Namespace) -> dict:
@@ -385,7 +385,8 @@ def run_status(args: argparse.Namespace) -> int:
         return 0
     service = info["service"]
     if service is not None:
-        held = ", held by a pause until `resume`" if service["held"] else ""
+        by = "the service's restart" if service["held_by"] == "restart" else "a pause"
+        held = f", held by {by} until `resume`" if service["held"] else ""
         print(f"service at {service['socket']}: {service['state']}, {service['queued']} queued{held}")
         if service["current"]:
             c = service["current"]
@@ -429,7 +430,7 @@ def run_control(args: argparse.Namespace) -> int:
               "continue with: psfd resume" + (f" --socket {args.socket}" if args.socket else ""))
     elif "progress" in answer:  # a cancel with no run in progress: the paused run was closed
         print(f"cancelled run {answer['run_id']} of {answer['plan']} ({answer['progress']})"
-              + ("; the queue held by the pause goes on" if answer["held"] else ""))
+              + ("; the held queue goes on" if answer["held"] else ""))
     elif args.request == "cancel":
         print(f"cancel asked: the service at {sock} closes its run as cancelled after the current frame")
     elif "run_id" in answer:

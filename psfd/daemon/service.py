@@ -25,11 +25,20 @@ never one another process is shooting), with the plan text stored with it. Its a
 run (``run_id``, ``plan``) and, when other runs are unfinished, says so in ``note``. ``status``
 says ``paused`` whenever no job runs and ``resume`` has such a run, ``paused_plan`` its plan.
 
-A ``pause`` holds the queue (``held`` in ``status``): the operator who asked for it may be at the rig, and
-the next plan would move the rail at once. The queue goes on with the next ``resume``, whose run is
+A ``pause`` holds the queue (``held`` in ``status``, ``held_by`` ``"pause"``): the operator who asked for it
+may be at the rig, and the next plan would move the rail at once. The queue goes on with the next ``resume``, whose run is
 continued first, the next submit (the operator is back), or a ``cancel``, which closes the paused run as
 cancelled when the operator gives it up; a run that pauses on its own (a failed step) or is cancelled
 while it runs does not hold it.
+
+The plans queued and not started are kept beside the catalogue (`queue_path`, written before a submit is
+answered and again when the runner takes one), so that a service stopped or killed with plans queued (an
+overnight list, `systemctl restart`, a power cut) queues them again when it starts: held (``held_by``
+``"restart"``) until a ``resume``, which continues the run the stop paused or the kill interrupted first,
+a submit or a ``cancel``, as after a pause: nothing moves the rail before an operator says so. A plan
+taken by the runner is no longer kept, so it is never measured twice (one the catalogue refuses by then
+fails when taken, as a submit would, and says why). A ``capture`` (its client waits) and a one-shot
+job are not kept: their client is answered "not started".
 
 Answers carry ``"ok": true`` or ``"ok": false`` with ``"error"``, ``"error_type"`` and
 ``"exit_code"`` (the `psfd.errors` type, so the client raises the same error and the
@@ -59,6 +68,7 @@ current frame finish, commits the estimates under way, pauses the run and exits 
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import logging
@@ -123,6 +133,7 @@ class Job:
     new: bool = False
     oneshot: bool = False
     first: bool = False  # ahead of the queue: the resume that ends a pause's hold
+    taken: bool = False  # by the runner: its run is the catalogue's from now on, no longer the kept queue's
     done: threading.Event = field(default_factory=threading.Event)
     result: dict | None = None
 
@@ -165,6 +176,8 @@ class Service:
         self.last: dict[str, Any] | None = None
         self.queued = 0
         self.held = False  # a pause holds the queue until a resume or a submit
+        self.held_by: str | None = None  # "pause", or "restart": a queue kept by the service before this one
+        self.queue_file = queue_path(self.catalogue_path)
         self.released = threading.Event()
         self.released.set()
         self.waiting: list[Job] = []  # submitted, not ended: another plain submit of one of their plans is refused
@@ -182,6 +195,7 @@ class Service:
             self.socket_path.unlink(missing_ok=True)
             self._release()
             raise
+        self._restore_queue()
         signal.signal(signal.SIGTERM, self._on_signal)
         signal.signal(signal.SIGINT, self._on_signal)
         if signal.getsignal(signal.SIGHUP) == signal.SIG_DFL:  # not under nohup, which asked to ignore it
@@ -208,6 +222,11 @@ class Service:
                 threading.Thread(target=self._serve_client, args=(conn,), daemon=True).start()
         finally:
             notify("STOPPING=1\nSTATUS=stopping: finishing the current frame")
+            with self.lock:
+                kept = self._kept()
+            if kept:
+                log.info("%d queued plans not started (%s): queued again when the service starts", len(kept),
+                         ", ".join(job.plan.path for job in kept))
             self.released.set()  # the jobs a pause held are answered "not started"
             listener.close()
             self.socket_path.unlink(missing_ok=True)
@@ -291,6 +310,8 @@ class Service:
                 continue
             done = self._done_before(job)
             with self.lock:
+                job.taken = True
+                self._save_queue()  # before the run starts: a kill from here on leaves it the catalogue's
                 self.queued -= 1
                 self.control = Control()
                 self.current = {"plan": job.plan.path, "step": None, "done": done,
@@ -324,9 +345,10 @@ class Service:
             self.jobs.put(job)
             return True
 
-    def _hold(self, held: bool) -> None:
-        """Hold the queue (a pause) or let it go on; under ``self.lock``."""
-        self.held = held
+    def _hold(self, held: bool, by: str = "pause") -> None:
+        """Hold the queue (a pause, or the queue of a service before this one) or let it go on; under
+        ``self.lock``."""
+        self.held, self.held_by = held, by if held else None
         if held:
             self.released.clear()
         else:
@@ -415,13 +437,14 @@ class Service:
                 raise BadInputError(f"plan {plan.path} is already submitted and its run not ended: `psfd status` "
                                     "follows it; add --new to measure it again")
             self.waiting.append(job)
+            self._save_queue()
             self.queued += 1
             queued = self.queued  # as submitted: the runner thread may take the job at once
             held, job.first = self.held, self.held and resume  # a resume ends a hold first, then the queue
             self.jobs.put(job)  # queued before the hold ends: the runner takes it in its place
             self._hold(False)
         if held:
-            log.info("the queue held by the pause goes on")
+            log.info("the held queue goes on")
         log.info("plan %s submitted%s, %d queued", plan.path,
                  " to resume" if resume else " as a new run" if new else "", queued)
         if not wait:
@@ -429,6 +452,65 @@ class Service:
         while not job.done.wait(1.0):
             pass
         return {"result": job.result}
+
+    def _kept(self) -> list[Job]:
+        """The jobs a service started again queues again: submitted, not taken, nobody waiting; under
+        ``self.lock``."""
+        return [job for job in self.waiting if not (job.taken or job.wait or job.oneshot)]
+
+    def _save_queue(self) -> None:
+        """Write the kept jobs to `queue_path` (none: no file); under ``self.lock``."""
+        entries = [{"plan": job.plan.text, "path": job.plan.path, "resume": job.resume, "new": job.new}
+                   for job in self._kept()]
+        try:
+            if entries:
+                _write_durably(self.queue_file, json.dumps(entries, indent=1) + "\n")
+            else:
+                self.queue_file.unlink(missing_ok=True)
+        except OSError as exc:
+            # the queue goes on in memory; an older file must not outlive it, or a plan taken since would be
+            # queued again by the next service and measured twice (if the file cannot go either, the
+            # catalogue's folder cannot be written, nor can that plan's run)
+            with contextlib.suppress(OSError):
+                self.queue_file.unlink(missing_ok=True)
+            log.warning("cannot keep the queue in %s (%s): a service started again will not queue these plans",
+                        self.queue_file, path_reason(self.queue_file, exc))
+
+    def _restore_queue(self) -> None:
+        """Queue again, held, the plans the service before this one kept (`queue_path`)."""
+        try:
+            entries = json.loads(self.queue_file.read_text(encoding="utf-8"))
+            if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+                raise ValueError("not a list of plans")
+        except FileNotFoundError:
+            return
+        except (OSError, ValueError) as exc:  # a damaged file must not keep the service down: set aside, said
+            aside = self.queue_file.with_name(self.queue_file.name + ".unreadable")
+            with contextlib.suppress(OSError):
+                os.replace(self.queue_file, aside)
+            log.warning("the queue kept in %s cannot be read (%s): its plans are not queued again; set aside as %s",
+                        self.queue_file, exc, aside)
+            return
+        restored = []
+        for entry in entries:
+            path = str(entry.get("path", "<queued plan>"))
+            try:  # parsed only: what the catalogue refuses (a run made since) the runner refuses when it takes it
+                plan = submitted_plan(str(entry.get("plan", "")), path)
+            except PsfdError as exc:
+                log.warning("plan %s, queued before the service stopped, is not queued again: %s", path, exc)
+                continue
+            restored.append(Job(plan, bool(entry.get("resume")), new=bool(entry.get("new"))))
+        with self.lock:
+            for job in restored:
+                self.waiting.append(job)
+                self.queued += 1
+                self.jobs.put(job)
+            if restored:
+                self._hold(True, "restart")
+            self._save_queue()  # without the plans refused
+        if restored:
+            log.info("%d plans queued before the service stopped are queued again (%s), held until `psfd resume`",
+                     len(restored), ", ".join(job.plan.path for job in restored))
 
     def _cmd_submit(self, req: dict) -> dict:
         text, path = req.get("plan"), req.get("path", "<submitted plan>")
@@ -448,7 +530,7 @@ class Service:
             # "paused" from the catalogue, not from memory: a restarted service has the runs the last one paused
             state = "running" if self.current else ("paused" if unfinished else "idle")
             answer = {"state": state, "current": self.current, "last": self.last, "queued": self.queued,
-                      "held": self.held,
+                      "held": self.held, "held_by": self.held_by,
                       "paused_plan": unfinished[0]["plan_path"] if unfinished else None,
                       "catalogue": str(self.catalogue_path), "frames": str(self.frames_dir)}
         answer["unfinished"] = unfinished
@@ -490,7 +572,7 @@ class Service:
             held = self.held
             self._hold(False)
         log.info("cancel asked on the control socket: run %d of %s (%s) closed as cancelled%s", run["id"],
-                 run["plan_path"], _progress(run), "; the queue held by the pause goes on" if held else "")
+                 run["plan_path"], _progress(run), "; the held queue goes on" if held else "")
         return {"requested": "cancel", "run_id": run["id"], "plan": run["plan_path"], "progress": _progress(run),
                 "held": held}
 
@@ -503,7 +585,7 @@ class Service:
                 if not self.held:
                     raise ServiceError("no paused run to resume")
                 self._hold(False)
-            log.info("resume asked on the control socket: no paused run; the queue held by the pause goes on")
+            log.info("resume asked on the control socket: no paused run; the held queue goes on")
             return {"queued": self.queued, "note": "no paused run: the queued plans go on"}
         run, others = unfinished[0], unfinished[1:]
         with Catalogue(self.catalogue_path, readonly=True) as catalogue:
@@ -547,6 +629,31 @@ def _progress(run: dict) -> str:
 def same_plan(a: str, b: str) -> bool:
     """Whether two plan texts are one plan (`plan_key`: comments, layout and defaults written out do not count)."""
     return a == b or plan_key(a) == plan_key(b)
+
+
+def queue_path(catalogue_path: Path) -> Path:
+    """The file where a service keeps its queued plans, beside its catalogue: ``cat.sqlite-queue.json``."""
+    return catalogue_path.with_name(catalogue_path.name + "-queue.json")
+
+
+def _write_durably(path: Path, text: str) -> None:
+    """Replace ``path`` by ``text`` whole: written to a temporary name, fsynced, renamed, the folder fsynced
+    (a power cut leaves the old file or the new one)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _refused(exc: PsfdError) -> dict:
