@@ -21,8 +21,8 @@ import pytest
 from psfd.catalogue import Catalogue
 from psfd.daemon import client
 from psfd.daemon.plan import parse_plan
-from psfd.daemon.service import Service, hold_lock, queue_path
-from psfd.daemon.store import store_lock
+from psfd.daemon.service import Service, hold_lock
+from psfd.daemon.store import queue_path, store_lock
 from psfd.drivers.base import CameraInfo
 from psfd.errors import BadInputError, ServiceError
 
@@ -719,6 +719,9 @@ def test_plans_queued_when_the_service_ends_are_queued_again_and_held_until_resu
                 proc.wait()
         finally:
             end_group(proc)
+        shown = psfd_cli("status", "--socket", sock, "--catalogue", db)  # the operator finds the service down
+        assert (f"2 plans queued when the service ended ({second}, {third}): `psfd serve` queues them again, "
+                "held until `psfd resume`") in shown.stdout, shown.stdout
         proc = started_service(sock, db, log)
         try:
             time.sleep(1.0)  # time for the runner to take a job, were the queue not held

@@ -399,16 +399,31 @@ def run_status(args: argparse.Namespace) -> int:
             print(f"  run {run['id']} of {run['plan_path']} is {run['state']} ({run['done']}/{run['total']} steps "
                   f"done); continue with: {_again(args, 'run', run['plan_path'], '--resume')}")
         return 0
-    _, _, sock = options.paths(args)
+    catalogue, _, sock = options.paths(args)
     if info["catalogue"] is None:
-        print(f"no service at {sock}; no catalogue at {options.paths(args)[0]}")
+        print(f"no service at {sock}; no catalogue at {catalogue}")
         return 0
     print(f"no service at {sock}; latest runs in {info['catalogue']}:")
     print(f"{'run':>5} {'state':<11} {'done':>9} {'failed':>6} {'psfs':>6}  plan")
     for s in info["runs"]:
         print(f"{s['id']:>5} {s['state']:<11} {s['done']:>4}/{s['total']:<4} {s['failed']:>6} {s['psfs']:>6}  "
               f"{s['plan_path']}")
+    _print_kept(Path(info["catalogue"]))
     return 0
+
+
+def _print_kept(catalogue: Path) -> None:
+    """The plans a stopped service kept for ``catalogue`` (`store.kept_queue`), which the next one queues again."""
+    from psfd.daemon.store import kept_queue, queue_path
+
+    try:
+        kept = kept_queue(catalogue)
+    except (OSError, ValueError) as exc:
+        print(f"the service's kept queue {queue_path(catalogue)} cannot be read ({exc})")
+        return
+    if kept:
+        print(f"{len(kept)} plans queued when the service ended ({', '.join(str(e.get('path')) for e in kept)}): "
+              "`psfd serve` queues them again, held until `psfd resume`")
 
 
 # the service's control requests a command sends as they are, and what does it when no service is up

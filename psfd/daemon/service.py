@@ -31,7 +31,7 @@ continued first, the next submit (the operator is back), or a ``cancel``, which 
 cancelled when the operator gives it up; a run that pauses on its own (a failed step) or is cancelled
 while it runs does not hold it.
 
-The plans queued and not started are kept beside the catalogue (`queue_path`, written before a submit is
+The plans queued and not started are kept beside the catalogue (`store.queue_path`, written before a submit is
 answered and again when the runner takes one), so that a service stopped or killed with plans queued (an
 overnight list, `systemctl restart`, a power cut) queues them again when it starts: held (``held_by``
 ``"restart"``) until a ``resume``, which continues the run the stop paused or the kill interrupted first,
@@ -87,7 +87,7 @@ from psfd.catalogue import Catalogue
 from psfd.daemon.client import MAX_REQUEST, lock_path
 from psfd.daemon.plan import Plan, check_text, parse_plan, plan_key
 from psfd.daemon.runner import Control, leave_terminal, preflight, run_plan, unfinished_runs
-from psfd.daemon.store import catalogue_lock
+from psfd.daemon.store import catalogue_lock, kept_queue, queue_path
 from psfd.errors import BadInputError, PsfdError, ServiceError, path_reason, user_name
 from psfd.vocabulary import REQUEST_DEPTH_MAX
 
@@ -459,7 +459,7 @@ class Service:
         return [job for job in self.waiting if not (job.taken or job.wait or job.oneshot)]
 
     def _save_queue(self) -> None:
-        """Write the kept jobs to `queue_path` (none: no file); under ``self.lock``."""
+        """Write the kept jobs to `store.queue_path` (none: no file); under ``self.lock``."""
         entries = [{"plan": job.plan.text, "path": job.plan.path, "resume": job.resume, "new": job.new}
                    for job in self._kept()]
         try:
@@ -477,13 +477,9 @@ class Service:
                         self.queue_file, path_reason(self.queue_file, exc))
 
     def _restore_queue(self) -> None:
-        """Queue again, held, the plans the service before this one kept (`queue_path`)."""
+        """Queue again, held, the plans the service before this one kept (`store.kept_queue`)."""
         try:
-            entries = json.loads(self.queue_file.read_text(encoding="utf-8"))
-            if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
-                raise ValueError("not a list of plans")
-        except FileNotFoundError:
-            return
+            entries = kept_queue(self.catalogue_path)
         except (OSError, ValueError) as exc:  # a damaged file must not keep the service down: set aside, said
             aside = self.queue_file.with_name(self.queue_file.name + ".unreadable")
             with contextlib.suppress(OSError):
@@ -629,11 +625,6 @@ def _progress(run: dict) -> str:
 def same_plan(a: str, b: str) -> bool:
     """Whether two plan texts are one plan (`plan_key`: comments, layout and defaults written out do not count)."""
     return a == b or plan_key(a) == plan_key(b)
-
-
-def queue_path(catalogue_path: Path) -> Path:
-    """The file where a service keeps its queued plans, beside its catalogue: ``cat.sqlite-queue.json``."""
-    return catalogue_path.with_name(catalogue_path.name + "-queue.json")
 
 
 def _write_durably(path: Path, text: str) -> None:

@@ -27,6 +27,7 @@ import contextlib
 import errno
 import fcntl
 import hashlib
+import json
 import os
 import re
 import shutil
@@ -39,7 +40,8 @@ from psfd.errors import (STORAGE_ERRNOS, BadInputError, CatalogueError, PsfdErro
                          path_reason)
 
 __all__ = ["INCOMING", "catalogue_busy", "catalogue_lock", "catalogue_lock_path", "check_catalogue_free", "check_room",
-           "frames_dir_for", "shown_state", "storage_error", "store_busy", "store_frame", "store_lock", "sweep_frames"]
+           "frames_dir_for", "kept_queue", "queue_path", "shown_state", "storage_error", "store_busy", "store_frame",
+           "store_lock", "sweep_frames"]
 
 FRAME_NAME = re.compile(r"^[0-9a-f]{64}\.[A-Za-z0-9]+$")
 INCOMING = ".incoming-"  # prefix of the temporary folders a capture downloads into
@@ -257,6 +259,31 @@ def catalogue_lock_path(catalogue_path: str | os.PathLike) -> Path:
     symbolic link (two paths of one catalogue share its lock)."""
     real = Path(os.path.realpath(catalogue_path))
     return real.with_name(real.name + "-run.lock")
+
+
+def queue_path(catalogue_path: str | os.PathLike) -> Path:
+    """The file where the service keeps the plans queued and not started (`psfd.daemon.service`):
+    ``catalogue.sqlite-queue.json`` beside the catalogue, through any symbolic link, as its lock."""
+    real = Path(os.path.realpath(catalogue_path))
+    return real.with_name(real.name + "-queue.json")
+
+
+def kept_queue(catalogue_path: str | os.PathLike) -> list[dict]:
+    """The plans a service kept for a catalogue (`queue_path`), each ``{"plan", "path", "resume", "new"}``;
+    [] when it kept none.
+
+    Raises
+    ------
+    OSError, ValueError
+        The file cannot be read, or is not such a list.
+    """
+    try:
+        entries = json.loads(queue_path(catalogue_path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return []
+    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+        raise ValueError("not a list of plans")
+    return entries
 
 
 def catalogue_busy(catalogue_path: str | os.PathLike) -> bool:
