@@ -776,3 +776,32 @@ def test_a_queue_file_that_cannot_be_read_is_set_aside_and_the_service_starts(tm
     aside = queue_path(db).with_name(queue_path(db).name + ".unreadable")
     assert aside.read_text().startswith('[{"plan"') and not queue_path(db).exists()
     assert f"the queue kept in {queue_path(db)} cannot be read" in (tmp_path / "serve.log").read_text()
+
+
+def test_cancel_queued_drops_the_kept_plans_and_nothing_moves(tmp_path):
+    """A stop no longer forgets the queue, so dropping plans queued by mistake needs a word of its own:
+    `psfd cancel --queued` drops every plan queued and not started (here two kept by a service before this
+    one, held), and none of them ever starts."""
+    sock, db = tmp_path / "run" / "control.sock", tmp_path / "cat.sqlite"
+    plans = [tmp_path / "a.toml", tmp_path / "b.toml"]
+    for path, apertures in zip(plans, ("[8]", "[5.6]")):
+        path.write_text(small_plan().replace("apertures = [4, 11]", f"apertures = {apertures}"))
+    queue_path(db).write_text(json.dumps([{"plan": p.read_text(), "path": str(p), "resume": False, "new": False}
+                                          for p in plans]))
+    with open(tmp_path / "serve.log", "w") as log:
+        proc = started_service(sock, db, log)
+        try:
+            status = client.request(sock, {"cmd": "status"})
+            assert (status["queued"], status["held"], status["held_by"]) == (2, True, "restart"), status
+            dropped = psfd_cli("cancel", "--queued", "--socket", sock)
+            assert (dropped.returncode, dropped.stdout) == (0, f"dropped 2 queued plans: {plans[0]}, {plans[1]}\n")
+            time.sleep(1.0)  # time for the runner to start a dropped plan, were it not skipped
+            status = client.request(sock, {"cmd": "status"})
+            assert (status["current"], status["queued"], status["held"]) == (None, 0, False), status
+            again = psfd_cli("cancel", "--queued", "--socket", sock)
+            assert (again.returncode, again.stderr) == (5, "psfd: error: no plan is queued\n")
+        finally:
+            end_group(proc)
+    assert not queue_path(db).exists()
+    with Catalogue(db, readonly=True) as cat:
+        assert cat.runs() == []

@@ -59,6 +59,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     for word in CONTROLS:
         p = subparsers.add_parser(word, help=summary(word), description=f"{summary(word).capitalize()}.")
         options.add_socket_option(p)
+        if word == "cancel":
+            p.add_argument("--queued", action="store_true",
+                           help="drop the plans queued and not started instead (the run in progress goes on)")
         p.set_defaults(func=run_control, request=word)
 
     p = subparsers.add_parser("plan", help=summary("plan"))
@@ -439,8 +442,10 @@ def run_control(args: argparse.Namespace) -> int:
     sock = options.socket_path(args)
     if not client.service_up(sock):
         raise ServiceError(f"no service at {sock}: {CONTROLS[args.request]}")
-    answer = client.request(sock, {"cmd": args.request})
-    if args.request == "pause":
+    answer = client.request(sock, {"cmd": args.request, **({"queued": True} if getattr(args, "queued", False) else {})})
+    if "dropped" in answer:
+        print(f"dropped {len(answer['dropped'])} queued plans: {', '.join(answer['dropped'])}")
+    elif args.request == "pause":
         print(f"pause asked: the service at {sock} pauses its run after the current frame and holds its queue; "
               "continue with: psfd resume" + (f" --socket {args.socket}" if args.socket else ""))
     elif "progress" in answer:  # a cancel with no run in progress: the paused run was closed

@@ -10,6 +10,7 @@ JSON object back::
     {"cmd": "resume"}           # resume the catalogue's newest paused or interrupted run, then the queue
     {"cmd": "cancel"}           # stop after the current frame and close the run as cancelled; with no run
                                 # in progress, close the newest paused run as cancelled; the queue goes on
+    {"cmd": "cancel", "queued": true}  # drop the plans queued and not started; the run in progress goes on
     {"cmd": "submit", ..., "wait": true}   # answer only when the job has ended (used by `psfd capture`)
     {"cmd": "submit", ..., "oneshot": true}  # never left resumable: closed as failed where it would pause
 
@@ -35,7 +36,8 @@ The plans queued and not started are kept beside the catalogue (`store.queue_pat
 answered and again when the runner takes one), so that a service stopped or killed with plans queued (an
 overnight list, `systemctl restart`, a power cut) queues them again when it starts: held (``held_by``
 ``"restart"``) until a ``resume``, which continues the run the stop paused or the kill interrupted first,
-a submit or a ``cancel``, as after a pause: nothing moves the rail before an operator says so. A plan
+a submit or a ``cancel``, as after a pause: nothing moves the rail before an operator says so; a ``cancel``
+with ``queued`` drops them (and any other queued plan). A plan
 taken by the runner is no longer kept, so it is never measured twice (one the catalogue refuses by then
 fails when taken, as a submit would, and says why). A ``capture`` (its client waits) and a one-shot
 job are not kept: their client is answered "not started".
@@ -134,6 +136,7 @@ class Job:
     oneshot: bool = False
     first: bool = False  # ahead of the queue: the resume that ends a pause's hold
     taken: bool = False  # by the runner: its run is the catalogue's from now on, no longer the kept queue's
+    dropped: bool = False  # by a `cancel` of the queue before the runner took it: answered, to be skipped
     done: threading.Event = field(default_factory=threading.Event)
     result: dict | None = None
 
@@ -302,14 +305,15 @@ class Service:
                 return
             if self._held_back(job):
                 continue
-            if self.stopping.is_set():
-                job.result = {"state": "not started", "reason": "the service is stopping"}
-                with self.lock:
-                    self.waiting.remove(job)
-                job.done.set()
-                continue
             done = self._done_before(job)
             with self.lock:
+                if job.dropped:  # by a `cancel` of the queue: already answered
+                    continue
+                if self.stopping.is_set():
+                    job.result = {"state": "not started", "reason": "the service is stopping"}
+                    self.waiting.remove(job)
+                    job.done.set()
+                    continue
                 job.taken = True
                 self._save_queue()  # before the run starts: a kill from here on leaves it the catalogue's
                 self.queued -= 1
@@ -456,7 +460,7 @@ class Service:
     def _kept(self) -> list[Job]:
         """The jobs a service started again queues again: submitted, not taken, nobody waiting; under
         ``self.lock``."""
-        return [job for job in self.waiting if not (job.taken or job.wait or job.oneshot)]
+        return [job for job in self.waiting if not (job.taken or job.wait or job.oneshot)]  # dropped: not waiting
 
     def _save_queue(self) -> None:
         """Write the kept jobs to `store.queue_path` (none: no file); under ``self.lock``."""
@@ -544,7 +548,10 @@ class Service:
 
     def _cmd_cancel(self, req: dict) -> dict:
         """Cancel the run in progress after its current frame; with none, close the newest paused run (the
-        one `resume` would continue) as cancelled and let a queue its pause held go on."""
+        one `resume` would continue) as cancelled and let a queue its pause held go on; with ``queued``, drop
+        the queued plans instead."""
+        if req.get("queued"):
+            return self._drop_queue()
         with self.lock:
             if self.current is not None:
                 self.control.request("cancel")
@@ -571,6 +578,25 @@ class Service:
                  run["plan_path"], _progress(run), "; the held queue goes on" if held else "")
         return {"requested": "cancel", "run_id": run["id"], "plan": run["plan_path"], "progress": _progress(run),
                 "held": held}
+
+    def _drop_queue(self) -> dict:
+        """Drop every plan queued and not started (kept ones too: a stop no longer forgets them, this does);
+        their waiting clients are answered "not started". The run in progress, or a paused one, stays."""
+        with self.lock:
+            dropped = [job for job in self.waiting if not job.taken]
+            if not dropped:
+                raise ServiceError("no plan is queued")
+            for job in dropped:
+                job.dropped = True
+                job.result = {"state": "not started", "reason": "its queued plan was cancelled"}
+                self.waiting.remove(job)
+                job.done.set()
+            self.queued -= len(dropped)
+            self._save_queue()
+            self._hold(False)  # nothing is left to hold
+        paths = [job.plan.path for job in dropped]
+        log.info("cancel asked on the control socket: %d queued plans dropped (%s)", len(paths), ", ".join(paths))
+        return {"requested": "cancel", "dropped": paths}
 
     def _cmd_resume(self, req: dict) -> dict:
         if self.current is not None:
