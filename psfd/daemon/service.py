@@ -89,7 +89,7 @@ from psfd.catalogue import Catalogue
 from psfd.daemon.client import MAX_REQUEST, lock_path
 from psfd.daemon.plan import Plan, check_text, parse_plan, plan_key
 from psfd.daemon.runner import Control, leave_terminal, preflight, run_plan, unfinished_runs
-from psfd.daemon.store import catalogue_lock, kept_queue, queue_path
+from psfd.daemon.store import catalogue_lock, kept_queue, queue_path, write_durably
 from psfd.errors import BadInputError, PsfdError, ServiceError, path_reason, user_name
 from psfd.vocabulary import REQUEST_DEPTH_MAX
 
@@ -468,7 +468,7 @@ class Service:
                    for job in self._kept()]
         try:
             if entries:
-                _write_durably(self.queue_file, json.dumps(entries, indent=1) + "\n")
+                write_durably(self.queue_file, json.dumps(entries, indent=1) + "\n")
             else:
                 self.queue_file.unlink(missing_ok=True)
         except OSError as exc:
@@ -651,26 +651,6 @@ def _progress(run: dict) -> str:
 def same_plan(a: str, b: str) -> bool:
     """Whether two plan texts are one plan (`plan_key`: comments, layout and defaults written out do not count)."""
     return a == b or plan_key(a) == plan_key(b)
-
-
-def _write_durably(path: Path, text: str) -> None:
-    """Replace ``path`` by ``text`` whole: written to a temporary name, fsynced, renamed, the folder fsynced
-    (a power cut leaves the old file or the new one)."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _refused(exc: PsfdError) -> dict:

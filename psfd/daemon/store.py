@@ -41,7 +41,7 @@ from psfd.errors import (STORAGE_ERRNOS, BadInputError, CatalogueError, PsfdErro
 
 __all__ = ["INCOMING", "catalogue_busy", "catalogue_lock", "catalogue_lock_path", "check_catalogue_free", "check_room",
            "frames_dir_for", "kept_queue", "queue_path", "shown_state", "storage_error", "store_busy", "store_frame",
-           "store_lock", "sweep_frames"]
+           "store_lock", "sweep_frames", "write_durably"]
 
 FRAME_NAME = re.compile(r"^[0-9a-f]{64}\.[A-Za-z0-9]+$")
 INCOMING = ".incoming-"  # prefix of the temporary folders a capture downloads into
@@ -83,6 +83,22 @@ def store_frame(src: Path, frames_dir: Path, journal: Callable[[str], None] | No
         os.replace(src, dest)
         _fsync_dir(folder)
     return dest.resolve(), sha
+
+
+def write_durably(path: Path, text: str) -> None:
+    """Replace ``path`` by ``text`` whole: written to a temporary name, fsynced, renamed, the folder fsynced
+    (a power cut leaves the old file or the new one)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)
 
 
 def _fsync_dir(folder: Path) -> None:
