@@ -1397,6 +1397,8 @@ def _recentred(kernel: np.ndarray, solver: str, normal: tuple[np.ndarray, np.nda
         total += kernels.core_centroid(out)
         out = translated((float(total[0]), float(total[1])))
     shift = (float(total[0]), float(total[1]))
+    # ls: nothing is clipped, the ringing of a kernel of both signs adds no mass (at 150 e- on the render of
+    # tests/test_accuracy.py, seeds 1-3, MTF50 recentred over not recentred: -0.2 to +0.9 %, no common sign)
     if solver == "ls":
         return kernels.normalise(out), shift
     if solver == "nnls" and normal is not None and _clip_biases(out, noise_floor):
