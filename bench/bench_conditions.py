@@ -32,7 +32,7 @@ true light. Biased:
   widens W - B by 3.5-4.0 % of the span (radiometry.illumination);
 - cos^4 vignetting to 0.3: +0.0055 signed, MTF50 +1.4 to +1.9 %, W - B 1.9-2.0 %
   narrow (a quadratic field cannot follow it), the floor 0.0035 -> 0.0068;
-- 150 e-: MTF50 -3.7 to -6.5 % recentred as not recentred (-3.6 to -6.5 %),
+- 150 e-: MTF50 -3.7 to -6.5 % recentred, as not recentred (-3.6 to -6.5 %),
   -3.2 to -7.2 % with the true light (ls: -0.1 to -4.2 %): the non-negative
   solution keeps the positive half of the tail noise. The recentring once
   added -3 to -7 % (-7.7 to -13.4 %): its Fourier shift of that sparse kernel
