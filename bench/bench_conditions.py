@@ -32,11 +32,14 @@ true light. Biased:
   widens W - B by 3.5-4.0 % of the span (radiometry.illumination);
 - cos^4 vignetting to 0.3: +0.0055 signed, MTF50 +1.4 to +1.9 %, W - B 1.9-2.0 %
   narrow (a quadratic field cannot follow it), the floor 0.0035 -> 0.0068;
-- 150 e-: MTF50 -7.7 to -13.4 % recentred, -3.6 to -6.5 % not recentred,
+- 150 e-: MTF50 -3.7 to -6.5 % recentred, as not recentred (-3.6 to -6.5 %),
   -3.2 to -7.2 % with the true light (ls: -0.1 to -4.2 %): the non-negative
-  solution keeps the positive half of the tail noise, and the recentring's
-  Fourier shift of that sparse kernel rings, its negative half clipped
-  (bernoulli._recentred) adds more.
+  solution keeps the positive half of the tail noise. The recentring once
+  added -3 to -7 % (-7.7 to -13.4 %): its Fourier shift of that sparse kernel
+  rang and the clipped ringing's positive half stayed as mass in the tails;
+  it now solves the non-negative kernel again on the shifted grid
+  (bernoulli._recentred). 500 e-: -0.7 to -4.6 % (not recentred -0.5 to
+  -4.6 %; the clip made seed 2 -1.9 and -5.8 %).
 s/t = 0.70 (0.175 px/cell) is not detected (detect.find_target: 0.2 px/cell and up).
 
 Usage: python bench/bench_conditions.py [--seeds 1 2] [--conditions coma-25 lowexp-150]
@@ -110,17 +113,6 @@ CONDITIONS = {
 }
 
 
-def mtf50(psf: np.ndarray) -> np.ndarray:
-    """MTF50 (cycles per pixel) along fx and fy, linear between the samples around 0.5."""
-    f = np.linspace(0, S / 2, 801)
-    out = []
-    for fx, fy in ((f, 0 * f), (0 * f, f)):
-        m = render.kernel_mtf(psf, S, fx, fy)
-        i = int(np.argmax(m < 0.5))
-        out.append(f[i - 1] + (0.5 - m[i - 1]) * (f[i] - f[i - 1]) / (m[i] - m[i - 1]) if i else np.nan)
-    return np.array(out)
-
-
 def span_error(shot: render.Render, support: int) -> float:
     """Mean of the fitted (W - B) over the true span, minus 1, over the noise region."""
     to_image, to_pattern = geometry.target_maps(detect.find_target(shot.frame.data))
@@ -152,7 +144,7 @@ def measure(name: str, seed: int) -> None:
         light_error = "-"
     for label, psf, floor in runs:
         e = render.compare(psf, kernel, S)
-        m = 100 * (mtf50(psf) / mtf50(truth) - 1)
+        m = 100 * (render.mtf50(psf, S) / render.mtf50(truth, S) - 1)
         print(f"{name:<14}{seed:>3} {label:<12}{e.mean_signed:>+8.4f}{e.max_mtf:>7.4f}{m[0]:>+9.1f}{m[1]:>+6.1f}"
               f"{np.linalg.norm(psf - truth) / floor:>6.2f}{floor:>7.4f}{kernel.outside(S, support):>6.3f}"
               f"{light_error if label == 'whole' else '':>8}", flush=True)

@@ -748,6 +748,17 @@ def kernel_mtf(psf: np.ndarray, s: int, fx: np.ndarray, fy: np.ndarray) -> np.nd
     return (np.abs(otf) / abs(psf.sum())).reshape(fx.shape)
 
 
+def mtf50(psf: np.ndarray, s: int) -> np.ndarray:
+    """MTF50 (cycles per channel pixel) along fx and fy (`kernel_mtf`), linear between the samples around 0.5."""
+    f = np.linspace(0, s / 2, 801)
+    out = []
+    for fx, fy in ((f, 0 * f), (0 * f, f)):
+        m = kernel_mtf(psf, s, fx, fy)
+        i = int(np.argmax(m < 0.5))
+        out.append(f[i - 1] + (0.5 - m[i - 1]) * (f[i] - f[i - 1]) / (m[i] - m[i - 1]) if i else np.nan)
+    return np.array(out)
+
+
 def rms_width(psf: np.ndarray, s: int) -> float:
     """sqrt of the second central moment of a kernel, in channel pixels."""
     rows, cols = psf.shape

@@ -120,8 +120,7 @@ def _old_load_raw(path) -> list:
 def _old_estimate_frames(frames, grid, s=4, solver="nnls"):
     """`bernoulli.estimate_frames` as it ran before, serially in this process: every plane prepared, one
     band per raster factor, the windows solved plane after plane, the PSF records built here."""
-    from psfd.estimator import bernoulli, geometry, kernels, target
-    from psfd.estimator.kernels import PSF
+    from psfd.estimator import bernoulli
 
     with bernoulli._one_blas_thread():  # as estimate_frames: one BLAS thread sums in one order
         return _old_path(frames, grid, s, solver)
@@ -154,8 +153,8 @@ def _old_path(frames, grid, s, solver):
     out = []
     for plane, frame, (x0, y0), alpha, tail, scale in planes:
         for k in range(len(plane.windows)):
-            r = bernoulli._window_result(plane, k, bands[plane.factor], solver)
-            kernel, shift = bernoulli._recentred(r["psf"], solver)
+            r = bernoulli._window_result(plane, k, bands[plane.factor], solver, keep_normal=True)
+            kernel, shift = bernoulli._recentred(r["psf"], solver, r["normal"], r["noise_floor"])
             wx0, wy0, wx1, wy1 = r["window"]
             window = (wx0 + x0, wy0 + y0, wx1 + x0, wy1 + y0)
             params = {"solver": solver, "support": support, "grid": [int(grid[0]), int(grid[1])], "crf_alpha": alpha,

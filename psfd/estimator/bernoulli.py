@@ -709,6 +709,7 @@ def estimate_window(
     s: int,
     support: int,
     solver: str,
+    keep_normal: bool = False,
 ) -> dict:
     """Solve S_s U h = v on one window of a normalised plane.
 
@@ -720,6 +721,9 @@ def estimate_window(
         Usable observations on the whole plane.
     box : (x0, y0, x1, y1)
         Window in channel pixels.
+    keep_normal : bool
+        Also return the normal equations, for the recentring's re-solve (`_recentred`); k^4 values, so
+        only where the record is made at once.
 
     Returns
     -------
@@ -727,7 +731,8 @@ def estimate_window(
     normalisation), ``noise_floor`` sigma_n sqrt(trace((A^T A)^-1)) / mass (IJCV 2012,
     sec. 3.1: E||h_e - h||^2 = sigma_n^2 ||(S_s U)^+||_F^2, for the unit-sum kernel), ``sigma`` (sigma_n
     from the LS residual), ``residual`` (RMS residual of the returned kernel),
-    ``prediction_error`` (`cross_validated`), ``count``.
+    ``prediction_error`` (`cross_validated`), ``count``; with ``keep_normal``, ``normal`` = (A^T A, A^T v)
+    in the order of the unknowns (the kernel flipped, `normal_equations`).
     """
     x0, y0, x1, y1 = box
     half = (support - 1) // 2
@@ -749,6 +754,7 @@ def estimate_window(
         raise EstimationError("the estimated kernel has no positive mass: check the target and exposure")
     kernel = h.reshape(support, support)[::-1, ::-1] / mass
     return {
+        **({"normal": (ata, atv)} if keep_normal else {}),
         "psf": np.ascontiguousarray(kernel),
         "mass": mass,
         # trace((A^T A)^-1) = ||L^-1||_F^2; the error of h / mass is that of h over the mass
@@ -938,11 +944,11 @@ class _Plane:
         self.factor = raster_factor(s, max(band_reach(j) for j in self.jacobians))
 
 
-def _window_result(plane: _Plane, k: int, band: PatternBand, solver: str) -> dict:
+def _window_result(plane: _Plane, k: int, band: PatternBand, solver: str, keep_normal: bool = False) -> dict:
     """`estimate_window` on window ``k`` of a plane, with its box."""
     window = plane.windows[k]
     result = estimate_window(plane.v, plane.mask, window, band.window(plane.jacobians[k]), plane.factor,
-                             plane.to_pattern, plane.s, plane.support, solver)
+                             plane.to_pattern, plane.s, plane.support, solver, keep_normal)
     result["window"] = window
     return result
 
@@ -990,6 +996,8 @@ def estimate_target(
     recentre : bool
         Move each PSF by a sub-sample shift so that its core is centred (see
         `recentre`); the shift removed is kept in ``params["kernel_shift"]``.
+        A non-negative kernel is solved again on the shifted grid where the
+        shift's ringing would otherwise be clipped into a wider PSF (`_recentred`).
         The X-corners place the kernel only to within their bias (up to
         ~0.1 pixel, 0.4 s-grid samples at s = 4; detect.find_target), so the
         raw position is not a measurement at that level.
@@ -1318,7 +1326,8 @@ def _solve_group(planes: list[_TargetPlane], bands: dict, groups: list[list[tupl
     for i, k in groups[n]:
         plane = planes[i]
         try:
-            result = _window_result(plane, k, bands[plane.factor], solver)
+            # the normal equations stay in this process: only the record (without them) is sent back
+            result = _window_result(plane, k, bands[plane.factor], solver, keep_normal=record is not None)
         except EstimationError as exc:
             frame = plane.frame
             raise type(exc)(f"{frame.source} ({frame.channel}): {exc}") from None
@@ -1338,7 +1347,8 @@ def _psf(plane: _TargetPlane, r: dict, s: int, support: int, solver: str, grid: 
     params = {"solver": solver, "support": support, "grid": [int(grid[0]), int(grid[1])], "crf_alpha": plane.alpha,
               "light_tail": plane.tail,
               "scale": plane.scale, "geometry": plane.geometry}
-    kernel, shift = _recentred(r["psf"], solver) if recentre else (r["psf"], (0.0, 0.0))
+    kernel, shift = (_recentred(r["psf"], solver, r.get("normal"), r["noise_floor"]) if recentre
+                     else (r["psf"], (0.0, 0.0)))
     wx0, wy0, wx1, wy1 = r["window"]
     window = (wx0 + x0, wy0 + y0, wx1 + x0, wy1 + y0)
     return PSF(
@@ -1369,17 +1379,108 @@ def recentre(kernel: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
     return kernels.translations(kernel)(shift)
 
 
-def _recentred(kernel: np.ndarray, solver: str) -> tuple[np.ndarray, tuple[float, float]]:
-    """The kernel with its core centred, and the shift removed (x, y samples)."""
+def _recentred(kernel: np.ndarray, solver: str, normal: tuple[np.ndarray, np.ndarray] | None = None,
+               noise_floor: float = 0.0) -> tuple[np.ndarray, tuple[float, float]]:
+    """The kernel with its core centred, and the shift removed (x, y samples).
+
+    The interpolated kernel rings below 0 where the non-negative kernel has
+    exact zeros; clipping that ringing keeps its positive half as mass in
+    the tails, a wider PSF. When the clip would remove a mass that matters
+    (`_clip_biases`) and the window's normal equations ``normal`` are given,
+    the kernel is instead the non-negative least-squares solution on the
+    shifted grid (`_shifted_nnls`).
+    """
     total = np.zeros(2)
     out = kernel
     translated = kernels.translations(kernel)
     for _ in range(3):  # the core moves with the shift: a few passes converge
         total += kernels.core_centroid(out)
         out = translated((float(total[0]), float(total[1])))
+    shift = (float(total[0]), float(total[1]))
+    # ls: nothing is clipped, the ringing of a kernel of both signs adds no mass (at 150 e- on the render of
+    # tests/test_accuracy.py, seeds 1-3, MTF50 recentred over not recentred: -0.2 to +0.9 %, no common sign)
+    if solver == "ls":
+        return kernels.normalise(out), shift
+    if solver == "nnls" and normal is not None and _clip_biases(out, noise_floor):
+        return _shifted_nnls(kernel, normal, shift), shift
     # the interpolation rings slightly below 0: project back as the solver did
-    out = kernels.normalise(out) if solver == "ls" else kernels.clip_negatives(out)
-    return out, (float(total[0]), float(total[1]))
+    return kernels.clip_negatives(out), shift
+
+
+# Negative mass of the translated kernel, over the window's noise floor F, above which `_recentred` re-solves
+# rather than clips (`_clip_biases`): 2 / sqrt(200), twice the noise of the band-mean MTF error.
+CLIP_RESOLVE = 2 / 200**0.5
+
+
+def _clip_biases(translated: np.ndarray, noise_floor: float) -> bool:
+    """Whether clipping the translated kernel's negative values would add a mass the window's MTF can show.
+
+    The clip adds the negative mass m to the kernel's sum: renormalised, the
+    MTF loses m / (1 + m) of its value wherever the clipped ringing's own
+    transfer is small, a bias of at most m over the band. The noise alone
+    makes an MTF error of std F / sqrt(2) at each frequency and F / sqrt(200)
+    on its mean over the >= 100 frequencies of the band (IJCV 2012 sec. 3.1;
+    tests/test_accuracy.py): below twice that (`CLIP_RESOLVE`) no statistic
+    of the window tells the clip's bias from noise, and the clip is kept. m / F
+    measured (bench/bench_conditions.py, seeds 1 and 2): 0.02-0.06 at 30000 e-,
+    0.10-0.29 at 500 e-, 0.44-0.73 at 150 e- (where the clip cost 3-7 % of
+    MTF50); 0.00-0.18, median 0.05, on the 400 windows of a simulated 24 MP
+    frame's 10 x 10 grid (bench/bench_frames.py, "large"), 5 of which pay
+    the re-solve (2-3 ms, a tenth of a window's solve; the clip had cost them
+    1-2 % of MTF50); on img_example.pgm 0.10 whole, 0.09-0.40 on a 3 x 3 grid
+    (floor 13-15 % of the kernel), 8 of 9 windows re-solved, where the clip
+    cost 0.4-0.9 % of MTF50.
+    """
+    return float(-np.minimum(translated, 0.0).sum()) > CLIP_RESOLVE * noise_floor
+
+
+def _shifted_nnls(kernel: np.ndarray, normal: tuple[np.ndarray, np.ndarray], shift: tuple[float, float]) -> np.ndarray:
+    """The non-negative least-squares kernel of ``normal`` on the grid translated by -``shift``, unit sum.
+
+    With T the translation as a linear map of the samples, the translated
+    kernel g = T h of the solution h of min ||A h - v||^2, h >= 0 is, for
+    an orthogonal T, the solution of min ||A T^T g - v||^2 subject to g >= 0
+    instead of h >= 0: the non-negative solve of the normal equations
+    (T Q T^T, T c) (IJCV 2012, problem (P), on the shifted grid), started
+    from the positive samples of T h. A circular Fourier translation of an
+    odd number of samples is real and orthogonal (`_circular_shift`); a
+    separable one is T_y kron T_x, applied along each axis (`_separable`).
+    Its wrap-around moves the few samples that leave one edge to the other,
+    where the kernel's tail is down to the noise; its LS solution is exactly
+    T h_ls, so nothing but the constraint's grid changes. The zero-padded
+    translation of `kernels.translations` is instead a k x k block of an
+    orthogonal map of 2k x 2k samples: what leaves the support is lost, it is
+    neither orthogonal nor exactly invertible on the kernel's samples.
+    """
+    q, c = normal
+    k = kernel.shape[0]
+    ty, tx = _circular_shift(k, shift[1]), _circular_shift(k, shift[0])
+    # the unknowns are the kernel flipped (`normal_equations`): reversed, they are in the order of ``kernel``
+    q, c = q[::-1, ::-1], c[::-1]
+    tq = _separable(ty, tx, _separable(ty, tx, q).T)  # T (Q T^T), Q symmetric
+    tc = _separable(ty, tx, c)[:, 0]
+    start = _separable(ty, tx, kernel.ravel())[:, 0] > 0
+    return kernels.normalise(nnls_normal(tq, tc, start).reshape(k, k))
+
+
+def _circular_shift(size: int, shift: float) -> np.ndarray:
+    """The matrix of the circular translation by -``shift`` samples of an odd number of samples.
+
+    A Fourier phase ramp as `kernels.translations`, without its padding: with
+    an odd size there is no Nyquist frequency, the ramp is Hermitian, so the
+    matrix is real, and a phase ramp between a unitary DFT and its inverse
+    is unitary, so the real matrix is orthogonal.
+    """
+    ramp = np.exp(2j * np.pi * np.fft.fftfreq(size) * shift)
+    return np.real(np.fft.ifft(ramp[:, None] * np.fft.fft(np.eye(size), axis=0), axis=0))
+
+
+def _separable(ty: np.ndarray, tx: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """(T_y kron T_x) m for m with k^2 rows (k x k samples, row-major), one axis at a time: 2 k^3 multiply-adds
+    per column instead of k^4."""
+    k = tx.shape[0]
+    rows = np.tensordot(ty, m.reshape(k, k, -1), axes=1)  # along y
+    return np.matmul(tx, rows).reshape(k * k, -1)  # along x
 
 
 def _corrected(
