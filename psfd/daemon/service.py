@@ -27,10 +27,10 @@ run (``run_id``, ``plan``) and, when other runs are unfinished, says so in ``not
 says ``paused`` whenever no job runs and ``resume`` has such a run, ``paused_plan`` its plan.
 
 A ``pause`` holds the queue (``held`` in ``status``, ``held_by`` ``"pause"``): the operator who asked for it
-may be at the rig, and the next plan would move the rail at once. The queue goes on with the next ``resume``, whose run is
-continued first, the next submit (the operator is back), or a ``cancel``, which closes the paused run as
-cancelled when the operator gives it up; a run that pauses on its own (a failed step) or is cancelled
-while it runs does not hold it.
+may be at the rig, and the next plan would move the rail at once. The queue goes on with the next
+``resume``, whose run is continued first, the next submit (the operator is back), or a ``cancel``, which
+closes the paused run as cancelled when the operator gives it up; a run that pauses on its own (a failed
+step) or is cancelled while it runs does not hold it.
 
 The plans queued and not started are kept beside the catalogue (`store.queue_path`, written before a submit is
 answered and again when the runner takes one), so that a service stopped or killed with plans queued (an
