@@ -62,7 +62,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         if word == "cancel":
             p.add_argument("--queued", action="store_true",
                            help="drop the plans queued and not started instead (the run in progress goes on)")
-        p.set_defaults(func=run_control, request=word)
+        p.set_defaults(func=run_control, request=word, queued=False)
 
     p = subparsers.add_parser("plan", help=summary("plan"))
     sub = p.add_subparsers(dest="plan_command", metavar="ACTION")
@@ -442,7 +442,7 @@ def run_control(args: argparse.Namespace) -> int:
     sock = options.socket_path(args)
     if not client.service_up(sock):
         raise ServiceError(f"no service at {sock}: {CONTROLS[args.request]}")
-    answer = client.request(sock, {"cmd": args.request, **({"queued": True} if getattr(args, "queued", False) else {})})
+    answer = client.request(sock, {"cmd": args.request, **({"queued": True} if args.queued else {})})
     if "dropped" in answer:
         print(f"dropped {len(answer['dropped'])} queued plans: {', '.join(answer['dropped'])}")
     elif args.request == "pause":

@@ -36,11 +36,11 @@ The plans queued and not started are kept beside the catalogue (`store.queue_pat
 answered and again when the runner takes one), so that a service stopped or killed with plans queued (an
 overnight list, `systemctl restart`, a power cut) queues them again when it starts: held (``held_by``
 ``"restart"``) until a ``resume``, which continues the run the stop paused or the kill interrupted first,
-a submit or a ``cancel``, as after a pause: nothing moves the rail before an operator says so; a ``cancel``
-with ``queued`` drops them (and any other queued plan). A plan
-taken by the runner is no longer kept, so it is never measured twice (one the catalogue refuses by then
-fails when taken, as a submit would, and says why). A ``capture`` (its client waits) and a one-shot
-job are not kept: their client is answered "not started".
+a submit or a ``cancel``, as after a pause: nothing moves the rail before an operator says so; a
+``cancel`` with ``queued`` drops them (and any other queued plan). A plan taken by the runner is no
+longer kept, so it is never measured twice (one the catalogue refuses by then fails when taken, as a
+submit would, and says why). A ``capture`` (its client waits) and a one-shot job are not kept: their
+client is answered "not started".
 
 Answers carry ``"ok": true`` or ``"ok": false`` with ``"error"``, ``"error_type"`` and
 ``"exit_code"`` (the `psfd.errors` type, so the client raises the same error and the
@@ -139,6 +139,11 @@ class Job:
     dropped: bool = False  # by a `cancel` of the queue before the runner took it: answered, to be skipped
     done: threading.Event = field(default_factory=threading.Event)
     result: dict | None = None
+
+    @property
+    def kept(self) -> bool:
+        """Kept for a service started again until taken (`Service._save_queue`): nobody waits for it."""
+        return not (self.wait or self.oneshot)
 
 
 class JobQueue(queue.Queue):
@@ -315,7 +320,8 @@ class Service:
                     job.done.set()
                     continue
                 job.taken = True
-                self._save_queue()  # before the run starts: a kill from here on leaves it the catalogue's
+                if job.kept:
+                    self._save_queue()  # before the run starts: a kill from here on leaves it the catalogue's
                 self.queued -= 1
                 self.control = Control()
                 self.current = {"plan": job.plan.path, "step": None, "done": done,
@@ -441,7 +447,8 @@ class Service:
                 raise BadInputError(f"plan {plan.path} is already submitted and its run not ended: `psfd status` "
                                     "follows it; add --new to measure it again")
             self.waiting.append(job)
-            self._save_queue()
+            if job.kept:
+                self._save_queue()
             self.queued += 1
             queued = self.queued  # as submitted: the runner thread may take the job at once
             held, job.first = self.held, self.held and resume  # a resume ends a hold first, then the queue
@@ -460,7 +467,7 @@ class Service:
     def _kept(self) -> list[Job]:
         """The jobs a service started again queues again: submitted, not taken, nobody waiting; under
         ``self.lock``."""
-        return [job for job in self.waiting if not (job.taken or job.wait or job.oneshot)]  # dropped: not waiting
+        return [job for job in self.waiting if job.kept and not job.taken]  # a dropped job is no longer waiting
 
     def _save_queue(self) -> None:
         """Write the kept jobs to `store.queue_path` (none: no file); under ``self.lock``."""
