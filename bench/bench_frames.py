@@ -40,7 +40,14 @@ files and figure and the grid's ``grid.png``, or ``--no-figures``), as a user ke
 The peak resident memory of each command (median over the runs, MB) is
 printed beside its time.
 
-Usage: python bench/bench_frames.py [--repeat N] [--reference CHECKOUT] [--keep DIR]
+With ``--first-release``, the reference checkout is psfd's first release
+(git 41ed5a2), whose ``large`` command issue 11 timed at 74 s on its machine,
+and only the cases with a goal run. The first release's time here says how
+much slower that machine was on this numerical work (it is nearly all
+numerics: the pattern's band-limiting, once per window), and our times
+scaled by that factor estimate them on the machine the goals were set on.
+
+Usage: python bench/bench_frames.py [--repeat N] [--reference CHECKOUT [--first-release]] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -58,6 +65,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import whole  # noqa: E402
 
 C_PLANE_SECONDS = 2.1  # published C program, whole process, one 1953x1301 plane on this kind of machine
+FIRST_RELEASE_LARGE_SECONDS = 74.0  # the first release's `large` command on issue 11's machine
 SENSOR = (4000, 6000)
 FRAMES = {"advised": 0.3, "large": 1.05}  # name: channel pixels per cell
 OUT = ["--out", "results", "--force"]  # in the frames' folder, replaced by each run
@@ -111,7 +119,11 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3, help="runs of each command (median kept)")
     parser.add_argument("--reference", metavar="CHECKOUT", help="a psfd checkout to time the same commands with")
     parser.add_argument("--keep", metavar="DIR", help="write (or reuse) the frames here instead of a temporary folder")
+    parser.add_argument("--first-release", action="store_true",
+                        help="--reference is the first release (41ed5a2): estimate the times on issue 11's machine")
     args = parser.parse_args()
+    if args.first_release and not args.reference:
+        parser.error("--first-release names the --reference checkout: give --reference CHECKOUT")
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(args.keep or tmp).resolve()
         folder.mkdir(parents=True, exist_ok=True)
@@ -119,7 +131,10 @@ def main() -> None:
         reference_env = checkout_env(Path(args.reference)) if args.reference else None
         print(whole.machine())
         print(f"{'case':>18} {'psfd s':>7} {'ref s':>7} {'ratio':>6} {'goal s':>7} {'psfd MB':>8} {'ref MB':>7}   reference")
+        times = {}
         for name, frame_name, extra, goal in CASES:
+            if args.first_release and goal is None:
+                continue
             frame = folder / f"{frame_name}.dng"
             if not frame.exists():
                 make_frame(frame, FRAMES[frame_name])
@@ -138,6 +153,18 @@ def main() -> None:
             goal_text = "-" if goal is None else f"{goal:.1f}"
             print(f"{name:>18} {mine:7.2f} {ref:7.2f} {mine / ref:6.2f} {goal_text:>7} {mine_mb:8.0f} {ref_mb:7.0f}   "
                   f"{label}")
+            times[name] = (mine, ref, goal)
+        if args.first_release:
+            print_first_release(times)
+
+
+def print_first_release(times: dict[str, tuple[float, float, float]]) -> None:
+    """Our times scaled to issue 11's machine by the first release's `large` command, timed on both."""
+    factor = FIRST_RELEASE_LARGE_SECONDS / times["large"][1]
+    print(f"first release, large: {times['large'][1]:.1f} s here, {FIRST_RELEASE_LARGE_SECONDS:.0f} s on issue 11's "
+          f"machine: that machine {factor:.2f}x this one's time")
+    for name, (mine, _, goal) in times.items():
+        print(f"{name:>18} there (est.) {mine * factor:6.2f} s   goal {goal:.1f} s")
 
 
 if __name__ == "__main__":
