@@ -24,7 +24,13 @@ to 2.6x. With --first-release, --before DIR is psfd's first release (git
 41ed5a2), which those figures timed beside C on their machine (psfd over C:
 2.0-2.7, 2.0, 1.1, 0.8): this run's ratio to it times that one estimates the
 ratio to C on this machine ("/C est."), the speeds of both programs assumed
-to scale alike from one machine to another.
+to scale alike from one machine to another. That over-states it where the
+first release's start-up (half its time, imports) was slower there than its
+numerics: `bench_frames.py --first-release` times the first release's
+74-second 24 MP command here, whose ratio F (1.27 on a quiet 2-core Xeon)
+is how much slower the issue's machine was on numerical work, which is
+nearly all of a C program's time; --machine-factor F prints our time times
+F over the published figure ("F/pub"): our ratio to C on that machine.
 
 Frames: the real example photo (328 x 292) and the real wall pair
 (tests/data), the 701 x 401 and 1953 x 1301 target planes simulated with a
@@ -37,7 +43,7 @@ package has its bytecode, and without it every run would compile the
 modules it loads; a tree with missing or stale bytecode is named on stderr.
 
 Usage: python bench/bench_commands.py [--runs N] [--warmup N] [--cases a,b] [--before DIR [--first-release]]
-       [--reference K=CMD] [--raw24]
+       [--machine-factor F] [--reference K=CMD] [--raw24]
 """
 
 from __future__ import annotations
@@ -217,6 +223,8 @@ def main() -> None:
     parser.add_argument("--pattern", default="", help="noise pattern file for a reference's {pattern}")
     parser.add_argument("--first-release", action="store_true",
                         help="--before DIR is the first release (41ed5a2): estimate the ratio to C on this machine")
+    parser.add_argument("--machine-factor", type=float, metavar="F",
+                        help="the issue's machine over this one on numerics (bench_frames.py --first-release)")
     parser.add_argument("--raw24", action="store_true", help="also a simulated 24-megapixel RAW (slow to make)")
     options = parser.parse_args()
     options.reference = dict(item.split("=", 1) for item in options.reference)
@@ -228,7 +236,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         print(f"{'case':<24} {'psfd s':>7} {'MiB':>6} {'ref s':>7} {'MiB':>6} {'ratio':>6}  {'reference':<9}"
-              f" {'C pub. s':>8} {'/pub':>5}" + (f" {'/C est.':>7}" if options.first_release else ""))
+              f" {'C pub. s':>8} {'/pub':>5}" + (f" {'/C est.':>7}" if options.first_release else "")
+              + (f" {'F/pub':>5}" if options.machine_factor else ""))
         for name, kind, args, fields, published in cases(folder, options.raw24):
             if options.cases and not any(c in name for c in options.cases.split(",")):
                 continue
@@ -242,6 +251,8 @@ def main() -> None:
             pub = f"{published:8.2f} {result.median('a', 'wall') / published:5.2f}" if published else ""
             if options.first_release and name in FIRST_OVER_C:
                 pub += f" {result.ratio() * FIRST_OVER_C[name]:7.2f}"
+            if options.machine_factor and published:
+                pub += f" {result.median('a', 'wall') * options.machine_factor / published:5.2f}"
             note = f"  exit codes {result.failed()}" if result.failed() else ""
             print(f"{name:<24} {result.median('a', 'wall'):7.3f} {result.median('a', 'peak_mib'):6.0f} "
                   f"{result.median('b', 'wall'):7.3f} {result.median('b', 'peak_mib'):6.0f} {result.ratio():6.2f}  "
