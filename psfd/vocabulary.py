@@ -186,8 +186,9 @@ def parse_fnumber(value: Any, name: str = "aperture") -> float | None:
 
 
 # Channel pixels per target cell from which the Bernoulli target is found in a frame (psfd.estimator.detect,
-# measured): smaller, every frame of a step fails with "no calibration target found".
-TARGET_MIN_PX_PER_CELL = 0.2
+# measured): smaller, every frame of a step fails with "no calibration target found". It is the smallest
+# imaging scale of IJCV 2012 sec. 3.3 at the default s = 4 (s/t = 0.7).
+TARGET_MIN_PX_PER_CELL = 0.175
 
 
 def camera_fnumber(value: Any) -> float | None:

@@ -417,11 +417,11 @@ def test_warns_outside_the_imaging_scale_range(tmp_path):
 
 
 def test_the_imaging_scale_advice_stays_where_the_target_is_found():
-    """At s = 8 the advice was a cell at 1/s = 0.125 pixel, where the target is not found (from 0.2 pixel per
+    """At s = 8 the advice was a cell at 1/s = 0.125 pixel, where the target is not found (from 0.175 pixel per
     cell, psfd.estimator.detect): following it, every frame failed."""
     assert bernoulli._warnings(4.8, 0.0, 1.0, 8) == [
         "imaging scale s/t = 4.80 is outside [0.7, 2.0] (IJCV 2012 sec. 3.3): move the target so a cell images to "
-        "about 0.2 pixel (the target is found from 0.2 pixel per cell: s/t = 1.6 at s = 8)"]
+        "about 0.175 pixel (the target is found from 0.175 pixel per cell: s/t = 1.4 at s = 8)"]
 
 
 def test_real_photograph(data_dir):

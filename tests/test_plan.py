@@ -290,17 +290,17 @@ def test_simulated_rig_options_are_checked_before_the_run(tmp_path, capsys, opti
 
 def test_a_target_imaged_smaller_than_it_is_found_from_is_refused_before_the_run():
     """scale = [0.15] (a cell at 0.15 channel pixel) passed plan check; the run then failed every step with "no
-    calibration target found" (the target is found from 0.2 pixel per cell, psfd.estimator.detect). The rail X
+    calibration target found" (the target is found from 0.175 pixel per cell, psfd.estimator.detect). The rail X
     of a plan with known optics is held to the same bound."""
     text = SIM_STEP.format(option="")
     assert check_text(text.replace("x = [1300]", "scale = [0.15, 0.25]")) == [
-        "[capture] scale = 0.15: a target cell images to 0.15 channel pixel, smaller than the 0.2 the target is "
-        "found from (bring it closer: scale 0.2 or more)"]
+        "[capture] scale = 0.15: a target cell images to 0.15 channel pixel, smaller than the 0.175 the target "
+        "is found from (bring it closer: scale 0.175 or more)"]
     # the simulated rig's optics (50 mm, 8 um, 0.1 mm cells): 1300 mm is 0.25 pixel per cell, 2000 mm 0.16
     assert check_text(text.replace("x = [1300]", "x = [1300, 2000]")) == [
-        "[capture] x = 2000: a target cell images to 0.16 channel pixel, smaller than the 0.2 the target is "
-        "found from (bring it closer: scale 0.2 or more)"]
-    assert check_text(text.replace("x = [1300]", "scale = [0.2]")) == []
+        "[capture] x = 2000: a target cell images to 0.16 channel pixel, smaller than the 0.175 the target is "
+        "found from (bring it closer: scale 0.175 or more)"]
+    assert check_text(text.replace("x = [1300]", "scale = [0.175]")) == []
 
 def test_values_one_step_key_apart_are_listed_twice(tmp_path, capsys):
     """Steps are journalled by their key (`Step.key`, 6 significant digits): two positions that print alike

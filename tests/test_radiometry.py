@@ -101,9 +101,9 @@ def test_illumination_is_robust_to_dust_on_a_white_square():
 
 
 def test_a_target_too_small_to_clear_the_support_still_reads_the_squares():
-    """At 0.2 pixel per cell a square is 6.4 px wide: no pixel is 3.5 px from its edges, so its inner
-    third is read; with sharp edges the fields stay exact."""
-    h = pattern_to_image(scale=0.2)
+    """At 0.175 pixel per cell (the smallest the target is found at) a square is 5.6 px wide: no pixel is 3.5 px
+    from its edges, so its inner third is read; with sharp edges the fields stay exact."""
+    h = pattern_to_image(scale=0.175)
     image = 40.0 + 3000.0 * reflectance(h)
     black, white, _ = radiometry.illumination(image, *maps(h), 3.0)
     x, y = to_image_of(h)(160.0, 160.0)

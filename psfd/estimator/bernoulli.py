@@ -1557,13 +1557,14 @@ def _target_box(to_image: Map, shape: tuple[int, int], margin: int) -> tuple[int
 def _warnings(scale: float, alpha: float, mass: float, s: int) -> list[str]:
     notes = []
     if not SCALE_RANGE[0] <= scale <= SCALE_RANGE[1]:
-        # s/t = 1 (a cell at 1/s pixel), unless the target would then be too small to be found (s > 5)
-        cell = max(1.0 / s, TARGET_MIN_PX_PER_CELL)
+        # s/t = 1 (a cell at 1/s pixel), unless the target would then be too small to be found (s >= 6)
+        smallest = 1.0 / s < TARGET_MIN_PX_PER_CELL
+        cell = f"{TARGET_MIN_PX_PER_CELL:g}" if smallest else f"{1.0 / s:.2g}"
         found = (f" (the target is found from {TARGET_MIN_PX_PER_CELL:g} pixel per cell: s/t = "
-                 f"{s * TARGET_MIN_PX_PER_CELL:.2g} at s = {s})" if cell > 1.0 / s else "")
+                 f"{s * TARGET_MIN_PX_PER_CELL:.2g} at s = {s})" if smallest else "")
         notes.append(
             f"imaging scale s/t = {scale:.2f} is outside [{SCALE_RANGE[0]}, {SCALE_RANGE[1]}] "
-            f"(IJCV 2012 sec. 3.3): move the target so a cell images to about {cell:.2g} pixel{found}"
+            f"(IJCV 2012 sec. 3.3): move the target so a cell images to about {cell} pixel{found}"
         )
     if abs(alpha) > 1:
         notes.append(f"response-curve coefficient {alpha:.2f} makes the correction non-monotone")

@@ -9,8 +9,9 @@ thesis App. A.1, "Sub-pixel corner refinement").
 The coarse search differs from the thesis, which groups LSD line segments into
 the shape of the marks: here the X-corners are found directly as saddle
 points of the smoothed image, which needs no segment model of the marks and
-works at any rotation and at any scale, from 0.2 px/cell to a target
-filling the frame (a pyramid level per octave). At a smoothing of several
+works at any rotation and at any scale, from 0.175 px/cell (s/t = 0.7 at
+s = 4, the smallest of IJCV 2012 sec. 3.3) to a target filling the frame
+(a pyramid level per octave). At a smoothing of several
 cells the Bernoulli noise averages out while each hourglass mark stays a
 perfect saddle. A real scene has many more saddles than the target (foliage
 against the sky, fences, letters), often stronger ones, so nothing is ranked
@@ -44,7 +45,8 @@ from psfd.estimator import quantiles, target
 # a factor 2 apart, level L smooths by 3 to 8 cells for targets imaged at
 # 2**L / 8 to 2**L / 3 pixels per cell (the hourglass is an exact saddle out
 # to 16 cells while the noise averages out); neighbouring levels overlap, and
-# level 0 finds targets from 0.2 px/cell (measured). Levels go on while a
+# level 0 finds targets from 0.19 px/cell (measured; from 0.175 with the image upsampled 2x as its finer
+# level, `_search`). Levels go on while a
 # target fits (5-6 px/cell fill a 3000 x 2000 plane, level 4 or 5).
 _SIGMA = 1.0
 _SMALLEST = 40  # px: the smallest target a level sees, 320 cells at 1/8 px/cell
@@ -136,7 +138,9 @@ def find_target(image: np.ndarray, saturated: np.ndarray | None = None) -> Detec
     about 3 cells (sigma; e.g. 0.8 px at 0.25 px/cell, f/32 on a small
     target) the blurred neighbouring squares reach the refinement window and
     the error grows to 0.15-0.5 px: place the target closer for such apertures.
-    Any scale from 0.2 px/cell to a target filling the frame is found; in
+    Any scale from 0.175 px/cell to a target filling the frame is found
+    (at 0.175-0.19 px/cell with PSFs up to a sigma of 0.6 px, 3.4 cells:
+    0.17-0.23 px from the truth, as at 0.2 px/cell); in
     cluttered 3000 x 2000 planes at 0.8-6 px/cell the corners came within
     0.03-0.19 px (8-bit planes).
 
@@ -283,6 +287,15 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
     with the others judged too (the pyramid and the strong ones are not
     computed twice: a frame without a target costs about one search of
     every saddle).
+
+    Each level's saddles are centred on the finer level (`_judge`), but the
+    image itself has none: at 0.175-0.19 px/cell (IJCV 2012 sec. 3.3 takes
+    s/t down to 0.7, 0.175 px/cell at s = 4) the squares beside a mark pull
+    its centre there 0.3-0.5 px off, and a quarter of the marks fail the
+    X-corner test. So when nothing is found, the image is searched again
+    with itself upsampled 2x as its finer level (only the image: the
+    coarser levels found nothing already). A frame without a target costs
+    about twice as long (0.15 -> 0.29 s on a cluttered 1953 x 1301 plane).
     """
     levels: list[tuple[_Level, _Level | None, np.ndarray]] = []
     lv, finer = _Level.of(norm), None
@@ -300,7 +313,9 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
             to_full = np.diag([2.0**level, 2.0**level, 1.0])  # pyrDown keeps pixel i at 2i
             taken = [np.linalg.inv(to_full) @ g for g in found]  # targets found on coarser levels
             if first:
-                peaks, local = proposed[level] = _proposals(lv, coarser)
+                if level not in proposed:
+                    proposed[level] = _proposals(lv, coarser)
+                peaks, local = proposed[level]
                 judged = strong[level] = _judge(lv, finer, _off(peaks[local], taken))
             else:  # the other peaks now, with the strong ones judged the first time
                 peaks, local = proposed[level]
@@ -318,6 +333,11 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
                     found.append(h)
         return found
 
+    found = search(True) or search(False)
+    if found or not levels:
+        return found
+    image, _, coarser = levels[0]
+    levels[:] = [(image, _Level.of(cv2.pyrUp(norm)), coarser)]  # pyrUp puts pixel i at 2i, as `_judge` reads it
     return search(True) or search(False)
 
 
