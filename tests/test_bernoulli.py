@@ -461,6 +461,16 @@ def test_a_noise_pattern_that_is_not_the_photographed_one_is_refused(data_dir):
         bernoulli.estimate_target(frame, noise=target.seeded_noise(7))
 
 
+def test_a_search_that_failed_already_is_not_made_again(data_dir):
+    """A search's error passed in (`psfd estimate target` searches a frame while the next ones decode) is
+    raised as that plane's own, naming it, where the plane would be searched: the real photo holds the
+    target, so a search made again would find it."""
+    frame = raw.load_frame(data_dir / "img_example.pgm", "mono")
+    failed = TargetNotFoundError("no calibration target found in the 328x292 image")
+    with pytest.raises(TargetNotFoundError, match=r"img_example.pgm \(mono\): no calibration target found in the"):
+        bernoulli.estimate_frames([frame], detections=[failed])
+
+
 def test_fast_path_equals_the_per_window_band_limiting(tmp_path):
     """One band per plane with per-window differences (`PatternBand`), D interpolated from the channel
     pixels, the target searched once per frame and refined per plane, the windows solved in forked

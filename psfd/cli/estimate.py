@@ -113,15 +113,16 @@ def _load_all(paths: list[str], channel: str) -> list:
 
 
 def _load_searched(paths: list[str], channel: str) -> tuple[list, list | None]:
-    """`_load_all`, and per plane the target found on it aside, or None: the ``detections`` of
-    `bernoulli.estimate_frames`.
+    """`_load_all`, and per plane the target found on it aside, the error of that search, or None: the
+    ``detections`` of `bernoulli.estimate_frames`.
 
     `estimate_frames` searches the target once per photograph, on the first plane `raw.load_frames` builds
     (g1 when there), and refines it on the others. That search (0.2-0.5 s on a 24-megapixel RAW, much of it
     page faults of fresh buffers) needs that plane only, so here it runs on a second thread while the
     file's other planes, and the next files, are decoded. It is the call `estimate_frames` would make on
-    the same plane, so the PSFs are the same. A search that fails is left None: `estimate_frames` makes it
-    again and raises its own error, naming the plane.
+    the same plane, so the PSFs are the same. A search that finds no target passes its error on, which
+    `estimate_frames` raises, naming the plane, without searching again (a search of a plane without a
+    target costs as much as one that finds it, or more).
     """
     from concurrent.futures import Future, ThreadPoolExecutor
 
@@ -150,12 +151,17 @@ def _load_searched(paths: list[str], channel: str) -> tuple[list, list | None]:
 
 
 def _search_quietly(frame):
-    """`detect.find_target` on a plane, None where it fails (`_load_searched`)."""
+    """`detect.find_target` on a plane (`_load_searched`): its detection, the error that says why it found
+    none (`estimate_frames` raises it, naming the plane, without searching again), or None where it failed
+    otherwise (searched again there, to raise the same error in its place)."""
+    from psfd.errors import EstimationError
     from psfd.estimator import detect
 
     try:
         return detect.find_target(frame.data, frame.saturated)
-    except Exception:  # made again by `estimate_frames`, which names the plane in its error
+    except EstimationError as exc:
+        return exc
+    except Exception:
         return None
 
 

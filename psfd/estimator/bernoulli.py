@@ -1038,7 +1038,7 @@ def estimate_frames(
     recentre: bool = True,
     tps: float | None = None,
     workers: int | None = None,
-    detections: list[detect.Detection | None] | None = None,
+    detections: list[detect.Detection | EstimationError | None] | None = None,
 ) -> list[PSF]:
     """`estimate_target` on several planes: the target detected once per photograph, the windows shared by workers.
 
@@ -1058,8 +1058,9 @@ def estimate_frames(
         Processes solving the windows; by default the cores this process may
         use, and none for a single window or little work.
     detections : list, optional
-        Per frame, the target already found in it (`detect.find_target`) or None: a frame with one is not
-        searched again.
+        Per frame, the target already found in it (`detect.find_target`) or None; a frame with one is not
+        searched again. Or the error of a search that found none: raised where the frame would be searched
+        again, as that search's own.
     noise, s, support, solver, grid, recentre, tps
         See `estimate_target`.
 
@@ -1184,9 +1185,10 @@ def _groups(counts: list[int]) -> list[list[tuple[int, int]]]:
     return groups
 
 
-def _detections(frames: list[Frame], known: list[detect.Detection | None] | None = None):
+def _detections(frames: list[Frame], known: list[detect.Detection | EstimationError | None] | None = None):
     """(frame, detection) for every frame: one search per photograph, refined on its other planes; a frame's
-    ``known`` detection (if not None) is taken as it is."""
+    ``known`` detection (if not None) is taken as it is, and a ``known`` error is raised as `_search` raises its
+    own."""
     found: dict[str, tuple[Frame, detect.Detection]] = {}
     order = sorted(range(len(frames)), key=lambda i: frames[i].channel != "g1")  # search on g1 when there
     detections = {i: d for i, d in enumerate(known or []) if d is not None}
@@ -1196,16 +1198,18 @@ def _detections(frames: list[Frame], known: list[detect.Detection | None] | None
         if clipped > OVEREXPOSED:  # the cause, named before the detection it defeats fails
             raise SaturatedError(f"{frame.source} ({frame.channel}): {clipped:.0%} of the frame is saturated; "
                                  "lower the exposure")
-        if i not in detections:
-            detections[i] = _search(frame, found)
+        if not isinstance(detections.get(i), detect.Detection):
+            detections[i] = _search(frame, found, detections.get(i))
         if frame.from_mosaic:
             found.setdefault(frame.source, (frame, detections[i]))
     return [(frames[i], detections[i]) for i in range(len(frames))]
 
 
-def _search(frame: Frame, found: dict[str, tuple[Frame, detect.Detection]]) -> detect.Detection:
+def _search(frame: Frame, found: dict[str, tuple[Frame, detect.Detection]],
+            failed: EstimationError | None = None) -> detect.Detection:
     """The target in one plane: refined from another plane of the same photograph when one was searched
-    (``found``, by source), else searched."""
+    (``found``, by source), else searched; ``failed``, the error of a search already made on it, is raised
+    where it would be searched again."""
     image = np.asarray(frame.data)
     try:
         if frame.from_mosaic and frame.source in found:
@@ -1215,6 +1219,8 @@ def _search(frame: Frame, found: dict[str, tuple[Frame, detect.Detection]]) -> d
                                             detect.plane_shift(first.offset, frame.offset))
             except EstimationError:  # a mark lost on this plane: search it on its own
                 pass
+        if failed is not None:
+            raise failed
         return detect.find_target(image, frame.saturated)
     except EstimationError as exc:  # say which of several frames and planes could not be used
         if isinstance(exc, TargetNotFoundError) and _seen_mirrored(image, frame.saturated):
