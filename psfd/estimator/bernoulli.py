@@ -29,7 +29,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from psfd.errors import BadInputError, EstimationError, SaturatedError, TargetNotFoundError
-from psfd.estimator import detect, geometry, kernels, quantiles, radiometry, resample, target
+from psfd.estimator import detect, geometry, kernels, mtf, quantiles, radiometry, resample, target
 from psfd.estimator.kernels import PSF
 from psfd.estimator.nnls import _cholesky_solve, nnls_normal
 from psfd.estimator.raw import Frame
@@ -49,6 +49,13 @@ SCALE_RANGE = (0.7, 2.0)  # s/t range of near-optimal conditioning, IJCV 2012 se
 # Half the target is white (noise cells, white squares, margin): a frame more than half clipped has
 # lost them, whether or not the marks can still be found, and detection on it fails for that reason.
 OVEREXPOSED = 0.5
+# Width of the PSF (the sigma of the Gaussian of the same MTF50), in target cells, above which it blurs the
+# squares beside each mark into the mark's refinement window (`detect.refine_target`, +-8 cells): the corners
+# are pulled off, and the map with them, and the PSF comes out too wide. Measured on renders through
+# Gaussians at 0.175-0.3 px/cell (tests/render.py), the MTF50 through the whole pipeline against the same
+# estimate with the true map and light: up to 3.8 cells (the estimate's width) within 1.8 % of it; 4.2-4.3
+# cells 2.5-4.3 % lower (corners up to 0.5 px off); 5.1 cells 6-9 % lower (0.7-0.9 px).
+MARK_BLUR_CELLS = 4.0
 
 
 # --------------------------------------------------------------------------- u~_D
@@ -1370,9 +1377,28 @@ def _psf(plane: _TargetPlane, r: dict, s: int, support: int, solver: str, grid: 
         prediction_error=r["prediction_error"],
         params={**params, "mass": r["mass"], "samples": r["count"],
                 "kernel_shift": [round(shift[0], 4), round(shift[1], 4)]},
-        warnings=(_warnings(plane.scale, plane.alpha, r["mass"], s)
+        warnings=(_warnings(plane.scale, plane.alpha, r["mass"], s) + _mark_blur(kernel, plane.scale, s)
                   + kernels.kernel_warnings(kernel, r["noise_floor"])),
     )
+
+
+def _mark_blur(kernel: np.ndarray, scale: float, s: int) -> list[str]:
+    """The warning of a PSF too wide for the marks to be located at the imaging scale ``scale`` = s/t
+    (`MARK_BLUR_CELLS`), or none."""
+    freqs, mtf_x, mtf_y = mtf.profiles(kernel, s)
+    f50 = np.nanmean([mtf.mtf50(freqs, mtf_x), mtf.mtf50(freqs, mtf_y)])
+    if not f50 > 0:
+        return []
+    sigma = np.sqrt(np.log(2) / 2) / (np.pi * f50)  # channel pixels: a Gaussian's MTF is 1/2 there
+    cells = sigma * s / scale  # a cell images to s/t / s pixel
+    if cells <= MARK_BLUR_CELLS:
+        return []
+    closer = sigma / 3  # pixels per cell that leave a margin under MARK_BLUR_CELLS
+    lower_s = (f", with -s {max(1, int(SCALE_RANGE[1] / closer))} or less (s/t up to {SCALE_RANGE[1]:g})"
+               if s * closer > SCALE_RANGE[1] else "")
+    return [f"the PSF (sigma about {sigma:.2f} pixel, {cells:.1f} cells) blurs the target's marks beyond where "
+            f"they can be located, so its map and this PSF are off (too wide): bring the target closer, a cell "
+            f"to {closer:.2f} pixel or more{lower_s}"]
 
 
 def recentre(kernel: np.ndarray, shift: tuple[float, float]) -> np.ndarray:
