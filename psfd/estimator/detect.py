@@ -137,7 +137,8 @@ def find_target(image: np.ndarray, saturated: np.ndarray | None = None) -> Detec
     a common shift when all marks share the phase); with a PSF wider than
     about 3 cells (sigma; e.g. 0.8 px at 0.25 px/cell, f/32 on a small
     target) the blurred neighbouring squares reach the refinement window and
-    the error grows to 0.15-0.5 px: place the target closer for such apertures.
+    the error grows to 0.15-0.5 px: place the target closer for such apertures
+    (a Bernoulli PSF wider than 4 cells says so, `bernoulli.MARK_BLUR_CELLS`).
     Any scale from 0.175 px/cell to a target filling the frame is found
     (at 0.175-0.19 px/cell with PSFs up to a sigma of 0.6 px, 3.4 cells:
     0.17-0.23 px from the truth, as at 0.2 px/cell); in
