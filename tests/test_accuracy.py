@@ -115,8 +115,9 @@ def test_whole_pipeline_is_accurate_and_unbiased(fast):
 
 def test_lower_end_of_the_papers_scale_range():
     """s/t = 0.7, the smallest imaging scale of IJCV 2012 sec. 3.3 (0.175 px/cell at s = 4), through the
-    whole pipeline: the target is found (its marks centred on the image upsampled 2x) and the PSF is as
-    accurate as at the advised scale, within its larger noise floor (0.009: the noise covers 45 x 45 pixels)."""
+    whole pipeline: the target is found (its marks centred on the image smoothed half as much) and the PSF
+    is as accurate as at the advised scale, within its larger noise floor (0.009: the noise covers 45 x 45
+    pixels)."""
     shot, support = _render("gaussian", 17, 0.175, 20.0)
     (est,) = bernoulli.estimate_target(shot.frame, support=support)
     _check(render.compare(est.psf, shot.kernel, S), est.noise_floor, shot.kernel, support)

@@ -101,8 +101,8 @@ def test_smallest_scale_is_found_and_oriented():
 @pytest.mark.parametrize(("angle", "seed"), [(63, 5), (200, 2)])
 def test_lower_end_of_the_papers_scale_range_is_found(angle, seed):
     # IJCV 2012 sec. 3.3 takes s/t down to 0.7: 0.175 px/cell at s = 4, where the marks' saddles are
-    # centred on the image upsampled 2x (`_search`). The corners come as close as at 0.2 px/cell (measured
-    # 0.17-0.23 px over six turns); the bound is a quarter pixel, one sample of the s = 4 grid of the PSF.
+    # centred on the image smoothed half as much (`_search`). The corners come as close as at 0.2 px/cell
+    # (measured 0.17-0.23 px over six turns); the bound is a quarter pixel, one sample of the PSF's s = 4 grid.
     image, h = render_target(frame_for(0.175), 0.175, angle=angle, seed=seed)
     found = detect.find_target(image)
     errors = np.linalg.norm(found.corners - apply_homography(h, target.xcorner_points()), axis=1)

@@ -45,8 +45,8 @@ from psfd.estimator import quantiles, target
 # a factor 2 apart, level L smooths by 3 to 8 cells for targets imaged at
 # 2**L / 8 to 2**L / 3 pixels per cell (the hourglass is an exact saddle out
 # to 16 cells while the noise averages out); neighbouring levels overlap, and
-# level 0 finds targets from 0.19 px/cell (measured; from 0.175 with the image upsampled 2x as its finer
-# level, `_search`). Levels go on while a
+# level 0 finds targets from 0.19 px/cell (measured; from 0.175 with its saddles centred on the image
+# smoothed half as much, `_search`). Levels go on while a
 # target fits (5-6 px/cell fill a 3000 x 2000 plane, level 4 or 5).
 _SIGMA = 1.0
 _SMALLEST = 40  # px: the smallest target a level sees, 320 cells at 1/8 px/cell
@@ -294,9 +294,10 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
     s/t down to 0.7, 0.175 px/cell at s = 4) the squares beside a mark pull
     its centre there 0.3-0.5 px off, and a quarter of the marks fail the
     X-corner test. So when nothing is found, the image is searched again
-    with itself upsampled 2x as its finer level (only the image: the
-    coarser levels found nothing already). A frame without a target costs
-    about twice as long (0.15 -> 0.29 s on a cluttered 1953 x 1301 plane).
+    with its saddles centred on itself smoothed half as much, as a finer
+    level would smooth (only the image: the coarser levels found nothing
+    already). A frame without a target costs about 60 % more (0.16 -> 0.26
+    s on a cluttered 1953 x 1301 plane).
     """
     levels: list[tuple[_Level, _Level | None, np.ndarray]] = []
     lv, finer = _Level.of(norm), None
@@ -338,7 +339,7 @@ def _search(norm: np.ndarray) -> list[np.ndarray]:
     if found or not levels:
         return found
     image, _, coarser = levels[0]
-    levels[:] = [(image, _Level.of(cv2.pyrUp(norm)), coarser)]  # pyrUp puts pixel i at 2i, as `_judge` reads it
+    levels[:] = [(image, _Level.of(norm, _SIGMA / 2, zoom=1.0), coarser)]
     return search(True) or search(False)
 
 
@@ -358,18 +359,19 @@ def _inside(points: np.ndarray, targets: list[np.ndarray]) -> np.ndarray:
 
 @dataclass
 class _Level:
-    """One pyramid level: the image, smoothed by _SIGMA, and its second derivatives."""
+    """One pyramid level: the image, smoothed (by _SIGMA), and its second derivatives."""
 
     image: np.ndarray
     smooth: np.ndarray
     ixx: np.ndarray
     iyy: np.ndarray
     ixy: np.ndarray
+    zoom: float = 2.0  # its pixels per pixel of the coarser level whose saddles it centres (`_judge`)
 
     @classmethod
-    def of(cls, image: np.ndarray) -> "_Level":
-        smooth = cv2.GaussianBlur(image, (0, 0), _SIGMA)
-        return cls(image, smooth, *_hessian(smooth))
+    def of(cls, image: np.ndarray, sigma: float = _SIGMA, zoom: float = 2.0) -> "_Level":
+        smooth = cv2.GaussianBlur(image, (0, 0), sigma)
+        return cls(image, smooth, *_hessian(smooth), zoom)
 
 
 @dataclass
@@ -525,10 +527,10 @@ def _judge(lv: _Level, finer: _Level | None, points: np.ndarray) -> tuple[np.nda
     # (it keeps every point that passes the full test and a third of the
     # others, measured), then a second step and the full test.
     centring = lv if finer is None else finer
-    zoom = 1.0 if finer is None else 2.0
+    zoom = 1.0 if finer is None else finer.zoom
     points, found = _newton(centring, zoom * points)
     if finer is not None:
-        points[~found] = _newton(finer, 2.0 * _newton(lv, 0.5 * points[~found])[0])[0]
+        points[~found] = _newton(finer, zoom * _newton(lv, points[~found] / zoom)[0])[0]
     outer = _x_shape(centring.image, points, (zoom * _RING_RADII[-1],))[0]
     points = _newton(centring, points[outer >= _OUTER_SHAPE])[0]
     shape, contrast, level, axis = _x_shape(centring.image, points, zoom * np.asarray(_RING_RADII))
