@@ -221,6 +221,18 @@ def test_one_plane_as_the_old_path(small_raw):
     _same(b, _old_estimate_frames([f for f in _old_load_raw(small_raw) if f.channel == "b"], (3, 2)))
 
 
+@pytest.mark.parametrize("channels", [["g1"], ["r", "b"]])
+def test_a_run_step_decodes_only_its_plane_with_the_same_psfs(small_raw, channels):
+    """A run's step (`work.estimate_step`) decodes only the plane a plan asks for when there is one (a
+    quarter of the memory of all four): its PSFs are those it made from all four planes decoded."""
+    from psfd.daemon import work
+    from psfd.estimator import bernoulli, raw
+
+    step = work.estimate_step("bernoulli", [str(small_raw)], channels, {"grid": (2, 1)})
+    planes = {f.channel: f for f in raw.load_frames(small_raw, "all")}
+    _same(step, bernoulli.estimate_frames([planes[c] for c in channels], grid=(2, 1), workers=1))
+
+
 @pytest.mark.parametrize("supersample", [1, 3])
 def test_cells_in_float32_are_the_float64_raster(supersample):
     from psfd.estimator import target
