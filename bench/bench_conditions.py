@@ -40,8 +40,9 @@ true light. Biased:
   it now solves the non-negative kernel again on the shifted grid
   (bernoulli._recentred). 500 e-: -0.7 to -4.6 % (not recentred -0.5 to
   -4.6 %; the clip made seed 2 -1.9 and -5.8 %).
-s/t = 0.70 (0.175 px/cell), found on the image upsampled 2x: MTF50 -1.5 / -1.5 % and
--0.6 / -0.1 %, -0.5 to -1.1 % with the true map and light.
+s/t = 0.70 (0.175 px/cell), found with the image's saddles centred on it smoothed half as
+much (detect._search): MTF50 -1.5 / -1.5 % and -0.6 / -0.1 %, -0.5 to -1.1 % with the true
+map and light.
 
 Usage: python bench/bench_conditions.py [--seeds 1 2] [--conditions coma-25 lowexp-150]
 """

@@ -273,15 +273,19 @@ def _held_by_other(lock: Path) -> bool:
 def catalogue_lock_path(catalogue_path: str | os.PathLike) -> Path:
     """The lock file of a catalogue: ``catalogue.sqlite-run.lock`` beside the file it names, through any
     symbolic link (two paths of one catalogue share its lock)."""
-    real = Path(os.path.realpath(catalogue_path))
-    return real.with_name(real.name + "-run.lock")
+    return _beside_catalogue(catalogue_path, "-run.lock")
 
 
 def queue_path(catalogue_path: str | os.PathLike) -> Path:
     """The file where the service keeps the plans queued and not started (`psfd.daemon.service`):
     ``catalogue.sqlite-queue.json`` beside the catalogue, through any symbolic link, as its lock."""
+    return _beside_catalogue(catalogue_path, "-queue.json")
+
+
+def _beside_catalogue(catalogue_path: str | os.PathLike, suffix: str) -> Path:
+    """The catalogue's file name plus ``suffix``, in the folder of the file the path names (links followed)."""
     real = Path(os.path.realpath(catalogue_path))
-    return real.with_name(real.name + "-queue.json")
+    return real.with_name(real.name + suffix)
 
 
 def kept_queue(catalogue_path: str | os.PathLike) -> list[dict]:

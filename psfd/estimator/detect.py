@@ -359,7 +359,8 @@ def _inside(points: np.ndarray, targets: list[np.ndarray]) -> np.ndarray:
 
 @dataclass
 class _Level:
-    """One pyramid level: the image, smoothed (by _SIGMA), and its second derivatives."""
+    """One pyramid level: the image, smoothed (by _SIGMA, or less where it only centres saddles), and its second
+    derivatives."""
 
     image: np.ndarray
     smooth: np.ndarray
